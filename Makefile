@@ -1,0 +1,19 @@
+# The two commands of the README, and the checks of CONTRIBUTING.md.
+PY := .venv/bin/python
+
+.PHONY: serve test lint bench
+
+serve:  ## set up, then serve the bundled demo scene on http://127.0.0.1:8000
+	scripts/bootstrap.sh
+	.venv/bin/edmcgs-serve
+
+test:   ## set up, then run the whole test suite
+	scripts/bootstrap.sh --test
+	$(PY) -m pytest
+
+lint:
+	.venv/bin/ruff check .
+
+bench:  ## every benchmark, JSON into reports/bench/
+	mkdir -p reports/bench
+	for b in render sensor simulate serve; do $(PY) -m bench.$$b --json reports/bench/$$b.json || exit 1; done

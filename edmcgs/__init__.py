@@ -1,0 +1,8 @@
+"""EdMCGS: event-driven Markov chain Gaussian splatting as a live streaming service.
+
+Subpackages: ``edmcgs.sensor`` (event sources, ring buffer, event map), ``edmcgs.model`` (Gaussians,
+rasterizer, deformation, training), ``edmcgs.synth`` (event simulator and synthetic benchmark),
+``edmcgs.server`` (FastAPI service) and ``edmcgs.clients`` (Python client, browser viewer).
+"""
+
+__version__ = "0.1.0"

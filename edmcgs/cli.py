@@ -1,0 +1,29 @@
+"""``edmcgs``: the command line, one subcommand per job, each living beside the code it drives."""
+
+import argparse
+import importlib
+import sys
+
+# subcommand -> (module, help). Imported lazily so that `edmcgs --help` is instant.
+COMMANDS = {
+    "record": ("edmcgs.sensor.record", "record a live camera or a replay to AEDAT4 or HDF5"),
+    "synth": ("edmcgs.synth.build", "build a synthetic dynamic scene with simulated events"),
+    "train": ("edmcgs.model.train_cli", "train EdMCGS on a recording"),
+    "eval": ("edmcgs.model.eval_cli", "evaluate a checkpoint on a recording's held-out frames"),
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help") or argv[0] not in COMMANDS:
+        parser = argparse.ArgumentParser(prog="edmcgs", description="EdMCGS tools")
+        parser.add_argument("command", choices=sorted(COMMANDS), help="; ".join(
+            f"{name}: {text}" for name, (_, text) in COMMANDS.items()))
+        parser.parse_args(argv[:1])
+        return 2
+    module = importlib.import_module(COMMANDS[argv[0]][0])
+    return int(module.main(argv[1:]) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

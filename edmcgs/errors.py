@@ -1,0 +1,61 @@
+"""The one error hierarchy of edmcgs.
+
+Every error a user can act on is an ``EdmcgsError``; the server maps these classes to HTTP status
+codes in one place (``edmcgs.server.errors``). Errors from dv-processing, pyusb, h5py and torch are
+translated at the boundary with ``raise ... from exc`` so the cause stays visible.
+"""
+
+
+class EdmcgsError(Exception):
+    """Base class of every error edmcgs raises on purpose."""
+
+
+class InvalidInputError(EdmcgsError, ValueError):
+    """A public function got an argument it cannot use (wrong shape, dtype, NaN, out of range).
+
+    The message names the argument and what was wrong with it.
+    """
+
+
+class PoseError(InvalidInputError):
+    """A camera pose or quaternion is malformed: non-finite, not a rotation, zero quaternion."""
+
+
+class SensorError(EdmcgsError):
+    """Something went wrong between an event camera (or recording) and the ring buffer."""
+
+
+class DeviceNotFound(SensorError):
+    """No event camera matching what was asked for is attached."""
+
+
+class DeviceDisconnected(SensorError):
+    """The camera went away mid-stream; what was buffered is kept and the caller may reconnect."""
+
+
+class BackendMissing(SensorError):
+    """A system library the sensor path needs (libusb) is not installed."""
+
+
+class WindowUnavailable(SensorError):
+    """An event window was asked for that the ring buffer no longer (or does not yet) retain."""
+
+
+class ReplayFormatError(SensorError):
+    """A recording file is of an unknown layout, truncated or corrupt."""
+
+
+class RecordingError(EdmcgsError):
+    """A recording could not be written."""
+
+
+class CheckpointError(EdmcgsError):
+    """A checkpoint is missing, truncated, foreign, or of a newer schema than this code reads."""
+
+
+class RenderError(EdmcgsError):
+    """A render failed for a reason other than its inputs."""
+
+
+class TrainingError(EdmcgsError):
+    """Training cannot proceed (e.g. a recording without anchor frames)."""
