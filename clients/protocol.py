@@ -1,0 +1,265 @@
+"""The wire schema of the edmcgs service, shared by the server and every client.
+
+This module imports nothing of the project (clients depend on it alone) and nothing heavier than
+msgpack. It fixes the names on the wire; the server validates with it and clients build with it.
+
+Time on the wire
+    ``t`` is seconds (float) from the scene's start, ``t_us`` is absolute microseconds (int, the time
+    base of the checkpoint and its recording; Unix-epoch µs for real cameras). ``t_us = t_start_us +
+    round(t * 1e6)``. Every response carries both.
+
+HTTP ``GET /render``
+    Query: ``t`` | ``t_us`` (neither: the live head), ``pose`` (16 numbers row-major camera-to-world,
+    or 7 numbers ``tx,ty,tz,qw,qx,qy,qz``, comma-separated or a JSON array; absent: the event
+    camera's own pose at t), ``width``, ``height`` (one alone keeps the aspect ratio), ``format``
+    (``png`` | ``jpeg`` | ``msgpack``; absent: negotiated from ``Accept``, default png). The headers
+    ``HEADERS`` describe the render. ``msgpack`` bodies are a frame map (below) without ``seq`` and
+    ``dropped``.
+
+Websocket ``/stream``
+    Client -> server: a subscription map (msgpack binary or JSON text), see ``Subscription``. It may
+    be re-sent at any time, whole or in part (e.g. only ``{"pose": [...]}``); the fields sent replace
+    the current ones. Server -> client messages are msgpack maps with a ``type``:
+    ``"subscribed"`` (the subscription in force), ``"frame"`` (``FRAME_KEYS``), ``"error"``
+    (``ERROR_KEYS``; the connection stays open and the previous subscription stays in force) and
+    ``"end"`` (a sweep without ``loop`` is done). A client that reads slowly gets the newest frame:
+    older unsent frames are dropped and counted in ``dropped``.
+
+Errors (HTTP bodies and websocket ``error`` messages)
+    JSON / msgpack map ``{"error": <class name>, "detail": <message>, "param": <name or null>,
+    "valid_range": {"t_min", "t_max", "t_us_min", "t_us_max"} or null}``. HTTP status: 401 missing
+    or wrong token, 416 a time that cannot be rendered now (``valid_range`` says what can), 422 a
+    malformed parameter (``param`` names it), 503 busy (``Retry-After`` header) or not ready, 500 a
+    failed render.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, Literal
+
+import msgpack
+
+# --- HTTP ---------------------------------------------------------------------------------------
+
+HEADER_T_US = "X-Edmcgs-T-Us"  # absolute µs actually rendered (int)
+HEADER_T = "X-Edmcgs-T"  # the same, seconds from the scene's start (float)
+HEADER_ANCHOR_US = "X-Edmcgs-Anchor-Us"  # tau(t): the anchor frame whose events window was used (int µs)
+HEADER_EVENTS = "X-Edmcgs-Events"  # number of events in the window [tau(t), t] (int)
+HEADER_RENDER_MS = "X-Edmcgs-Render-Ms"  # server time spent on the render, encoding included (float)
+HEADERS = (HEADER_T_US, HEADER_T, HEADER_ANCHOR_US, HEADER_EVENTS, HEADER_RENDER_MS)
+
+RENDER_FORMATS = ("png", "jpeg", "msgpack")
+STREAM_FORMATS = ("jpeg", "png", "raw")
+MEDIA_TYPES = {"png": "image/png", "jpeg": "image/jpeg", "msgpack": "application/msgpack"}
+# Accept values recognised for negotiation, in addition to MEDIA_TYPES' values.
+ACCEPT_ALIASES = {"image/jpg": "jpeg", "application/x-msgpack": "msgpack",
+                  "application/vnd.msgpack": "msgpack"}
+
+STREAM_MODES = ("live", "sweep")
+
+# Keys of a frame map (websocket "frame" message; the msgpack body of /render without seq/dropped).
+FRAME_KEYS = (
+    "type",  # "frame"
+    "seq",  # frame number on this connection, from 0; a gap is a dropped frame
+    "dropped",  # frames dropped on this connection so far (the client was slower than the frame rate)
+    "t_us",  # absolute µs rendered
+    "t",  # seconds from the scene's start
+    "anchor_us",  # tau(t) in absolute µs
+    "events",  # events in [tau(t), t]
+    "render_ms",  # server time of the render and its encoding
+    "arrived_unix_us",  # live mode: Unix µs at which the oldest event new to this frame reached the ring
+    "width",
+    "height",
+    "channels",  # 1 (grey) or 3 (RGB)
+    "format",  # "jpeg" | "png" | "raw" (msgpack body of /render: "raw")
+    "data",  # bytes: the encoded image, or for "raw" uint8 pixels [height, width, channels] row-major
+)
+ERROR_KEYS = ("type", "error", "detail", "param", "valid_range")
+
+
+class ProtocolError(ValueError):
+    """A message does not follow this schema; ``param`` names the offending field."""
+
+    def __init__(self, param: str | None, detail: str):
+        super().__init__(detail)
+        self.param = param
+        self.detail = detail
+
+
+def parse_pose_text(text: str) -> list[float]:
+    """Parse the ``pose`` query value: numbers separated by commas (or a JSON array) -> list of floats.
+
+    Only the syntax is checked here (16 or 7 finite numbers); the server checks the geometry.
+    """
+    raw = text.strip()
+    if raw.startswith("["):
+        try:
+            values = json.loads(raw)
+        except ValueError as exc:
+            raise ProtocolError("pose", f"pose is not a valid JSON array: {exc}") from None
+    else:
+        values = [v for v in raw.replace(";", ",").split(",") if v.strip()]
+    return check_pose_numbers(values)
+
+
+def check_pose_numbers(values: Any) -> list[float]:
+    """Check a pose given as a sequence of 16 (row-major c2w) or 7 (tx,ty,tz,qw,qx,qy,qz) numbers."""
+    if isinstance(values, (str, bytes)) or not hasattr(values, "__len__"):
+        raise ProtocolError("pose", "pose must be a list of 16 or 7 numbers")
+    if len(values) == 4 and all(hasattr(row, "__len__") and len(row) == 4 for row in values):
+        values = [v for row in values for v in row]  # a nested 4x4 matrix
+    if len(values) not in (16, 7):
+        raise ProtocolError("pose", f"pose must have 16 (4x4 row-major c2w) or 7 (tx,ty,tz,qw,qx,qy,qz) "
+                                    f"numbers, got {len(values)}")
+    out = []
+    for i, v in enumerate(values):
+        try:
+            f = float(v)
+        except (TypeError, ValueError):
+            raise ProtocolError("pose", f"pose[{i}] is not a number: {v!r}") from None
+        if not math.isfinite(f):
+            raise ProtocolError("pose", f"pose[{i}] is not finite: {v!r}")
+        out.append(f)
+    return out
+
+
+def negotiate_format(accept: str | None) -> str:
+    """The render format asked for by an ``Accept`` header (q-values honoured); ``png`` by default."""
+    if not accept:
+        return "png"
+    by_type = {media: name for name, media in MEDIA_TYPES.items()} | ACCEPT_ALIASES
+    best, best_q = "png", -1.0
+    for order, part in enumerate(accept.split(",")):
+        media, *params = (p.strip() for p in part.split(";"))
+        q = 1.0
+        for p in params:
+            if p.startswith("q="):
+                try:
+                    q = float(p[2:])
+                except ValueError:
+                    q = 0.0
+        name = by_type.get(media.lower())
+        # Earlier entries win ties; q=0 means "not acceptable".
+        if name is not None and q > 0 and q - order * 1e-9 > best_q:
+            best, best_q = name, q - order * 1e-9
+    return best
+
+
+# --- websocket ----------------------------------------------------------------------------------
+
+@dataclass
+class Subscription:
+    """What a websocket client asks the server to push.
+
+    mode: ``"live"`` follows the head of the event stream; ``"sweep"`` runs t0..t1 in scene time.
+    t0, t1: sweep range in seconds from the scene's start (``None``: the scene's start / end).
+    t0_us, t1_us: the same in absolute µs (take precedence over t0 / t1 when given).
+    fps: frames per second pushed (live: at most; the server caps it).
+    speed: sweep only, scene seconds per wall second (1.0 = real time).
+    loop: sweep only, start over at t1 instead of ending.
+    pose: 16 or 7 numbers (see ``check_pose_numbers``), or ``None`` for the event camera's own pose.
+    width, height: output size (``None``: the event camera's size; one alone keeps the aspect ratio).
+    format: ``"jpeg"`` | ``"png"`` | ``"raw"`` (uint8 pixels).
+    """
+
+    mode: Literal["live", "sweep"] = "live"
+    t0: float | None = None
+    t1: float | None = None
+    t0_us: int | None = None
+    t1_us: int | None = None
+    fps: float = 30.0
+    speed: float = 1.0
+    loop: bool = False
+    pose: list[float] | None = None
+    width: int | None = None
+    height: int | None = None
+    format: Literal["jpeg", "png", "raw"] = "jpeg"
+    extra: dict = field(default_factory=dict, repr=False)  # not on the wire; unknown keys are rejected
+
+    def to_message(self) -> dict:
+        """The map to send (``None`` fields left out)."""
+        return {k: v for k, v in asdict(self).items() if v is not None and k != "extra"}
+
+    def updated(self, message: dict) -> Subscription:
+        """A copy with the fields of ``message`` applied, validated; raises ProtocolError."""
+        if not isinstance(message, dict):
+            raise ProtocolError(None, "a subscription must be a map (msgpack map or JSON object)")
+        known = {f.name for f in fields(self)} - {"extra"}
+        unknown = sorted(set(message) - known)
+        if unknown:
+            raise ProtocolError(unknown[0], f"unknown subscription field {unknown[0]!r}; "
+                                            f"known: {', '.join(sorted(known))}")
+        values = asdict(self)
+        values.pop("extra")
+        values.update(message)
+        return _validated(values)
+
+
+def _number(values: dict, name: str, *, integer: bool = False, positive: bool = False,
+            optional: bool = True) -> Any:
+    v = values[name]
+    if v is None:
+        if optional:
+            return None
+        raise ProtocolError(name, f"{name} is required")
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ProtocolError(name, f"{name} must be a number, got {v!r}")
+    if not math.isfinite(v):
+        raise ProtocolError(name, f"{name} must be finite, got {v!r}")
+    if integer:
+        if float(v) != int(v):
+            raise ProtocolError(name, f"{name} must be an integer, got {v!r}")
+        v = int(v)
+    if positive and v <= 0:
+        raise ProtocolError(name, f"{name} must be > 0, got {v!r}")
+    return v
+
+
+def _validated(values: dict) -> Subscription:
+    if values["mode"] not in STREAM_MODES:
+        raise ProtocolError("mode", f"mode must be one of {STREAM_MODES}, got {values['mode']!r}")
+    if values["format"] not in STREAM_FORMATS:
+        raise ProtocolError("format", f"format must be one of {STREAM_FORMATS}, got {values['format']!r}")
+    if not isinstance(values["loop"], bool):
+        raise ProtocolError("loop", f"loop must be true or false, got {values['loop']!r}")
+    out = dict(
+        mode=values["mode"], format=values["format"], loop=values["loop"],
+        t0=_number(values, "t0"), t1=_number(values, "t1"),
+        t0_us=_number(values, "t0_us", integer=True), t1_us=_number(values, "t1_us", integer=True),
+        fps=_number(values, "fps", positive=True, optional=False),
+        speed=_number(values, "speed", positive=True, optional=False),
+        width=_number(values, "width", integer=True, positive=True),
+        height=_number(values, "height", integer=True, positive=True),
+        pose=None if values["pose"] is None else check_pose_numbers(values["pose"]),
+    )
+    return Subscription(**out)
+
+
+def decode_message(data: bytes | str) -> Any:
+    """A websocket message: msgpack when binary, JSON when text; raises ProtocolError."""
+    try:
+        if isinstance(data, str):
+            return json.loads(data)
+        return msgpack.unpackb(data, raw=False)
+    except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError) as exc:
+        kind = "JSON" if isinstance(data, str) else "msgpack"
+        raise ProtocolError(None, f"message is not valid {kind}: {exc}") from None
+
+
+def pack(message: dict) -> bytes:
+    """Encode a server message (frame, error, subscribed, end) as msgpack."""
+    return msgpack.packb(message, use_bin_type=True)
+
+
+def unpack(data: bytes) -> dict:
+    """Decode a server message."""
+    return msgpack.unpackb(data, raw=False)
+
+
+def error_body(error: str, detail: str, param: str | None = None,
+               valid_range: dict | None = None) -> dict:
+    """The error map of HTTP bodies and websocket ``error`` messages."""
+    return {"type": "error", "error": error, "detail": detail, "param": param, "valid_range": valid_range}
