@@ -1,0 +1,260 @@
+"""One configuration for EdMCGS: model sizes, loss weights, schedules and the ablation switches.
+
+The ablations of the paper are switches of this dataclass, never copies of code:
+``events=False`` (time-only prior), ``markov=False`` (events only as a training loss),
+``local_sampling=False`` (global average pooling of the event features), ``tli=False``.
+Schedules are fractions of ``iterations`` so that ``--set iterations=N`` keeps them consistent.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, fields
+
+from edmcgs.errors import InvalidInputError
+
+
+@dataclass
+class EdmcgsConfig:
+    """Every knob of the model and its training; presets are ``demo`` and ``paper``."""
+
+    # --- ablation switches -------------------------------------------------------------------
+    events: bool = True
+    """Use the event stream at all. False: the time-only prior, no event loss, no event branch."""
+    markov: bool = True
+    """Event-driven Markov transition g_phi, active at inference. False: events only supervise."""
+    local_sampling: bool = True
+    """Sample Phi's map at each control point's projection. False: one globally pooled code."""
+    tli: bool = True
+    """Temporal local isometry regulariser on the control points' KNN graph."""
+
+    # --- representation ----------------------------------------------------------------------
+    init_points: int = 20000
+    """Number of Gaussians at initialisation (back-projected anchor pixels)."""
+    max_gaussians: int = 200000
+    """Densification stops adding Gaussians above this count."""
+    sh_degree: int = 0
+    """Spherical-harmonics degree of the colour; 0 stores a plain colour per Gaussian."""
+    num_control_points: int = 512
+    """M: control points sampled by farthest-point sampling of the canonical means."""
+    skin_k: int = 3
+    """K: control points each Gaussian is bound to (linear blend skinning)."""
+    graph_k: int = 10
+    """K_conn: neighbours of each control point in the TLI / smoothness graph."""
+    radius_init: float = 0.1
+    """Initial RBF radius of every control point, as a fraction of the scene extent."""
+    deform_width: int = 256
+    """Width of the RGB-prior deformation MLP f_theta."""
+    deform_depth: int = 8
+    """Hidden layers of f_theta (a skip connection re-injects the input half-way)."""
+    pos_freqs: int = 10
+    """Positional-encoding frequencies of a control point's position for f_theta."""
+    time_freqs: int = 6
+    """Positional-encoding frequencies of the normalised time for f_theta."""
+    event_pos_freqs: int = 4
+    """Positional-encoding frequencies of the control point's position for g_phi."""
+    event_hidden: int = 64
+    """Hidden width of g_phi."""
+    background: float = 0.0
+    """Grey level of the background behind all Gaussians, in [0, 1]."""
+
+    # --- losses --------------------------------------------------------------------------------
+    lambda_dssim: float = 0.2
+    """lambda_d: weight of D-SSIM against L1 in the photometric loss at the anchors."""
+    lambda_event: float = 0.05
+    """lambda_e: weight of the event (EGM) loss."""
+    lambda_tli: float = 1e-5
+    """lambda_t: weight of the temporal local isometry loss."""
+    lambda_smooth: float = 1e-2
+    """lambda_s: weight of the KNN Laplacian smoothness of g_phi's output."""
+    contrast_threshold: float = 0.2
+    """C: log-luminance change per event (taken from the recording when it states one)."""
+    log_eps: float = 1e-3
+    """epsilon of the log-luminance L = log(I + epsilon), I in [0, 1]."""
+
+    # --- training ------------------------------------------------------------------------------
+    iterations: int = 30000
+    """Optimisation steps."""
+    train_scale: float = 1.0
+    """Render and supervise at this fraction of the image resolution (the event maps fed to Phi stay
+    at full resolution)."""
+    substeps: int = 16
+    """Sub-step times per gap between anchors at which event windows are pre-accumulated."""
+    max_pair_steps: int = 16
+    """Largest distance, in sub-steps, between the two times t_a < t_b of the event loss."""
+    seed: int = 0
+    """Seed of every random choice (initialisation, sampling of times)."""
+    lr_means: float = 1.6e-4
+    """Adam step of the canonical means, in scene extents, decayed exponentially to 1/100."""
+    lr_features: float = 2.5e-3
+    """Adam step of the colour (logits or SH)."""
+    lr_opacity: float = 0.05
+    """Adam step of the opacity logits."""
+    lr_scales: float = 5e-3
+    """Adam step of the log-scales."""
+    lr_quats: float = 1e-3
+    """Adam step of the quaternions."""
+    lr_deform: float = 8e-4
+    """Adam step of f_theta, decayed exponentially to 1/50."""
+    lr_event: float = 1e-3
+    """Adam step of Phi and g_phi, decayed exponentially to 1/10."""
+    lr_radius: float = 1e-3
+    """Adam step of the control points' log-radii."""
+    deform_from: float = 0.0
+    """Fraction of training during which the deformation is off (static warm-up of the canonical set)."""
+    event_warmup: tuple[float, float] = (0.2, 0.4)
+    """Fractions of training between which g_phi's output scale ramps from 0 to 1."""
+    densify_from: float = 0.02
+    """Fraction of training from which adaptive density control runs."""
+    densify_until: float = 0.5
+    """Fraction of training after which no Gaussian is added, removed or reset."""
+    densify_every: int = 100
+    """Iterations between two densification steps."""
+    densify_grad: float = 2e-4
+    """Mean screen-space (NDC) gradient of a Gaussian's mean above which it is cloned or split."""
+    percent_dense: float = 0.01
+    """Gaussians smaller than this fraction of the scene extent are cloned, larger ones split."""
+    prune_opacity: float = 0.005
+    """Gaussians below this opacity are pruned."""
+    prune_size: float = 0.1
+    """Gaussians larger than this fraction of the scene extent are pruned (after the first reset)."""
+    opacity_reset_every: int = 3000
+    """Iterations between opacity resets (0 disables them)."""
+    control_resample_until: float = 0.1
+    """Until this fraction of training the control points are re-sampled from the current means at
+    every densification step; later they are fixed (the paper's canonical control points)."""
+    eval_every: int = 1000
+    """Iterations between two evaluations on held-out frames (0 disables them)."""
+    eval_frames: int = 8
+    """Held-out frames used by the periodic evaluation (evenly spaced)."""
+    checkpoint_every: int = 1000
+    """Iterations between two resumable checkpoints (0: only at the end)."""
+
+    def to_dict(self) -> dict:
+        return {f.name: _plain(getattr(self, f.name)) for f in fields(self)}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> EdmcgsConfig:
+        """Rebuild from ``to_dict`` output; unknown keys (from a newer writer) are an error."""
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise InvalidInputError(f"config: unknown keys {unknown}")
+        cfg = cls()
+        for f in fields(cls):
+            if f.name in data:
+                setattr(cfg, f.name, _coerce(f, data[f.name]))
+        cfg.validate()
+        return cfg
+
+    def replace(self, **changes) -> EdmcgsConfig:
+        cfg = dataclasses.replace(self, **changes)
+        cfg.validate()
+        return cfg
+
+    def with_overrides(self, items: list[str]) -> EdmcgsConfig:
+        """Apply ``key=value`` strings (``--set``); values are parsed by the field's type."""
+        cfg = dataclasses.replace(self)
+        by_name = {f.name: f for f in fields(self)}
+        for item in items:
+            key, sep, raw = item.partition("=")
+            key = key.strip()
+            if not sep:
+                raise InvalidInputError(f"--set {item!r}: expected key=value")
+            if key not in by_name:
+                raise InvalidInputError(f"--set {item!r}: unknown key {key!r}; known: {sorted(by_name)}")
+            setattr(cfg, key, _parse(by_name[key], raw.strip()))
+        cfg.validate()
+        return cfg
+
+    def validate(self) -> None:
+        """Raise ``InvalidInputError`` naming the first field out of its range."""
+        positive = ("init_points", "max_gaussians", "num_control_points", "skin_k", "graph_k",
+                    "deform_width", "deform_depth", "event_hidden", "iterations", "substeps",
+                    "max_pair_steps", "densify_every", "eval_frames")
+        for name in positive:
+            if getattr(self, name) <= 0:
+                raise InvalidInputError(f"config.{name} must be > 0, got {getattr(self, name)}")
+        for name in ("sh_degree", "pos_freqs", "time_freqs", "event_pos_freqs", "eval_every",
+                     "checkpoint_every", "opacity_reset_every"):
+            if getattr(self, name) < 0:
+                raise InvalidInputError(f"config.{name} must be >= 0, got {getattr(self, name)}")
+        if self.sh_degree > 3:
+            raise InvalidInputError(f"config.sh_degree must be <= 3, got {self.sh_degree}")
+        if not 0.0 < self.train_scale <= 1.0:
+            raise InvalidInputError(f"config.train_scale must be in (0, 1], got {self.train_scale}")
+        if not 0.0 <= self.background <= 1.0:
+            raise InvalidInputError(f"config.background must be in [0, 1], got {self.background}")
+        if self.contrast_threshold <= 0 or self.log_eps <= 0 or self.radius_init <= 0:
+            raise InvalidInputError("config.contrast_threshold, log_eps and radius_init must be > 0")
+        lo, hi = self.event_warmup
+        if not 0.0 <= lo <= hi <= 1.0:
+            raise InvalidInputError(f"config.event_warmup must be 0 <= start <= end <= 1, got {lo, hi}")
+        if self.skin_k > self.num_control_points or self.graph_k >= self.num_control_points:
+            raise InvalidInputError("config.skin_k and graph_k must be smaller than num_control_points")
+
+    @property
+    def has_event_branch(self) -> bool:
+        """Whether the event-driven transition (Phi, g_phi) exists."""
+        return self.events and self.markov
+
+
+def _plain(value):
+    return list(value) if isinstance(value, tuple) else value
+
+
+def _coerce(f: dataclasses.Field, value):
+    if f.type in ("tuple[float, float]",):
+        return tuple(float(v) for v in value)
+    return value
+
+
+def _parse(f: dataclasses.Field, raw: str):
+    kind = f.type
+    try:
+        if kind == "bool":
+            lowered = raw.lower()
+            if lowered in ("1", "true", "yes", "on"):
+                return True
+            if lowered in ("0", "false", "no", "off"):
+                return False
+            raise ValueError(raw)
+        if kind == "int":
+            return int(raw)
+        if kind == "float":
+            return float(raw)
+        if kind == "tuple[float, float]":
+            parts = [float(v) for v in raw.strip("()[] ").split(",")]
+            if len(parts) != 2:
+                raise ValueError(raw)
+            return tuple(parts)
+    except ValueError as exc:
+        raise InvalidInputError(f"--set {f.name}={raw!r}: not a valid {kind}") from exc
+    return raw
+
+
+def _demo() -> EdmcgsConfig:
+    # Sized for a 2-core CPU: fewer, cheaper iterations at reduced resolution.
+    return EdmcgsConfig(
+        init_points=6000, max_gaussians=30000, num_control_points=256, deform_width=128, deform_depth=4,
+        iterations=3000, train_scale=0.5, eval_every=500, checkpoint_every=500,
+        lr_means=4e-4, lr_deform=2e-3, lr_event=2e-3, densify_every=100, opacity_reset_every=0,
+        event_warmup=(0.15, 0.3),
+    )
+
+
+PRESETS = {
+    "paper": EdmcgsConfig,
+    "demo": _demo,
+}
+"""Named configurations: ``paper`` (the paper's settings, 30k iterations) and ``demo`` (CPU-sized)."""
+
+
+def preset(name: str) -> EdmcgsConfig:
+    """The named preset; ``InvalidInputError`` for an unknown name."""
+    if name not in PRESETS:
+        raise InvalidInputError(f"config: unknown preset {name!r}; choose from {sorted(PRESETS)}")
+    return PRESETS[name]()
+
+
+__all__ = ["PRESETS", "EdmcgsConfig", "preset"]
