@@ -40,3 +40,26 @@ def make_recording(n_events=20_000, width=64, height=48, n_anchors=4, channels=3
 def dvxplorer_path() -> Path:
     assert DVXPLORER.is_file(), f"the shared test recording is missing: {DVXPLORER}"
     return DVXPLORER
+
+
+def write_aedat(path: Path, events: Events, frames: Frames | None, width: int, height: int,
+                camera: str = "DAVIS346_test") -> Path:
+    """Write events (and frames) with dv-processing's own MonoCameraWriter."""
+    import dv_processing as dv
+
+    if frames is not None:
+        config = dv.io.MonoCameraWriter.DAVISConfig(camera, (width, height))
+    else:
+        config = dv.io.MonoCameraWriter.EventOnlyConfig(camera, (width, height))
+    writer = dv.io.MonoCameraWriter(str(path), config)
+    store = dv.EventStore()
+    for t, x, y, p in zip(events.t.tolist(), events.x.tolist(), events.y.tolist(), (events.p > 0).tolist(),
+                          strict=True):
+        store.push_back(t, x, y, p)
+    writer.writeEvents(store)
+    for i in range(0 if frames is None else len(frames)):
+        img = frames.images[i]
+        img = img[..., 0] if img.shape[2] == 1 else img[..., ::-1]  # dv frames are BGR
+        writer.writeFrame(dv.Frame(int(frames.t_us[i]), np.ascontiguousarray(img)))
+    del writer  # the destructor flushes and closes the file
+    return path

@@ -1,0 +1,108 @@
+"""The one protocol every event source follows (live camera, AEDAT4 replay, HDF5 replay).
+
+A source opens when constructed and is a context manager. ``read()`` returns the next
+``SensorBatch`` (events, plus frames and IMU samples where the source has them) or None at the end
+of the stream. ``info`` says the resolution and which streams exist; ``stats`` counts what boundary
+validation dropped or reordered.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+from edmcgs.sensor.events import Events, EventStats
+from edmcgs.sensor.frames import Frames
+
+from edmcgs.errors import SensorError
+
+# IMU samples as a structured array: accelerometer in g, gyroscope in degrees per second (dv's units).
+IMU_DTYPE = np.dtype([("t", "<i8"), ("accel", "<f4", (3,)), ("gyro", "<f4", (3,)), ("temperature", "<f4")])
+
+
+@dataclass(frozen=True)
+class StreamInfo:
+    """What a source delivers."""
+
+    width: int
+    """Event resolution, pixels."""
+    height: int
+    sensor: str
+    """Camera name (model and serial) or a description of the file layout."""
+    has_frames: bool
+    """Whether batches can carry frames (APS / RGB)."""
+    has_imu: bool
+    """Whether batches can carry IMU samples."""
+    live: bool
+    """A camera (True) or a replay of a file (False)."""
+    t_range_us: tuple[int, int] | None = None
+    """First and last timestamp of a replay, on the file's clock; None for a camera."""
+    frame_size: tuple[int, int] | None = None
+    """(width, height) of the frames, when the source has frames."""
+
+
+@dataclass(frozen=True)
+class SensorBatch:
+    """One read from a source, all times int64 µs on the stream clock (after any loop shift)."""
+
+    events: Events
+    frames: Frames | None = None
+    """Frames whose timestamps fall in this batch (RGB or grey, uint8 [F, H, W, C])."""
+    imu: np.ndarray | None = None
+    """IMU_DTYPE [K] samples in this batch."""
+    t_end_us: int | None = None
+    """Every event of the stream with t < t_end_us has now been delivered (None: only up to the last
+    event's time, as for a live camera)."""
+    loop: int = 0
+    """Replays: how many times the recording has wrapped around."""
+    time_shift_us: int = 0
+    """Replays: added to the file's timestamps in this loop so that time keeps increasing."""
+
+
+@runtime_checkable
+class EventSource(Protocol):
+    """Structural type of every source; see the module docstring."""
+
+    @property
+    def info(self) -> StreamInfo: ...
+
+    @property
+    def stats(self) -> EventStats: ...
+
+    def read(self) -> SensorBatch | None: ...
+
+    def close(self) -> None: ...
+
+    def __enter__(self) -> EventSource: ...
+
+    def __exit__(self, *exc) -> None: ...
+
+
+class SourceBase:
+    """Shared plumbing: context manager, closed-state check, validation counts."""
+
+    def __init__(self) -> None:
+        self._stats = EventStats()
+        self._closed = False
+
+    @property
+    def stats(self) -> EventStats:
+        return self._stats
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise SensorError(f"{type(self).__name__} is closed")
+
+    def close(self) -> None:
+        self._closed = True
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
