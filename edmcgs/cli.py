@@ -10,6 +10,7 @@ COMMANDS = {
     "synth": ("edmcgs.synth.build", "build a synthetic dynamic scene with simulated events"),
     "train": ("edmcgs.model.train_cli", "train EdMCGS on a recording"),
     "eval": ("edmcgs.model.eval_cli", "evaluate a checkpoint on a recording's held-out frames"),
+    "export": ("edmcgs.clients.export", "export a time sweep of a running service as GIF or MP4"),
 }
 
 

@@ -1,0 +1,632 @@
+// edmcgs browser viewer: the live stream over WS /stream, scrubbing over GET /render, and a free camera.
+//
+// No build step and nothing fetched from elsewhere: one file of plain JS, served by edmcgs-serve at /.
+// Poses are camera-to-world 4x4, row-major, OpenCV convention (x right, y down, z forward), as on the
+// wire. A pose of null means "the event camera's own pose at t", which the server fills in.
+"use strict";
+
+// ---------------------------------------------------------------- msgpack (decode only)
+// Frames arrive as msgpack maps; subscriptions go out as JSON text, which the server also accepts.
+
+function unpack(bytes) {
+  const view = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
+  const utf8 = new TextDecoder();
+  let pos = 0;
+  const need = (n) => {
+    if (pos + n > bytes.length) throw new Error("msgpack: truncated message");
+  };
+  const take = (n) => { need(n); const start = pos; pos += n; return start; };
+  const str = (n) => { const s = take(n); return utf8.decode(bytes.subarray(s, s + n)); };
+  const bin = (n) => { const s = take(n); return bytes.slice(s, s + n); };
+  const arr = (n) => { const out = new Array(n); for (let i = 0; i < n; i++) out[i] = read(); return out; };
+  const map = (n) => {
+    const out = {};
+    for (let i = 0; i < n; i++) { const key = read(); out[key] = read(); }
+    return out;
+  };
+  // Number() of a 64-bit integer is exact below 2^53 (9e15): Unix-epoch microseconds fit.
+  const u8 = () => view.getUint8(take(1)), u16 = () => view.getUint16(take(2));
+  const u32 = () => view.getUint32(take(4));
+  function read() {
+    const b = view.getUint8(take(1));
+    if (b <= 0x7f) return b;
+    if (b >= 0xe0) return b - 0x100;
+    if (b >= 0x80 && b <= 0x8f) return map(b & 0x0f);
+    if (b >= 0x90 && b <= 0x9f) return arr(b & 0x0f);
+    if (b >= 0xa0 && b <= 0xbf) return str(b & 0x1f);
+    switch (b) {
+      case 0xc0: return null;
+      case 0xc2: return false;
+      case 0xc3: return true;
+      case 0xc4: return bin(u8());
+      case 0xc5: return bin(u16());
+      case 0xc6: return bin(u32());
+      case 0xca: return view.getFloat32(take(4));
+      case 0xcb: return view.getFloat64(take(8));
+      case 0xcc: return u8();
+      case 0xcd: return u16();
+      case 0xce: return u32();
+      case 0xcf: return Number(view.getBigUint64(take(8)));
+      case 0xd0: return view.getInt8(take(1));
+      case 0xd1: return view.getInt16(take(2));
+      case 0xd2: return view.getInt32(take(4));
+      case 0xd3: return Number(view.getBigInt64(take(8)));
+      case 0xd9: return str(u8());
+      case 0xda: return str(u16());
+      case 0xdb: return str(u32());
+      case 0xdc: return arr(u16());
+      case 0xdd: return arr(u32());
+      case 0xde: return map(u16());
+      case 0xdf: return map(u32());
+      default: throw new Error(`msgpack: unsupported type byte 0x${b.toString(16)}`);
+    }
+  }
+  const value = read();
+  if (pos !== bytes.length) throw new Error("msgpack: trailing bytes after the message");
+  return value;
+}
+
+// ---------------------------------------------------------------- pose math
+// A rotation R is 3 rows of 3; R[i][j] with column j the camera's axis j expressed in the world.
+
+const col = (R, j) => [R[0][j], R[1][j], R[2][j]];
+const add = (a, b) => [a[0] + b[0], a[1] + b[1], a[2] + b[2]];
+const scale = (a, s) => [a[0] * s, a[1] * s, a[2] * s];
+const dot = (a, b) => a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+const norm = (a) => Math.sqrt(dot(a, a));
+
+function matmul3(A, B) {
+  return [0, 1, 2].map((i) => [0, 1, 2].map((j) => A[i][0] * B[0][j] + A[i][1] * B[1][j] + A[i][2] * B[2][j]));
+}
+
+// Rodrigues: rotation by `angle` radians about the unit vector `axis`.
+function axisAngle(axis, angle) {
+  const [x, y, z] = scale(axis, 1 / norm(axis));
+  const c = Math.cos(angle), s = Math.sin(angle), t = 1 - c;
+  return [
+    [t * x * x + c, t * x * y - s * z, t * x * z + s * y],
+    [t * x * y + s * z, t * y * y + c, t * y * z - s * x],
+    [t * x * z - s * y, t * y * z + s * x, t * z * z + c],
+  ];
+}
+
+function splitPose(m) {  // row-major 16 -> {R, C}
+  return {
+    R: [[m[0], m[1], m[2]], [m[4], m[5], m[6]], [m[8], m[9], m[10]]],
+    C: [m[3], m[7], m[11]],
+  };
+}
+
+function joinPose(R, C) {
+  return [...R[0], C[0], ...R[1], C[1], ...R[2], C[2], 0, 0, 0, 1];
+}
+
+function quatFromRot(R) {  // (w, x, y, z), Shepperd's method: stable for every rotation
+  const tr = R[0][0] + R[1][1] + R[2][2];
+  let q;
+  if (tr > 0) {
+    const s = 2 * Math.sqrt(tr + 1);
+    q = [0.25 * s, (R[2][1] - R[1][2]) / s, (R[0][2] - R[2][0]) / s, (R[1][0] - R[0][1]) / s];
+  } else if (R[0][0] > R[1][1] && R[0][0] > R[2][2]) {
+    const s = 2 * Math.sqrt(1 + R[0][0] - R[1][1] - R[2][2]);
+    q = [(R[2][1] - R[1][2]) / s, 0.25 * s, (R[0][1] + R[1][0]) / s, (R[0][2] + R[2][0]) / s];
+  } else if (R[1][1] > R[2][2]) {
+    const s = 2 * Math.sqrt(1 + R[1][1] - R[0][0] - R[2][2]);
+    q = [(R[0][2] - R[2][0]) / s, (R[0][1] + R[1][0]) / s, 0.25 * s, (R[1][2] + R[2][1]) / s];
+  } else {
+    const s = 2 * Math.sqrt(1 + R[2][2] - R[0][0] - R[1][1]);
+    q = [(R[1][0] - R[0][1]) / s, (R[0][2] + R[2][0]) / s, (R[1][2] + R[2][1]) / s, 0.25 * s];
+  }
+  const n = Math.hypot(...q);
+  return q.map((v) => v / n);
+}
+
+function rotFromQuat([w, x, y, z]) {
+  return [
+    [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+  ];
+}
+
+function slerp(q0, q1, a) {
+  let d = q0.reduce((s, v, i) => s + v * q1[i], 0);
+  if (d < 0) { q1 = q1.map((v) => -v); d = -d; }  // the shorter arc
+  if (d > 0.9995) {  // nearly equal: lerp, then normalise
+    const q = q0.map((v, i) => v + a * (q1[i] - v));
+    const n = Math.hypot(...q);
+    return q.map((v) => v / n);
+  }
+  const th = Math.acos(d), s = Math.sin(th);
+  const k0 = Math.sin((1 - a) * th) / s, k1 = Math.sin(a * th) / s;
+  return q0.map((v, i) => k0 * v + k1 * q1[i]);
+}
+
+// The event camera's pose at tUs from the scene's trajectory samples: slerp + linear, clamped to its
+// span (the server's Trajectory.at does the same). Null when the scene has no trajectory.
+function poseAt(traj, tUs) {
+  if (!traj || !traj.t_us || traj.t_us.length === 0) return null;
+  const ts = traj.t_us, n = ts.length;
+  if (n === 1 || tUs <= ts[0]) return traj.c2w[0].slice();
+  if (tUs >= ts[n - 1]) return traj.c2w[n - 1].slice();
+  let lo = 0, hi = n - 1;
+  while (hi - lo > 1) { const mid = (lo + hi) >> 1; if (ts[mid] <= tUs) lo = mid; else hi = mid; }
+  const a = (tUs - ts[lo]) / (ts[hi] - ts[lo]);
+  const p0 = splitPose(traj.c2w[lo]), p1 = splitPose(traj.c2w[hi]);
+  const R = rotFromQuat(slerp(quatFromRot(p0.R), quatFromRot(p1.R), a));
+  return joinPose(R, p0.C.map((v, i) => v + a * (p1.C[i] - v)));
+}
+
+// A turntable camera around a target in front of the base camera: yaw about the base camera's up
+// (-y), pitch about its right (x), distance along the view axis, and a pan of the target.
+class Orbit {
+  constructor(baseC2w, depth) {
+    const { R, C } = splitPose(baseC2w);
+    this.R0 = R;
+    this.up = scale(col(R, 1), -1);
+    this.right = col(R, 0);
+    this.target = add(C, scale(col(R, 2), depth));
+    this.dist = depth;
+    this.minDist = depth * 1e-3;
+    this.yaw = 0;
+    this.pitch = 0;
+  }
+
+  rotation() {
+    return matmul3(axisAngle(this.up, this.yaw), matmul3(axisAngle(this.right, this.pitch), this.R0));
+  }
+
+  rotate(dYaw, dPitch) {
+    this.yaw += dYaw;
+    this.pitch = Math.max(-1.55, Math.min(1.55, this.pitch + dPitch));  // stay short of the poles
+  }
+
+  // dx, dy: image-plane motion in world units at the target's depth; the scene follows the pointer.
+  pan(dx, dy) {
+    const R = this.rotation();
+    this.target = add(this.target, add(scale(col(R, 0), -dx), scale(col(R, 1), -dy)));
+  }
+
+  zoom(factor) {
+    this.dist = Math.max(this.minDist, this.dist * factor);
+  }
+
+  c2w() {
+    const R = this.rotation();
+    return joinPose(R, add(this.target, scale(col(R, 2), -this.dist)));
+  }
+}
+
+// How far in front of the camera to orbit: the scene's centre if the server states it, else the
+// world origin's depth (synthetic scenes sit around it), else the camera's distance from the origin.
+function orbitDepth(scene, c2w) {
+  const { R, C } = splitPose(c2w);
+  const centre = scene.scene_center || scene.center || [0, 0, 0];
+  const d = dot(col(R, 2), centre.map((v, i) => v - C[i]));
+  if (Number.isFinite(d) && d > 1e-3) return d;
+  return Math.max(norm(C), 1);
+}
+
+// ---------------------------------------------------------------- the viewer
+
+const $ = (id) => document.getElementById(id);
+const token = new URLSearchParams(location.search).get("token");
+const authHeaders = token ? { Authorization: `Bearer ${token}` } : {};
+
+const state = {
+  scene: null,
+  playing: true,          // live: follow the stream's head; paused: render the slider's time
+  orbit: null,            // null: the event camera's own pose
+  tUs: null,              // time of the frame on screen
+  frames: 0,
+  shown: [],              // performance.now() of recent frames on screen, for fps
+  latencyMs: null,
+  ws: null,
+  wsGeneration: 0,
+  sentAt: [],             // performance.now() of each subscription sent and not yet answered
+  ackedSentAt: null,      // ... of the one just answered, until its first frame arrives
+  eventLatencyMs: null,
+  viewDirty: false,       // a change of view waits for the next animation frame (one message per paint)
+  rendering: false,       // a GET /render in flight
+  renderAgain: false,     // ... and the inputs changed since it was sent
+  pending: null,          // the newest frame not yet drawn (older ones are dropped: only the newest matters)
+  drawing: false,
+};
+
+function showError(message) {
+  $("error-text").textContent = message;
+  $("error").hidden = false;
+  state.errorAt = performance.now();
+}
+
+function clearError() {
+  // An error stays up for at least 3 s so that one followed by a good frame can still be read.
+  if (!$("error").hidden && performance.now() - state.errorAt > 3000) $("error").hidden = true;
+}
+
+function setStatus(text) { $("status").textContent = text; }
+
+// An error map of the wire ({error, detail, param, valid_range}) as one line a person can act on.
+function describeError(body) {
+  let text = typeof body.detail === "string" ? body.detail : JSON.stringify(body.detail ?? body);
+  if (body.error) text = `${body.error}: ${text}`;
+  const r = body.valid_range;
+  if (r && r.t_min !== undefined) text += ` (valid t: ${r.t_min.toFixed(3)}–${r.t_max.toFixed(3)} s)`;
+  return text;
+}
+
+async function errorText(response) {
+  let text;
+  try {
+    text = describeError(await response.json());
+  } catch {
+    text = response.statusText;
+  }
+  return `${response.status} ${text}`;
+}
+
+function currentPose() { return state.orbit ? state.orbit.c2w() : null; }
+
+function renderSize() {
+  const k = Number($("scale").value);
+  const intr = state.scene.intrinsics;
+  return [Math.max(1, Math.round(intr.width * k)), Math.max(1, Math.round(intr.height * k))];
+}
+
+const secondsOf = (tUs) => (tUs - state.scene.t_start_us) / 1e6;
+
+// ---- the time slider: milliseconds from the recording's start (a range input holds doubles, and
+// Unix-epoch microseconds would not step cleanly)
+
+function layoutSlider() {
+  const s = state.scene;
+  const slider = $("slider");
+  slider.max = String(Math.max(1, Math.round((s.t_end_us - s.t_start_us) / 1000)));
+  const ticks = $("ticks");
+  ticks.replaceChildren();
+  for (const a of s.anchors_us || []) {
+    const f = (a - s.t_start_us) / Math.max(1, s.t_end_us - s.t_start_us);
+    if (f < 0 || f > 1) continue;
+    const tick = document.createElement("span");
+    tick.style.left = `${(100 * f).toFixed(3)}%`;
+    tick.title = `anchor ${secondsOf(a).toFixed(3)} s`;
+    ticks.append(tick);
+  }
+}
+
+function sliderTimeUs() { return state.scene.t_start_us + Number($("slider").value) * 1000; }
+
+function moveSlider(tUs) {
+  const s = state.scene;
+  if (tUs > s.t_end_us) {  // a live source grows: widen the slider to the newest time seen
+    s.t_end_us = tUs;
+    layoutSlider();
+  }
+  $("slider").value = String(Math.round((tUs - s.t_start_us) / 1000));
+}
+
+// ---- drawing: only the newest frame is decoded; frames that arrive while one decodes replace the
+// pending one, so a slow page never queues.
+
+function queueFrame(frame) {
+  state.pending = frame;
+  if (!state.drawing) drawPending();
+}
+
+async function drawPending() {
+  state.drawing = true;
+  try {
+    while (state.pending) {
+      const frame = state.pending;
+      state.pending = null;
+      await drawFrame(frame);
+    }
+  } catch (err) {
+    showError(`cannot show a frame: ${err.message}`);
+  } finally {
+    state.drawing = false;
+  }
+}
+
+async function drawFrame(frame) {
+  const canvas = $("view");
+  const ctx = canvas.getContext("2d");
+  if (frame.format === "raw") {
+    // uint8, row-major [height, width, channels] with 1 (grey), 3 (RGB) or 4 (RGBA) channels
+    const { width, height, channels, data } = frame;
+    const rgba = new Uint8ClampedArray(width * height * 4);
+    for (let i = 0, j = 0; i < width * height; i++, j += channels) {
+      rgba[4 * i] = data[j];
+      rgba[4 * i + 1] = data[channels >= 3 ? j + 1 : j];
+      rgba[4 * i + 2] = data[channels >= 3 ? j + 2 : j];
+      rgba[4 * i + 3] = channels === 4 ? data[j + 3] : 255;
+    }
+    if (canvas.width !== width || canvas.height !== height) { canvas.width = width; canvas.height = height; }
+    ctx.putImageData(new ImageData(rgba, width, height), 0, 0);
+  } else {
+    const type = frame.format === "png" ? "image/png" : "image/jpeg";
+    const bitmap = await createImageBitmap(new Blob([frame.data], { type }));
+    if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
+      canvas.width = bitmap.width;
+      canvas.height = bitmap.height;
+    }
+    ctx.drawImage(bitmap, 0, 0);
+    bitmap.close();
+  }
+  shown(frame);
+}
+
+function shown(frame) {
+  const now = performance.now();
+  state.frames += 1;
+  state.shown.push(now);
+  if (frame.latencyMs !== undefined) state.latencyMs = frame.latencyMs;
+  if (frame.eventLatencyMs !== undefined) state.eventLatencyMs = frame.eventLatencyMs;
+  state.tUs = frame.t_us;
+  if (frame.t_us !== undefined && frame.t_us !== null) {
+    $("time").textContent = `${secondsOf(frame.t_us).toFixed(3)} s`;
+    if (state.playing) moveSlider(frame.t_us);
+  }
+  if (frame.anchor_us !== undefined && frame.anchor_us !== null) {
+    $("anchor").textContent = `${secondsOf(frame.anchor_us).toFixed(3)} s`;
+    const anchors = state.scene.anchors_us || [];
+    if (!anchors.includes(frame.anchor_us)) {  // a live source took a new anchor frame
+      anchors.push(frame.anchor_us);
+      state.scene.anchors_us = anchors;
+      layoutSlider();
+    }
+  }
+  if (frame.events !== undefined) $("events").textContent = String(frame.events);
+  if (frame.render_ms !== undefined) $("render-ms").textContent = `${frame.render_ms.toFixed(1)} ms`;
+  if (frame.dropped !== undefined) $("dropped").textContent = String(frame.dropped);
+  $("frames").textContent = String(state.frames);
+  clearError();
+}
+
+// Readouts are refreshed on a timer so that fps falls to 0 when frames stop coming.
+function updateReadouts() {
+  const now = performance.now();
+  while (state.shown.length && now - state.shown[0] > 1000) state.shown.shift();
+  const n = state.shown.length;
+  const fps = n >= 2 ? (1000 * (n - 1)) / Math.max(1, state.shown[n - 1] - state.shown[0]) : n;
+  $("fps").textContent = fps.toFixed(1);
+  const ms = (v) => (v === null ? "–" : `${v.toFixed(0)} ms`);
+  $("latency").textContent = ms(state.latencyMs);
+  $("event-latency").textContent = state.playing ? ms(state.eventLatencyMs) : "–";
+  const pose = currentPose();
+  $("pose").textContent = pose ? `[${pose.map((v) => v.toFixed(3)).join(", ")}]` : "event camera";
+}
+
+// ---- live: WS /stream
+
+function streamUrl() {
+  const url = new URL("stream", location.href);
+  url.protocol = url.protocol === "https:" ? "wss:" : "ws:";
+  url.search = "";
+  if (token) url.searchParams.set("token", token);  // a browser cannot set headers on a websocket
+  return url;
+}
+
+function subscribe() {
+  const ws = state.ws;
+  if (!ws || ws.readyState !== WebSocket.OPEN) return;
+  const [width, height] = renderSize();
+  ws.send(JSON.stringify({ mode: "live", pose: currentPose(), width, height, format: "jpeg" }));
+  state.sentAt.push(performance.now());
+}
+
+function openStream() {
+  closeStream();
+  const generation = ++state.wsGeneration;
+  const ws = new WebSocket(streamUrl());
+  ws.binaryType = "arraybuffer";
+  state.ws = ws;
+  setStatus("live: connecting…");
+  ws.onopen = () => {
+    setStatus("live");
+    state.sentAt = [];
+    state.ackedSentAt = null;
+    subscribe();
+  };
+  ws.onmessage = (event) => {
+    let msg;
+    try {
+      msg = typeof event.data === "string" ? JSON.parse(event.data) : unpack(new Uint8Array(event.data));
+    } catch (err) {
+      showError(`bad message from the server: ${err.message}`);
+      return;
+    }
+    if (msg.type === "error") {
+      // The connection stays open and the previous subscription stays in force.
+      showError(`stream: ${describeError(msg)}`);
+      state.sentAt.shift();
+    } else if (msg.type === "subscribed") {
+      // Answers come in the order of the subscriptions, and every frame after this answer uses
+      // that subscription: its first frame measures the pose-to-screen latency.
+      state.ackedSentAt = state.sentAt.shift() ?? null;
+    } else if (msg.type === "frame") {
+      if (state.ackedSentAt !== null) {
+        msg.latencyMs = performance.now() - state.ackedSentAt;
+        state.ackedSentAt = null;
+      }
+      if (msg.arrived_unix_us !== undefined && msg.arrived_unix_us !== null) {
+        // Event to screen, against the page's clock: exact on one machine, else as good as NTP.
+        msg.eventLatencyMs = Date.now() - msg.arrived_unix_us / 1000;
+      }
+      queueFrame(msg);
+    }
+  };
+  ws.onclose = (event) => {
+    if (generation !== state.wsGeneration) return;  // replaced or closed on purpose
+    state.ws = null;
+    const why = event.reason || `code ${event.code}`;
+    showError(`stream closed (${why}); reconnecting`);
+    setStatus("live: disconnected");
+    setTimeout(() => { if (state.playing && generation === state.wsGeneration) openStream(); }, 1000);
+  };
+}
+
+function closeStream() {
+  state.wsGeneration += 1;
+  if (state.ws) state.ws.close(1000, "viewer paused");
+  state.ws = null;
+}
+
+// The stream's latency is measured once per subscription; re-subscribe now and then (the same
+// subscription: nothing changes on screen) so that the readout stays current.
+function resubscribeForLatency() {
+  if (state.playing && state.sentAt.length === 0) subscribe();
+}
+
+// ---- paused: GET /render at the slider's time, one request in flight, the newest inputs win
+
+async function renderStill() {
+  if (state.rendering) { state.renderAgain = true; return; }
+  state.rendering = true;
+  try {
+    do {
+      state.renderAgain = false;
+      const [width, height] = renderSize();
+      const url = new URL("render", location.href);
+      url.search = "";
+      url.searchParams.set("t_us", String(sliderTimeUs()));
+      url.searchParams.set("width", String(width));
+      url.searchParams.set("height", String(height));
+      url.searchParams.set("format", "jpeg");
+      const pose = currentPose();
+      if (pose) url.searchParams.set("pose", pose.map((v) => v.toPrecision(9)).join(","));
+      const sent = performance.now();
+      const response = await fetch(url, { headers: authHeaders });
+      if (!response.ok) {
+        showError(`render: ${await errorText(response)}`);
+        continue;
+      }
+      const data = new Uint8Array(await response.arrayBuffer());
+      const header = (name) => response.headers.get(name);
+      const frame = {
+        format: "jpeg", data,
+        t_us: Number(header("X-Edmcgs-T-Us")),
+        anchor_us: header("X-Edmcgs-Anchor-Us") === null ? null : Number(header("X-Edmcgs-Anchor-Us")),
+        events: Number(header("X-Edmcgs-Events")),
+        render_ms: Number(header("X-Edmcgs-Render-Ms")),
+      };
+      await drawFrame(frame);
+      state.latencyMs = performance.now() - sent;  // request to frame on screen
+    } while (state.renderAgain && !state.playing);
+  } catch (err) {
+    showError(`render: ${err.message}`);
+  } finally {
+    state.rendering = false;
+  }
+}
+
+// Whatever changed the view: tell the stream, or render the still; at most once per paint, however
+// fast the pointer events come.
+function viewChanged() {
+  if (state.viewDirty) return;
+  state.viewDirty = true;
+  requestAnimationFrame(() => {
+    state.viewDirty = false;
+    if (state.playing) subscribe();
+    else renderStill();
+  });
+}
+
+function setPlaying(playing) {
+  state.playing = playing;
+  $("play").textContent = playing ? "Pause" : "Play";
+  if (playing) {
+    openStream();
+  } else {
+    closeStream();
+    setStatus("paused");
+    renderStill();
+  }
+}
+
+// ---- mouse: drag orbits, shift- or right-drag pans, the wheel zooms
+
+function ensureOrbit() {
+  if (state.orbit) return state.orbit;
+  const t = state.tUs ?? state.scene.head_us ?? state.scene.t_start_us;
+  const base = poseAt(state.scene.trajectory, t) || [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1];
+  state.orbit = new Orbit(base, orbitDepth(state.scene, base));
+  return state.orbit;
+}
+
+function bindMouse() {
+  const canvas = $("view");
+  let drag = null;
+  canvas.addEventListener("contextmenu", (e) => e.preventDefault());
+  canvas.addEventListener("pointerdown", (e) => {
+    drag = { x: e.clientX, y: e.clientY, pan: e.button === 2 || e.shiftKey };
+    canvas.setPointerCapture(e.pointerId);
+    canvas.focus();
+  });
+  canvas.addEventListener("pointermove", (e) => {
+    if (!drag) return;
+    const dx = e.clientX - drag.x, dy = e.clientY - drag.y;
+    if (dx === 0 && dy === 0) return;
+    drag.x = e.clientX;
+    drag.y = e.clientY;
+    const orbit = ensureOrbit();
+    if (drag.pan) {
+      // Pointer pixels to world units at the target's depth: the scene under the pointer follows it.
+      const intr = state.scene.intrinsics;
+      const perPixel = (orbit.dist * intr.width) / (canvas.clientWidth * intr.fx);
+      orbit.pan(dx * perPixel, dy * perPixel);
+    } else {
+      orbit.rotate(-dx * 0.008, dy * 0.008);
+    }
+    viewChanged();
+  });
+  const end = () => { drag = null; };
+  canvas.addEventListener("pointerup", end);
+  canvas.addEventListener("pointercancel", end);
+  canvas.addEventListener("wheel", (e) => {
+    e.preventDefault();
+    ensureOrbit().zoom(Math.exp(e.deltaY * 0.001));
+    viewChanged();
+  }, { passive: false });
+}
+
+function bindControls() {
+  $("play").addEventListener("click", () => setPlaying(!state.playing));
+  $("reset").addEventListener("click", () => { state.orbit = null; viewChanged(); });
+  $("scale").addEventListener("change", viewChanged);
+  $("error-close").addEventListener("click", () => { $("error").hidden = true; });
+  $("slider").addEventListener("input", () => {
+    if (state.playing) setPlaying(false);  // grabbing the slider leaves the live head
+    $("time").textContent = `${secondsOf(sliderTimeUs()).toFixed(3)} s`;
+    renderStill();
+  });
+  document.addEventListener("keydown", (e) => {
+    if (e.target instanceof HTMLInputElement || e.target instanceof HTMLSelectElement) return;
+    if (e.key === " ") { e.preventDefault(); setPlaying(!state.playing); }
+    if (e.key === "r") { state.orbit = null; viewChanged(); }
+  });
+}
+
+async function start() {
+  bindControls();
+  bindMouse();
+  setInterval(updateReadouts, 250);
+  setInterval(resubscribeForLatency, 2000);
+  try {
+    const response = await fetch(new URL("scene", location.href), { headers: authHeaders });
+    if (!response.ok) throw new Error(await errorText(response));
+    state.scene = await response.json();
+  } catch (err) {
+    showError(`cannot load the scene: ${err.message}`);
+    setStatus("no scene");
+    return;
+  }
+  layoutSlider();
+  moveSlider(state.scene.head_us ?? state.scene.t_start_us);
+  setPlaying(true);
+}
+
+// The pure parts, for a console or a test page.
+window.edmcgsViewer = { state, unpack, poseAt, Orbit, quatFromRot, rotFromQuat, currentPose };
+
+start();

@@ -1,0 +1,52 @@
+"""A real headless Chromium (Debian's) driven by playwright, for the browser viewer's tests.
+
+Playwright's Python package only drives the browser: it is pointed at the system chromium and never
+downloads one of its own.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+CHROMIUM = Path("/usr/bin/chromium")
+VIEWER = Path(__file__).resolve().parents[2] / "clients" / "viewer"
+ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+
+
+def _chromium() -> str:
+    if CHROMIUM.exists():
+        return str(CHROMIUM)
+    found = shutil.which("chromium")
+    if found is None:
+        pytest.fail("Debian's chromium is not installed: scripts/bootstrap.sh --test installs it (apt-get)")
+    return found
+
+
+@pytest.fixture(scope="session")
+def browser():
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as pw:
+        chromium = pw.chromium.launch(executable_path=_chromium(), headless=True, args=ARGS)
+        try:
+            yield chromium
+        finally:
+            chromium.close()
+
+
+@pytest.fixture
+def page(browser):
+    """A fresh page at 1000x760 whose console errors and uncaught exceptions are collected."""
+    context = browser.new_context(viewport={"width": 1000, "height": 760})
+    page = context.new_page()
+    page.errors = []
+    page.on("pageerror", lambda exc: page.errors.append(f"uncaught: {exc}"))
+    page.on("console", lambda msg: msg.type == "error" and page.errors.append(f"console: {msg.text}"))
+    try:
+        yield page
+    finally:
+        context.close()

@@ -1,0 +1,199 @@
+"""The viewer's own JavaScript, run in the real browser: the msgpack decoder against Python's msgpack,
+the pose math against scipy, and the page's report of a server that has no scene.
+
+Served here by a plain static file server laid out as edmcgs-serve lays it out (the page at /, its
+files under /viewer/), with no API behind it.
+"""
+
+from __future__ import annotations
+
+import functools
+import http.server
+import json
+import math
+import threading
+
+import msgpack
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation, Slerp
+
+from tests.viewer.conftest import VIEWER
+
+
+class _StaticViewer(http.server.SimpleHTTPRequestHandler):
+    def translate_path(self, path):
+        path = path.split("?", 1)[0]
+        if path == "/":
+            return str(VIEWER / "index.html")
+        if path.startswith("/viewer/"):
+            return str(VIEWER / path.removeprefix("/viewer/"))
+        return str(VIEWER / "no-such-file")  # every API route: 404
+
+    def log_message(self, *args):
+        pass
+
+
+@pytest.fixture(scope="module")
+def static_url():
+    handler = functools.partial(_StaticViewer, directory=str(VIEWER))
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{server.server_port}/"
+    finally:
+        server.shutdown()
+        server.server_close()
+        thread.join(5)
+
+
+@pytest.fixture
+def viewer(page, static_url):
+    page.goto(static_url)
+    page.wait_for_function("window.edmcgsViewer !== undefined")
+    return page
+
+
+def _decode_in_page(page, payload: bytes):
+    """Decode msgpack bytes with the page's decoder; bytes come back as lists of ints."""
+    return page.evaluate(
+        """(b) => {
+            const v = window.edmcgsViewer.unpack(new Uint8Array(b));
+            return JSON.parse(JSON.stringify(v, (k, x) => x instanceof Uint8Array ? Array.from(x) : x));
+        }""",
+        list(payload),
+    )
+
+
+def _plain(value):
+    """What the page should give back for a Python value: bytes as lists of ints."""
+    if isinstance(value, bytes):
+        return list(value)
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    return value
+
+
+def test_msgpack_decoder_matches_python(viewer):
+    frame = {
+        "type": "frame", "seq": 70000, "dropped": 0, "t_us": 1_700_000_123_456_789, "t": 1.25,
+        "anchor_us": 1_700_000_000_000_000, "events": 4_000_000_000, "render_ms": 12.5,
+        "arrived_unix_us": None, "width": 346, "height": 260, "channels": 3, "format": "jpeg",
+        "data": bytes(range(256)) * 300, "small": b"\x00\x01",
+        "neg": [-1, -32, -33, -200, -40000, -3_000_000_000, -1_700_000_000_000_000],
+        "uints": [0, 127, 128, 255, 256, 65535, 65536, 2**32 - 1, 2**32, 2**53 - 1],
+        "flags": [True, False], "f32_nan_free": 0.1, "nested": {"a": [1, {"b": "ü€" * 20}]},
+        "long_str": "x" * 70000, "many": list(range(20)), "big_map": {str(i): i for i in range(20)},
+    }
+    payload = msgpack.packb(frame, use_bin_type=True)
+    assert _decode_in_page(viewer, payload) == _plain(frame)
+    # single-precision floats, as other encoders send them
+    f32 = msgpack.packb([0.5, -2.25], use_single_float=True)
+    assert _decode_in_page(viewer, f32) == [0.5, -2.25]
+
+
+@pytest.mark.parametrize("payload", [b"\x92\x01", b"\xc4\x05abc", b"\x01\x02", b"\xc1"])
+def test_msgpack_decoder_rejects_bad_input(viewer, payload):
+    message = viewer.evaluate(
+        """(b) => { try { window.edmcgsViewer.unpack(new Uint8Array(b)); return null; }
+                    catch (e) { return String(e.message); } }""",
+        list(payload),
+    )
+    assert message is not None and message.startswith("msgpack:")
+
+
+def _c2w(rot: Rotation, centre) -> list[float]:
+    m = np.eye(4)
+    m[:3, :3] = rot.as_matrix()
+    m[:3, 3] = centre
+    return m.reshape(-1).tolist()
+
+
+def test_pose_at_matches_scipy_slerp(viewer):
+    rng = np.random.default_rng(3)
+    rots = Rotation.random(6, random_state=4)
+    t_us = (1_700_000_000_000_000 + np.cumsum(rng.integers(10_000, 200_000, size=6))).tolist()
+    centres = rng.normal(size=(6, 3))
+    traj = {"t_us": t_us, "c2w": [_c2w(rots[i], centres[i]) for i in range(6)]}
+    queries = [t_us[0] - 5, t_us[0], *np.sort(rng.uniform(t_us[0], t_us[-1], size=20)).tolist(),
+               t_us[-1], t_us[-1] + 1_000_000]
+    got = np.array(viewer.evaluate(
+        "([traj, qs]) => qs.map((t) => window.edmcgsViewer.poseAt(traj, t))", [traj, queries]))
+    slerp = Slerp(np.array(t_us, dtype=np.float64), rots)
+    for q, pose in zip(queries, got, strict=True):
+        tq = min(max(q, t_us[0]), t_us[-1])
+        want = np.eye(4)
+        want[:3, :3] = slerp([tq]).as_matrix()[0]
+        want[:3, 3] = [np.interp(tq, t_us, centres[:, k]) for k in range(3)]
+        np.testing.assert_allclose(pose.reshape(4, 4), want, atol=1e-9)
+    assert viewer.evaluate("window.edmcgsViewer.poseAt({t_us: [], c2w: []}, 5)") is None
+
+
+def test_quaternion_round_trip_covers_every_branch(viewer):
+    # identity, 180° about each axis (the trace <= 0 branches), and random rotations
+    rots = [np.eye(3), np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]), np.diag([-1.0, -1, 1]),
+            *Rotation.random(20, random_state=5).as_matrix()]
+    got = viewer.evaluate(
+        """(rs) => rs.map((R) => {
+            const q = window.edmcgsViewer.quatFromRot(R);
+            return [q, window.edmcgsViewer.rotFromQuat(q)];
+        })""",
+        [r.tolist() for r in rots],
+    )
+    for r, (q, back) in zip(rots, got, strict=True):
+        assert math.isclose(np.linalg.norm(q), 1.0, rel_tol=1e-12)
+        np.testing.assert_allclose(back, r, atol=1e-9)
+        want = Rotation.from_matrix(r).as_quat()  # x, y, z, w
+        assert abs(abs(np.dot(q, [want[3], *want[:3]])) - 1) < 1e-9
+
+
+def test_orbit_turns_about_a_target_in_front_of_the_camera(viewer):
+    base = _c2w(Rotation.from_euler("xyz", [0.3, -0.5, 0.2]), [0.4, -1.0, -3.0])
+    depth = 2.5
+    out = viewer.evaluate(
+        """([base, depth]) => {
+            const o = new window.edmcgsViewer.Orbit(base, depth);
+            const start = o.c2w();
+            o.rotate(0.7, -0.4);
+            const turned = o.c2w();
+            o.rotate(0, -10);  // pitch is clamped short of the pole
+            const clamped = o.pitch;
+            o.zoom(0.5);
+            const zoomed = o.c2w();
+            o.pan(0.3, -0.2);
+            return {start, turned, clamped, zoomed, panned: o.c2w(), target: o.target};
+        }""",
+        [base, depth],
+    )
+    b = np.array(base).reshape(4, 4)
+    target0 = b[:3, 3] + depth * b[:3, 2]
+    np.testing.assert_allclose(np.array(out["start"]).reshape(4, 4), b, atol=1e-12)
+    turned = np.array(out["turned"]).reshape(4, 4)
+    r = turned[:3, :3]
+    np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(r) == pytest.approx(1.0)
+    assert not np.allclose(turned, b, atol=1e-3)
+    # still looking at the target, from the same distance
+    to_target = target0 - turned[:3, 3]
+    assert np.linalg.norm(to_target) == pytest.approx(depth)
+    np.testing.assert_allclose(to_target / depth, r[:, 2], atol=1e-12)
+    # the yaw axis is the base camera's up: the camera's height along it is unchanged by yaw alone
+    assert out["clamped"] == pytest.approx(-1.55)
+    zoomed = np.array(out["zoomed"]).reshape(4, 4)
+    assert np.linalg.norm(target0 - zoomed[:3, 3]) == pytest.approx(depth / 2)
+    panned = np.array(out["panned"]).reshape(4, 4)
+    np.testing.assert_allclose(panned[:3, :3], zoomed[:3, :3], atol=1e-12)  # a pan does not turn
+    shift = panned[:3, 3] - zoomed[:3, 3]
+    np.testing.assert_allclose(shift, -0.3 * zoomed[:3, 0] + 0.2 * zoomed[:3, 1], atol=1e-12)
+    np.testing.assert_allclose(np.array(out["target"]) - target0, shift, atol=1e-12)
+
+
+def test_page_reports_a_server_without_a_scene(viewer):
+    banner = viewer.locator("#error")
+    banner.wait_for(state="visible", timeout=5000)
+    assert "cannot load the scene: 404" in viewer.locator("#error-text").inner_text()
+    assert viewer.locator("#status").inner_text() == "no scene"
+    assert json.loads(viewer.evaluate("JSON.stringify(window.edmcgsViewer.state.scene)")) is None
