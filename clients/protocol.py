@@ -49,7 +49,11 @@ HEADER_T = "X-Edmcgs-T"  # the same, seconds from the scene's start (float)
 HEADER_ANCHOR_US = "X-Edmcgs-Anchor-Us"  # tau(t): the anchor frame whose events window was used (int µs)
 HEADER_EVENTS = "X-Edmcgs-Events"  # number of events in the window [tau(t), t] (int)
 HEADER_RENDER_MS = "X-Edmcgs-Render-Ms"  # server time spent on the render, encoding included (float)
-HEADERS = (HEADER_T_US, HEADER_T, HEADER_ANCHOR_US, HEADER_EVENTS, HEADER_RENDER_MS)
+HEADER_WIDTH = "X-Edmcgs-Width"  # image width, px
+HEADER_HEIGHT = "X-Edmcgs-Height"  # image height, px
+HEADER_CHANNELS = "X-Edmcgs-Channels"  # 1 (grey) or 3 (RGB)
+HEADERS = (HEADER_T_US, HEADER_T, HEADER_ANCHOR_US, HEADER_EVENTS, HEADER_RENDER_MS, HEADER_WIDTH,
+           HEADER_HEIGHT, HEADER_CHANNELS)
 
 RENDER_FORMATS = ("png", "jpeg", "msgpack")
 STREAM_FORMATS = ("jpeg", "png", "raw")

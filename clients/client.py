@@ -1,0 +1,320 @@
+"""Python client of the edmcgs service: ``Client(base_url, token).render(...)``, ``.stream(...)``.
+
+Imports nothing of the project but the wire schema (``edmcgs.clients.protocol``)::
+
+    with Client("http://127.0.0.1:8000") as c:
+        scene = c.scene()
+        image, meta = c.render(t=0.5)                          # uint8 [H, W, C] and RenderMeta
+        png, meta = c.render(t=0.5, pose=[...16...], format="png")
+        with c.stream({"mode": "sweep", "t0": 0, "t1": 1, "fps": 30}) as frames:
+            for frame in frames:                               # Frame, newest first when slow
+                ...
+                frames.update(pose=[...])                      # change the subscription mid-stream
+
+Errors are typed by HTTP status (``InvalidRequest`` 422, ``TimeUnavailable`` 416, ``Unauthorized``
+401, ``Busy`` 503 with ``retry_after_s``, ``ServerError`` 500) and carry the server's message.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from types import TracebackType
+from urllib.parse import urlsplit, urlunsplit
+
+import httpx
+import numpy as np
+from edmcgs.clients import protocol
+from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.sync.client import ClientConnection, connect
+
+# --- errors -------------------------------------------------------------------------------------
+
+
+class ServiceError(Exception):
+    """The service answered with an error; ``status`` is the HTTP code (0 for a websocket message)."""
+
+    def __init__(self, status: int, detail: str, *, error: str | None = None, param: str | None = None,
+                 valid_range: dict | None = None):
+        super().__init__(f"{status} {error or 'error'}: {detail}" if status else f"{error}: {detail}")
+        self.status, self.detail, self.error, self.param, self.valid_range = (
+            status, detail, error, param, valid_range)
+
+
+class InvalidRequest(ServiceError):
+    """422: a parameter is malformed; ``param`` names it."""
+
+
+class TimeUnavailable(ServiceError):
+    """416: the time asked for cannot be rendered now; ``valid_range`` says what can."""
+
+
+class Unauthorized(ServiceError):
+    """401: the token is missing or wrong."""
+
+
+class Busy(ServiceError):
+    """503: the server is busy or not ready; retry after ``retry_after_s`` seconds."""
+
+    retry_after_s: float = 1.0
+
+
+class ServerError(ServiceError):
+    """500 (or any other status): the render failed on the server."""
+
+
+_BY_STATUS = {422: InvalidRequest, 416: TimeUnavailable, 401: Unauthorized, 503: Busy}
+_BY_NAME = {"InvalidInputError": InvalidRequest, "PoseError": InvalidRequest, "ProtocolError": InvalidRequest,
+            "WindowUnavailable": TimeUnavailable, "TimeNotRenderable": TimeUnavailable}
+
+
+def _raise_for(response: httpx.Response) -> None:
+    if response.is_success:
+        return
+    try:
+        body = response.json()
+    except ValueError:
+        body = {"detail": response.text or response.reason_phrase}
+    if not isinstance(body, dict):
+        body = {"detail": str(body)}
+    cls = _BY_STATUS.get(response.status_code, ServerError)
+    exc = cls(response.status_code, str(body.get("detail")), error=body.get("error"),
+              param=body.get("param"), valid_range=body.get("valid_range"))
+    if isinstance(exc, Busy):
+        try:
+            exc.retry_after_s = float(response.headers.get("Retry-After", 1))
+        except ValueError:
+            exc.retry_after_s = 1.0
+    raise exc
+
+
+def _error_message(message: dict) -> ServiceError:
+    cls = _BY_NAME.get(message.get("error"), ServerError)
+    return cls(0, str(message.get("detail")), error=message.get("error"), param=message.get("param"),
+               valid_range=message.get("valid_range"))
+
+
+# --- results ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RenderMeta:
+    """What the server says about a render (from headers, or the msgpack body)."""
+
+    t_us: int
+    """Absolute µs rendered."""
+    t: float
+    """The same, seconds from the scene's start."""
+    anchor_us: int
+    """tau(t): the anchor whose events window drove the deformation."""
+    events: int
+    """Events in [tau(t), t]."""
+    render_ms: float
+    """Server time of the render and its encoding."""
+    width: int
+    height: int
+    channels: int
+    format: str
+    """"png", "jpeg" or "msgpack"."""
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One websocket frame. ``image()`` decodes it to uint8 [H, W, C]."""
+
+    seq: int
+    dropped: int
+    t_us: int
+    t: float
+    anchor_us: int
+    events: int
+    render_ms: float
+    width: int
+    height: int
+    channels: int
+    format: str
+    data: bytes
+    arrived_unix_us: int | None = None
+
+    def image(self) -> np.ndarray:
+        """The pixels, uint8 [height, width, channels] (PNG / JPEG decoded with Pillow)."""
+        return decode_image(self.data, self.format, self.width, self.height, self.channels)
+
+
+def decode_image(data: bytes, fmt: str, width: int, height: int, channels: int) -> np.ndarray:
+    """uint8 [H, W, C] from wire bytes ("raw" pixels, "png" or "jpeg")."""
+    if fmt == "raw":
+        return np.frombuffer(data, dtype=np.uint8).reshape(height, width, channels)
+    import io
+
+    from PIL import Image
+
+    arr = np.asarray(Image.open(io.BytesIO(data)))
+    return arr[..., None] if arr.ndim == 2 else arr
+
+
+def _frame(message: dict) -> Frame:
+    return Frame(**{k: message.get(k) for k in Frame.__dataclass_fields__})
+
+
+# --- the client ---------------------------------------------------------------------------------
+
+
+class Client:
+    """A connection to one edmcgs service. Thread-safe for ``render`` (httpx's pool); a context manager."""
+
+    def __init__(self, base_url: str = "http://127.0.0.1:8000", token: str | None = None, *,
+                 timeout: float = 30.0):
+        self.base_url = base_url.rstrip("/")
+        self.token = token
+        self.timeout = timeout
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self._http = httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout)
+
+    # HTTP
+    def scene(self) -> dict:
+        """GET /scene: span, anchors, intrinsics, trajectory, what can be rendered now, the live head."""
+        return self._get("/scene").json()
+
+    def health(self) -> dict:
+        """GET /healthz (raises Busy while the server is not ready)."""
+        return self._get("/healthz").json()
+
+    def metrics(self) -> str:
+        """GET /metrics: Prometheus text."""
+        return self._get("/metrics").text
+
+    def render(self, t: float | None = None, *, t_us: int | None = None, pose=None,
+               width: int | None = None, height: int | None = None,
+               format: str = "msgpack") -> tuple[np.ndarray | bytes, RenderMeta]:
+        """GET /render. ``t`` seconds from the scene's start, or ``t_us`` absolute (neither: the live head).
+
+        pose: 16 numbers (row-major c2w), 7 (tx,ty,tz,qw,qx,qy,qz), a 4x4 array, or None (the event
+        camera's own pose). format "msgpack" returns uint8 pixels [H, W, C]; "png" / "jpeg" the bytes.
+        """
+        if format not in protocol.RENDER_FORMATS:
+            raise ValueError(f"format must be one of {protocol.RENDER_FORMATS}, got {format!r}")
+        params: dict = {"format": format}
+        if t is not None:
+            params["t"] = repr(float(t))
+        if t_us is not None:
+            params["t_us"] = str(int(t_us))
+        if pose is not None:
+            params["pose"] = ",".join(repr(v) for v in protocol.check_pose_numbers(_flat(pose)))
+        if width is not None:
+            params["width"] = str(int(width))
+        if height is not None:
+            params["height"] = str(int(height))
+        response = self._get("/render", params=params)
+        if format == "msgpack":
+            body = protocol.unpack(response.content)
+            image = decode_image(body["data"], body["format"], body["width"], body["height"],
+                                 body["channels"])
+            meta = RenderMeta(body["t_us"], body["t"], body["anchor_us"], body["events"], body["render_ms"],
+                              body["width"], body["height"], body["channels"], format)
+            return image, meta
+        h = response.headers
+        return response.content, RenderMeta(
+            int(h[protocol.HEADER_T_US]), float(h[protocol.HEADER_T]), int(h[protocol.HEADER_ANCHOR_US]),
+            int(h[protocol.HEADER_EVENTS]), float(h[protocol.HEADER_RENDER_MS]),
+            int(h[protocol.HEADER_WIDTH]), int(h[protocol.HEADER_HEIGHT]), int(h[protocol.HEADER_CHANNELS]),
+            format)
+
+    def _get(self, path: str, params: dict | None = None) -> httpx.Response:
+        response = self._http.get(path, params=params)
+        _raise_for(response)
+        return response
+
+    # websocket
+    def stream(self, subscription: dict | protocol.Subscription | None = None, *,
+               timeout: float | None = None) -> Stream:
+        """Open WS /stream with ``subscription`` (a map of Subscription fields). See ``Stream``."""
+        if isinstance(subscription, protocol.Subscription):
+            message = subscription.to_message()
+        else:
+            message = dict(subscription or {})
+        protocol.Subscription().updated(message)  # fail here, with the field named, not on the server
+        parts = urlsplit(self.base_url)
+        scheme = "wss" if parts.scheme == "https" else "ws"
+        url = urlunsplit((scheme, parts.netloc, parts.path + "/stream", "", ""))
+        headers = {"Authorization": f"Bearer {self.token}"} if self.token else None
+        try:
+            ws = connect(url, additional_headers=headers, open_timeout=self.timeout,
+                         close_timeout=2, max_size=2**28)
+        except InvalidStatus as exc:
+            status = exc.response.status_code
+            cls = Unauthorized if status in (401, 403) else _BY_STATUS.get(status, ServerError)
+            raise cls(status, f"websocket refused: {exc.response.body.decode(errors='replace') or status}") \
+                from None
+        return Stream(ws, message, self.timeout if timeout is None else timeout)
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+
+class Stream:
+    """An open websocket stream: iterate for ``Frame``s; ``update(**fields)`` changes the subscription.
+
+    Iteration ends when a sweep without loop is done or the server closes. An ``error`` message from
+    the server raises its typed error (the stream stays usable: send a corrected ``update``).
+    """
+
+    def __init__(self, ws: ClientConnection, message: dict, timeout: float):
+        self._ws = ws
+        self._timeout = timeout
+        self.subscription: dict | None = None  # as confirmed by the server
+        self._send(message)
+
+    def _send(self, message: dict) -> None:
+        self._ws.send(protocol.pack(message))
+
+    def update(self, **fields) -> None:
+        """Send a partial subscription (e.g. ``pose=[...]``); fields not given keep their values."""
+        if "pose" in fields and fields["pose"] is not None:
+            fields["pose"] = protocol.check_pose_numbers(_flat(fields["pose"]))
+        self._send(fields)
+
+    def receive(self, timeout: float | None = None) -> Frame | None:
+        """The next frame (None when the stream ended). Raises TimeoutError after ``timeout`` s."""
+        while True:
+            try:
+                data = self._ws.recv(timeout=self._timeout if timeout is None else timeout)
+            except ConnectionClosed:
+                return None
+            if isinstance(data, str):
+                data = data.encode()
+            message = protocol.unpack(data)
+            kind = message.get("type")
+            if kind == "frame":
+                return _frame(message)
+            if kind == "subscribed":
+                self.subscription = message.get("subscription")
+            elif kind == "error":
+                raise _error_message(message)
+            elif kind == "end":
+                return None
+
+    def __iter__(self) -> Iterator[Frame]:
+        while (frame := self.receive()) is not None:
+            yield frame
+
+    def close(self) -> None:
+        self._ws.close()
+
+    def __enter__(self) -> Stream:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _flat(pose) -> list:
+    arr = np.asarray(pose, dtype=np.float64)
+    return arr.reshape(-1).tolist()
