@@ -60,3 +60,9 @@ def event_store(events: Events):
                           strict=True):
         push(t, x, y, p)
     return store
+
+
+def imu_samples(imu: np.ndarray) -> list:
+    """dv.IMU objects from IMU_DTYPE rows (no magnetometer in our samples: written as 0)."""
+    return [dv.IMU(int(r["t"]), float(r["temperature"]), *map(float, r["accel"]), *map(float, r["gyro"]),
+                   0.0, 0.0, 0.0) for r in imu]
