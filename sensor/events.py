@@ -67,6 +67,8 @@ class EventStats:
 
 def _column(name: str, values) -> np.ndarray:
     arr = np.asarray(values)
+    if arr.size == 0 and arr.dtype == np.float64:  # np.asarray([]) is float64: an empty list has no dtype
+        arr = arr.astype(np.int64)
     if arr.ndim != 1:
         raise InvalidInputError(f"events column {name!r} must be 1-D, got shape {arr.shape}")
     return arr

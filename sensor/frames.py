@@ -23,6 +23,8 @@ class Frames:
 
     def __init__(self, t_us, images, poses=None) -> None:
         t_us = np.asarray(t_us)
+        if t_us.size == 0 and t_us.dtype == np.float64:  # an empty list has no dtype
+            t_us = t_us.astype(np.int64)
         images = np.asarray(images)
         if t_us.ndim != 1:
             raise InvalidInputError(f"frames t_us must be 1-D, got shape {t_us.shape}")

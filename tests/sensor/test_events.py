@@ -94,6 +94,7 @@ def test_slicing_time_slice_concat_and_empty():
     assert Events.concat([ev[:2], Events.empty(), ev[2:]]) == ev
     with pytest.raises(InvalidInputError, match="before the previous batch ends"):
         Events.concat([ev[2:], ev[:2]])
+    assert Events([], [], [], []) == Events.empty()
     e = Events.empty()
     assert len(e) == 0 and e.t_start is None and e.t_end is None and e.t.dtype == np.int64
     assert ev[ev.t > 15].t.tolist() == [20, 20, 30, 40]
