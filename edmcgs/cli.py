@@ -8,8 +8,8 @@ import sys
 COMMANDS = {
     "record": ("edmcgs.sensor.record", "record a live camera or a replay to AEDAT4 or HDF5"),
     "synth": ("edmcgs.synth.build", "build a synthetic dynamic scene with simulated events"),
-    "train": ("edmcgs.model.train_cli", "train EdMCGS on a recording"),
-    "eval": ("edmcgs.model.eval_cli", "evaluate a checkpoint on a recording's held-out frames"),
+    "train": ("edmcgs.train_cli", "train EdMCGS on a recording"),
+    "eval": ("edmcgs.eval_cli", "evaluate a checkpoint on a recording's held-out frames"),
     "export": ("edmcgs.clients.export", "export a time sweep of a running service as GIF or MP4"),
 }
 

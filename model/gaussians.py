@@ -5,10 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+from edmcgs.model.sh import SH_C0
 from torch import Tensor, nn
-
-SH_C0 = 0.28209479177387814
-"""Degree-0 spherical-harmonic basis constant: colour = SH_C0 * dc + 0.5."""
 
 
 @dataclass

@@ -1,0 +1,144 @@
+"""EdMCGS checkpoints: one torch file of plain containers and tensors, loaded with ``weights_only=True``.
+
+Schema (version 1)::
+
+    {"format": "edmcgs-checkpoint", "version": 1,
+     "meta": {t_start_us, t_end_us, anchors_us [F] int64, intrinsics {fx, fy, cx, cy, width, height},
+              event_width, event_height, trajectory {t_us [T] int64, c2w [T,4,4] float64} | None,
+              channels, config {...}, has_event_branch},
+     "sizes": {num_gaussians, num_control_points},
+     "state_dict": {name: tensor},
+     "train_state": {...} | None}   # optimizer and progress, only in checkpoints written mid-training
+
+A missing, truncated, foreign or newer file raises ``CheckpointError``. Writes are atomic (a temporary
+file in the same folder, fsynced, then renamed over the target).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+from edmcgs.model.camera import Intrinsics, Trajectory
+from edmcgs.model.config import EdmcgsConfig
+from edmcgs.model.control_points import ControlPoints
+from edmcgs.model.edmcgs import EdMCGS, SceneMeta
+from edmcgs.model.gaussians import Gaussians
+
+from edmcgs.errors import CheckpointError, EdmcgsError
+
+FORMAT = "edmcgs-checkpoint"
+VERSION = 1
+
+
+def save_checkpoint(model: EdMCGS, path: str | os.PathLike, *, train_state: dict | None = None) -> None:
+    """Write ``model`` (and optionally the trainer's resumable state) to ``path`` atomically."""
+    path = Path(path)
+    meta = model.meta
+    payload = {
+        "format": FORMAT,
+        "version": VERSION,
+        "meta": {
+            "t_start_us": int(meta.t_start_us),
+            "t_end_us": int(meta.t_end_us),
+            "anchors_us": torch.from_numpy(np.asarray(meta.anchors_us, dtype=np.int64).copy()),
+            "intrinsics": {"fx": float(meta.intrinsics.fx), "fy": float(meta.intrinsics.fy),
+                           "cx": float(meta.intrinsics.cx), "cy": float(meta.intrinsics.cy),
+                           "width": int(meta.intrinsics.width), "height": int(meta.intrinsics.height)},
+            "event_width": int(meta.event_width),
+            "event_height": int(meta.event_height),
+            "trajectory": None if meta.trajectory is None else {
+                "t_us": torch.from_numpy(np.asarray(meta.trajectory.t_us, dtype=np.int64).copy()),
+                "c2w": torch.from_numpy(np.asarray(meta.trajectory.c2w, dtype=np.float64).copy())},
+            "channels": int(meta.channels),
+            "config": model.config.to_dict(),
+            "has_event_branch": bool(meta.has_event_branch),
+        },
+        "sizes": {"num_gaussians": len(model.gaussians), "num_control_points": model.control.num_points},
+        "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
+        "train_state": train_state,
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            torch.save(payload, fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def read_checkpoint(path: str | os.PathLike) -> dict:
+    """The validated raw payload (tensors on the CPU); ``CheckpointError`` for anything but ours."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {str(path)!r} does not exist")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises RuntimeError, EOFError, UnpicklingError, zipfile errors ...
+        raise CheckpointError(f"checkpoint {str(path)!r} is truncated or not a torch file: {exc}") from exc
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise CheckpointError(f"{str(path)!r} is not an EdMCGS checkpoint (no format {FORMAT!r})")
+    version = payload.get("version")
+    if not isinstance(version, int) or version < 1:
+        raise CheckpointError(f"{str(path)!r}: bad schema version {version!r}")
+    if version > VERSION:
+        raise CheckpointError(f"{str(path)!r} has schema version {version}, newer than this edmcgs reads "
+                              f"({VERSION}); upgrade edmcgs")
+    for key in ("meta", "sizes", "state_dict"):
+        if not isinstance(payload.get(key), dict):
+            raise CheckpointError(f"{str(path)!r}: missing section {key!r}")
+    return payload
+
+
+def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu") -> EdMCGS:
+    """The model stored at ``path`` on ``device``, in eval mode."""
+    payload = read_checkpoint(path)
+    try:
+        model = _build(payload)
+    except CheckpointError:
+        raise
+    except (EdmcgsError, KeyError, TypeError, ValueError, RuntimeError) as exc:
+        raise CheckpointError(f"{str(path)!r} is inconsistent: {exc}") from exc
+    return model.to(device).eval()
+
+
+def _build(payload: dict) -> EdMCGS:
+    m = payload["meta"]
+    config = EdmcgsConfig.from_dict(m["config"])
+    traj = m["trajectory"]
+    intr = m["intrinsics"]
+    meta = SceneMeta(
+        t_start_us=int(m["t_start_us"]), t_end_us=int(m["t_end_us"]),
+        anchors_us=m["anchors_us"].numpy().astype(np.int64),
+        intrinsics=Intrinsics(float(intr["fx"]), float(intr["fy"]), float(intr["cx"]), float(intr["cy"]),
+                              int(intr["width"]), int(intr["height"])),
+        event_width=int(m["event_width"]), event_height=int(m["event_height"]),
+        trajectory=None if traj is None else Trajectory(traj["t_us"].numpy().astype(np.int64),
+                                                         traj["c2w"].numpy().astype(np.float64)),
+        channels=int(m["channels"]), config=config.to_dict(), has_event_branch=bool(m["has_event_branch"]))
+    if meta.has_event_branch != config.has_event_branch:
+        raise CheckpointError("has_event_branch disagrees with the config's switches")
+    sizes = payload["sizes"]
+    n, mcp = int(sizes["num_gaussians"]), int(sizes["num_control_points"])
+    model = EdMCGS(meta, config, Gaussians.empty(n, config.sh_degree, meta.channels),
+                   ControlPoints.empty(mcp, n, config.skin_k, config.graph_k), torch.zeros(3), 1.0)
+    state = payload["state_dict"]
+    expected = model.state_dict()
+    missing = sorted(set(expected) - set(state))
+    unexpected = sorted(set(state) - set(expected))
+    if missing or unexpected:
+        raise CheckpointError(f"state_dict mismatch: missing {missing[:5]}, unexpected {unexpected[:5]}")
+    for key, value in state.items():
+        if not isinstance(value, torch.Tensor) or value.shape != expected[key].shape:
+            raise CheckpointError(f"state_dict[{key!r}] has the wrong shape")
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            raise CheckpointError(f"state_dict[{key!r}] contains NaN or Inf")
+    model.load_state_dict(state)
+    return model

@@ -1,0 +1,238 @@
+"""EdMCGS end to end on a tiny scene: construction, the inference API's invariants, checkpoints, training."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from edmcgs.model.checkpoint import FORMAT, VERSION, load_checkpoint, read_checkpoint, save_checkpoint
+from edmcgs.model.config import preset
+from edmcgs.model.edmcgs import EdMCGS
+from edmcgs.model.trainer import Trainer
+
+from edmcgs.errors import CheckpointError, InvalidInputError
+from tests.model import tiny_scene
+
+TINY = preset("demo").replace(init_points=600, num_control_points=32, deform_width=32, deform_depth=2,
+                              iterations=40, substeps=4, max_pair_steps=4, eval_every=0, checkpoint_every=0,
+                              densify_from=0.2, densify_every=10, densify_until=0.8, train_scale=1.0,
+                              event_warmup=(0.0, 0.2))
+
+
+def build(cfg=TINY, **kwargs) -> tuple[EdMCGS, object]:
+    data = tiny_scene.data(**kwargs)
+    model = EdMCGS.from_arrays(anchors_t_us=data.anchors_t_us, anchor_images=data.anchor_images,
+                               intrinsics=data.intrinsics, anchor_poses=data.anchor_poses,
+                               t_end_us=data.t_end_us, trajectory=data.trajectory, config=cfg)
+    return model, data
+
+
+def randomize_event_branch(model: EdMCGS, seed: int = 0) -> None:
+    """Give g_phi and Phi non-trivial weights, as after training."""
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in [*model.encoder.parameters(), *model.transition.parameters()]:
+            p.copy_(torch.randn(p.shape, generator=gen) * 0.3)
+        model.event_scale.fill_(1.0)
+
+
+def states_equal(a, b) -> bool:
+    fields = ("means", "quats", "scales", "opacities", "colors")
+    return all(torch.equal(getattr(a, f), getattr(b, f)) for f in fields)
+
+
+def test_untrained_model_meta_and_tau():
+    model, _ = build()
+    meta = model.meta
+    assert meta.t_start_us == tiny_scene.T0 and meta.t_end_us == tiny_scene.T0 + 200_000
+    assert meta.anchors_us.dtype == np.int64 and meta.channels == 3 and meta.has_event_branch
+    assert (meta.event_width, meta.event_height) == (tiny_scene.W, tiny_scene.H)
+    assert model.tau(tiny_scene.T0 + 150_000) == tiny_scene.T0 + 100_000
+    assert model.tau(tiny_scene.T0 + 100_000) == tiny_scene.T0 + 100_000
+    assert model.tau(tiny_scene.T0 + 999_999) == tiny_scene.T0 + 200_000
+    with pytest.raises(InvalidInputError, match="before the first anchor"):
+        model.tau(tiny_scene.T0 - 1)
+    with pytest.raises(InvalidInputError, match="t_us"):
+        model.tau(1.5)
+    assert len(model.gaussians) == TINY.init_points
+    assert meta.normalized_time(tiny_scene.T0 + 100_000) == 0.5
+
+
+def test_empty_window_at_an_anchor_is_exactly_the_anchor_state():
+    model, _ = build()
+    randomize_event_branch(model)
+    with torch.no_grad():
+        for p in model.prior.parameters():
+            p.add_(torch.randn_like(p) * 0.1)
+    t = tiny_scene.T0 + 100_000
+    anchor = model.deform(t)
+    zeros = np.zeros((tiny_scene.H, tiny_scene.W), np.float32)
+    assert states_equal(anchor, model.deform(t, zeros))
+    assert states_equal(anchor, model.deform(t, torch.zeros(tiny_scene.H, tiny_scene.W)))
+    assert states_equal(anchor, model.deform(t, None, np.eye(4)))
+    events = zeros.copy()
+    events[10:20, 10:20] = 3.0
+    moved = model.deform(t, events)
+    assert not torch.equal(moved.means, anchor.means)
+    assert torch.isfinite(moved.means).all()
+
+
+def test_event_branch_is_local():
+    model, _ = build()
+    randomize_event_branch(model)
+    t = tiny_scene.T0 + 50_000
+    cp = model.control.positions
+    emap = torch.zeros(tiny_scene.H, tiny_scene.W)
+    emap[:6, :6] = 2.0  # events in the top-left corner only
+    trans_ev, _, disp = model.control_motion(0.25, emap, torch.eye(4))
+    from edmcgs.model.camera import project
+    uv, _ = project(cp, torch.eye(4), model.meta.intrinsics)
+    far = (uv[:, 0] > 6 + 24) | (uv[:, 1] > 6 + 24)  # beyond Phi's 23-px receptive field
+    assert far.any() and (~far).any()
+    assert torch.equal(disp[far], torch.zeros_like(disp[far]))
+    assert (disp[~far].abs().sum(1) > 0).any()
+    global_model, _ = build(TINY.replace(local_sampling=False))
+    randomize_event_branch(global_model)
+    _, _, disp_global = global_model.control_motion(0.25, emap, None)
+    assert (disp_global.abs().sum(1) > 0).all()
+    del t, trans_ev
+
+
+def test_deform_validates_its_inputs():
+    model, _ = build()
+    t = tiny_scene.T0 + 50_000
+    with pytest.raises(InvalidInputError, match="event_map"):
+        model.deform(t, np.ones((3, 3), np.float32))
+    bad = np.ones((tiny_scene.H, tiny_scene.W), np.float32)
+    bad[0, 0] = np.nan
+    with pytest.raises(InvalidInputError, match="NaN"):
+        model.deform(t, bad)
+    with pytest.raises(InvalidInputError, match="before the first anchor"):
+        model.deform(tiny_scene.T0 - 10)
+    with pytest.raises(InvalidInputError):
+        model.deform(t, np.ones((tiny_scene.H, tiny_scene.W), np.float32), np.full((4, 4), np.nan))
+
+
+def test_render_shapes_and_range():
+    model, data = build()
+    state = model.deform(tiny_scene.T0)
+    for fast in (False, True):
+        img = model.render(state, np.eye(4), model.meta.intrinsics, fast=fast)
+        assert img.shape == (tiny_scene.H, tiny_scene.W, 3) and img.dtype == np.float32
+        assert np.isfinite(img).all() and img.min() >= 0 and img.max() <= 1
+    small = model.meta.intrinsics.scaled(24, 16)
+    assert model.render(state, np.eye(4), small, background=1.0).shape == (16, 24, 3)
+    # the untrained model already looks like its first anchor (pixels lifted at their colours)
+    ref = model.render(state, np.eye(4), model.meta.intrinsics, fast=False)
+    err = np.abs(ref - data.anchor_images[0] / 255.0).mean()
+    assert err < 0.2
+
+
+def test_checkpoint_round_trip_renders_identically(tmp_path):
+    model, _ = build()
+    randomize_event_branch(model)
+    path = tmp_path / "scene.ckpt"
+    save_checkpoint(model, path)
+    loaded = load_checkpoint(path)
+    assert not loaded.training
+    assert loaded.meta.t_start_us == model.meta.t_start_us and loaded.meta.t_end_us == model.meta.t_end_us
+    assert np.array_equal(loaded.meta.anchors_us, model.meta.anchors_us)
+    assert loaded.meta.intrinsics == model.meta.intrinsics and loaded.meta.config == model.meta.config
+    assert np.array_equal(loaded.meta.trajectory.c2w, model.meta.trajectory.c2w)
+    t = tiny_scene.T0 + 130_000
+    emap = np.zeros((tiny_scene.H, tiny_scene.W), np.float32)
+    emap[12:22, 20:30] = -2
+    a, b = model.deform(t, emap), loaded.deform(t, emap)
+    assert states_equal(a, b)
+    for fast in (False, True):
+        assert np.array_equal(model.render(a, np.eye(4), model.meta.intrinsics, fast=fast),
+                              loaded.render(b, np.eye(4), loaded.meta.intrinsics, fast=fast))
+    assert path.stat().st_size < 1_000_000
+    assert not list(tmp_path.glob(".*tmp"))
+
+
+def test_checkpoint_errors(tmp_path):
+    model, _ = build()
+    path = tmp_path / "scene.ckpt"
+    save_checkpoint(model, path)
+    with pytest.raises(CheckpointError, match="does not exist"):
+        load_checkpoint(tmp_path / "missing.ckpt")
+    blob = path.read_bytes()
+    (tmp_path / "cut.ckpt").write_bytes(blob[: len(blob) // 2])
+    with pytest.raises(CheckpointError, match="truncated"):
+        load_checkpoint(tmp_path / "cut.ckpt")
+    (tmp_path / "noise.ckpt").write_bytes(b"\x00garbage" * 100)
+    with pytest.raises(CheckpointError):
+        load_checkpoint(tmp_path / "noise.ckpt")
+    torch.save({"weights": torch.zeros(3)}, tmp_path / "foreign.ckpt")
+    with pytest.raises(CheckpointError, match="not an EdMCGS checkpoint"):
+        load_checkpoint(tmp_path / "foreign.ckpt")
+    payload = read_checkpoint(path)
+    assert payload["format"] == FORMAT
+    payload["version"] = VERSION + 1
+    torch.save(payload, tmp_path / "newer.ckpt")
+    with pytest.raises(CheckpointError, match="newer"):
+        load_checkpoint(tmp_path / "newer.ckpt")
+    payload["version"] = VERSION
+    payload["state_dict"]["gaussians.means"] = payload["state_dict"]["gaussians.means"][:5]
+    torch.save(payload, tmp_path / "inconsistent.ckpt")
+    with pytest.raises(CheckpointError, match="shape"):
+        load_checkpoint(tmp_path / "inconsistent.ckpt")
+
+
+def _mean_loss(trainer, steps):
+    return float(np.mean([trainer.train_step()["photo"] for _ in range(steps)]))
+
+
+def test_a_few_training_steps_lower_the_loss():
+    model, data = build(TINY.replace(densify_from=0.9))
+    trainer = Trainer(model, data, progress=False)
+    first = _mean_loss(trainer, 4)
+    for _ in range(8):
+        trainer.train_step()
+    assert _mean_loss(trainer, 4) < 0.8 * first
+
+
+@pytest.mark.parametrize("switches", [dict(events=False), dict(markov=False), dict(local_sampling=False),
+                                      dict(tli=False)])
+def test_every_ablation_trains_on_the_same_code_path(switches):
+    cfg = TINY.replace(iterations=6, **switches)
+    model, data = build(cfg)
+    assert (model.encoder is not None) == cfg.has_event_branch
+    trainer = Trainer(model, data, progress=False)
+    for _ in range(6):
+        out = trainer.train_step()
+        assert all(math.isfinite(v) for v in out.values())
+    assert ("event" in out) == cfg.events
+    assert ("tli" in out) == cfg.tli
+
+
+def test_stiff_motion_trains_without_nan_or_inf():
+    # The square crosses half the image (24 px) between two anchors; every window is full of events.
+    cfg = TINY.replace(iterations=24, densify_from=0.1, densify_every=5, event_warmup=(0.0, 0.05))
+    model, data = build(cfg, anchors_ms=(0, 100), held_ms=(50,), x0=2.0, x1=26.0, span_us=100_000)
+    trainer = Trainer(model, data, progress=False)
+    for _ in range(cfg.iterations):
+        out = trainer.train_step()
+        assert all(math.isfinite(v) for v in out.values()), out
+    for name, p in model.named_parameters():
+        assert torch.isfinite(p).all(), name
+    state = model.deform(tiny_scene.T0 + 50_000, data.event_map(tiny_scene.T0, tiny_scene.T0 + 50_000))
+    img = model.render(state, np.eye(4), model.meta.intrinsics)
+    assert np.isfinite(img).all()
+
+
+def test_resume_continues_where_it_stopped(tmp_path):
+    cfg = TINY.replace(iterations=12, checkpoint_every=6, densify_from=0.9)
+    model, data = build(cfg)
+    trainer = Trainer(model, data, progress=False)
+    for _ in range(3):
+        trainer.train_step()
+    path = tmp_path / "run.ckpt"
+    save_checkpoint(trainer.model, path, train_state=trainer.train_state())
+    resumed = Trainer(load_checkpoint(path), data, progress=False)
+    resumed.load_train_state(read_checkpoint(path)["train_state"])
+    assert resumed.step == 3
+    a, b = trainer.train_step(), resumed.train_step()
+    assert a.keys() == b.keys()
+    assert all(math.isclose(a[k], b[k], rel_tol=1e-4, abs_tol=1e-6) for k in a)
