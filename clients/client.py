@@ -200,7 +200,7 @@ class Client:
         if t_us is not None:
             params["t_us"] = str(int(t_us))
         if pose is not None:
-            params["pose"] = ",".join(repr(v) for v in protocol.check_pose_numbers(_flat(pose)))
+            params["pose"] = ",".join(repr(v) for v in _pose_numbers(pose))
         if width is not None:
             params["width"] = str(int(width))
         if height is not None:
@@ -233,7 +233,10 @@ class Client:
             message = subscription.to_message()
         else:
             message = dict(subscription or {})
-        protocol.Subscription().updated(message)  # fail here, with the field named, not on the server
+        try:  # fail here, with the field named, rather than on the server
+            protocol.Subscription().updated(message)
+        except protocol.ProtocolError as exc:
+            raise InvalidRequest(0, exc.detail, error="ProtocolError", param=exc.param) from None
         parts = urlsplit(self.base_url)
         scheme = "wss" if parts.scheme == "https" else "ws"
         url = urlunsplit((scheme, parts.netloc, parts.path + "/stream", "", ""))
@@ -277,8 +280,8 @@ class Stream:
 
     def update(self, **fields) -> None:
         """Send a partial subscription (e.g. ``pose=[...]``); fields not given keep their values."""
-        if "pose" in fields and fields["pose"] is not None:
-            fields["pose"] = protocol.check_pose_numbers(_flat(fields["pose"]))
+        if fields.get("pose") is not None:
+            fields["pose"] = _pose_numbers(fields["pose"])
         self._send(fields)
 
     def receive(self, timeout: float | None = None) -> Frame | None:
@@ -315,6 +318,11 @@ class Stream:
         self.close()
 
 
-def _flat(pose) -> list:
-    arr = np.asarray(pose, dtype=np.float64)
-    return arr.reshape(-1).tolist()
+def _pose_numbers(pose) -> list[float]:
+    """16 or 7 finite floats from a sequence or array (a 4x4 too); InvalidRequest naming ``pose``."""
+    try:
+        flat = np.asarray(pose, dtype=np.float64).reshape(-1).tolist()
+        return protocol.check_pose_numbers(flat)
+    except (TypeError, ValueError) as exc:
+        detail = exc.detail if isinstance(exc, protocol.ProtocolError) else f"pose must be numbers: {exc}"
+        raise InvalidRequest(0, detail, error="ProtocolError", param="pose") from None

@@ -1,0 +1,89 @@
+"""``edmcgs-serve``: serve a scene over HTTP and a websocket.
+
+    edmcgs-serve                                             # the bundled demo, replayed in a loop
+    edmcgs-serve --replay rec.h5 --checkpoint scene.ckpt --loop
+    edmcgs-serve --replay rec.aedat4 --checkpoint scene.ckpt --speed 0.5
+    edmcgs-serve --live --checkpoint scene.ckpt              # a DAVIS346 over USB
+
+Every flag is also an ``EDMCGS_<NAME>`` environment variable (flags win); ``EDMCGS_TOKEN`` makes every
+route require ``Authorization: Bearer <token>``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import re
+import sys
+
+from pydantic import ValidationError
+
+from edmcgs.errors import EdmcgsError
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="edmcgs-serve", description=__doc__.split("\n\n")[0],
+                                epilog="Settings without a flag: EDMCGS_MAX_WIDTH, EDMCGS_RENDER_WORKERS, "
+                                       "... (see edmcgs.server.settings).")
+    p.add_argument("--replay", metavar="FILE", help="recording to replay: .aedat4, or .h5/.hdf5")
+    p.add_argument("--checkpoint", metavar="CKPT", help="EdMCGS checkpoint of the scene")
+    p.add_argument("--speed", type=float, help="replay speed, a real-time factor (default 1)")
+    p.add_argument("--loop", action="store_true", default=None, help="replay in a loop")
+    p.add_argument("--live", action="store_true", default=None, help="read a DAVIS346 over USB")
+    p.add_argument("--host", help="interface to bind (default 127.0.0.1)")
+    p.add_argument("--port", type=int, help="TCP port (default 8000; 0: any free port)")
+    p.add_argument("--device", help="torch device of the model: cpu (default), cuda, cuda:1 ...")
+    p.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
+    return p
+
+
+class _RedactToken(logging.Filter):
+    """Keep ``?token=`` out of the access log."""
+
+    pattern = re.compile(r"(token=)[^&\s\"]+")
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.args:
+            record.args = tuple(self.pattern.sub(r"\1***", a) if isinstance(a, str) else a
+                                for a in record.args)
+        return True
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    import uvicorn
+    from edmcgs.server.app import create_app
+    from edmcgs.server.service import Service
+    from edmcgs.server.settings import Settings
+
+    flags = {k: v for k, v in vars(args).items() if v is not None and k != "log_level"}
+    logging.basicConfig(level=args.log_level.upper(),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        settings = Settings(**flags)
+    except ValidationError as exc:
+        for err in exc.errors():
+            where = ".".join(str(p) for p in err["loc"]) or "settings"
+            print(f"edmcgs-serve: {where}: {err['msg']}", file=sys.stderr)
+        return 2
+    logging.getLogger("uvicorn.access").addFilter(_RedactToken())
+    # Open before serving, so a bad checkpoint, recording or device is one line, not a traceback.
+    try:
+        service = Service.open(settings)
+    except EdmcgsError as exc:
+        print(f"edmcgs-serve: {exc}", file=sys.stderr)
+        return 1
+    app = create_app(settings, service_factory=lambda _settings: service)
+    config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=args.log_level,
+                            ws_max_size=1 << 20, timeout_graceful_shutdown=3)
+    server = uvicorn.Server(config)
+    try:
+        server.run()
+    finally:
+        if not server.started:  # the lifespan never ran: close what was opened here
+            service.close()
+    return 0 if server.started else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

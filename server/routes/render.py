@@ -1,0 +1,95 @@
+"""GET /render: the scene at a time, from a pose, as PNG, JPEG or msgpack."""
+
+from __future__ import annotations
+
+import math
+from functools import partial
+from typing import Literal
+
+from edmcgs.clients import protocol
+from edmcgs.model.camera import parse_pose
+from edmcgs.server.service import Service, invalid
+from fastapi import APIRouter, Header, Query, Request
+from fastapi.responses import Response
+
+router = APIRouter()
+
+MAX_T_US = 2**62  # far beyond any clock, far inside int64: t_us arithmetic can never overflow
+
+T_DOC = ("Scene time in seconds from the scene's start (`t_start_us` of GET /scene, its first anchor). "
+         "Give `t` or `t_us`, not both; neither renders the live head of the event stream.")
+T_US_DOC = ("Scene time in absolute microseconds, on the checkpoint's clock (Unix-epoch µs for a real "
+            "camera): `t_us = t_start_us + round(t * 1e6)`.")
+POSE_DOC = ("Camera-to-world pose, OpenCV convention (x right, y down, z forward): 16 numbers (row-major "
+            "4x4) or 7 (tx,ty,tz,qw,qx,qy,qz), comma-separated or a JSON array. Default: the event "
+            "camera's own pose at t (the checkpoint's trajectory).")
+SIZE_DOC = "Output {} in pixels (default: the camera's; one side alone keeps the aspect ratio; capped)."
+FORMAT_DOC = "png (default), jpeg, or msgpack (a frame map with raw uint8 pixels); else from Accept."
+
+ERRORS = {
+    401: {"description": "missing or wrong bearer token"},
+    416: {"description": "t cannot be rendered now; the body's valid_range says what can"},
+    422: {"description": "a malformed parameter; the body's param names it"},
+    500: {"description": "the render failed; the service lives on"},
+    503: {"description": "render queue full (Retry-After) or not ready"},
+}
+
+
+def parse_time(service: Service, t: float | None, t_us: int | None) -> int | None:
+    """Scene µs from the query's ``t`` or ``t_us`` (None: the head); 422 naming the parameter."""
+    if t is not None and t_us is not None:
+        raise invalid("t", "give t (seconds from the scene's start) or t_us (absolute µs), not both")
+    if t is not None:
+        if not math.isfinite(t) or abs(t) > MAX_T_US / 1e6 / 2:
+            raise invalid("t", f"t must be a finite number of seconds, got {t!r}")
+        return service.engine.t_us_of_seconds(t)
+    if t_us is not None and abs(t_us) > MAX_T_US:
+        raise invalid("t_us", f"t_us={t_us} is outside any clock (|t_us| <= 2^62 µs)")
+    return t_us
+
+
+def parse_pose_param(pose: str | None):
+    """c2w float64 [4, 4] from the ``pose`` query value, or None; PoseError (422) names ``pose``."""
+    if pose is None:
+        return None
+    return parse_pose(protocol.parse_pose_text(pose), name="pose")
+
+
+@router.get(
+    "/render", response_class=Response, summary="Render the scene at time t from a pose",
+    responses={200: {"content": {"image/png": {}, "image/jpeg": {}, "application/msgpack": {}},
+                     "description": "the image; headers " + ", ".join(protocol.HEADERS)}, **ERRORS})
+async def render(
+    request: Request,
+    t: float | None = Query(None, description=T_DOC),
+    t_us: int | None = Query(None, description=T_US_DOC),
+    pose: str | None = Query(None, description=POSE_DOC),
+    width: int | None = Query(None, description=SIZE_DOC.format("width")),
+    height: int | None = Query(None, description=SIZE_DOC.format("height")),
+    format: Literal["png", "jpeg", "msgpack"] | None = Query(None, description=FORMAT_DOC),
+    accept: str | None = Header(None, include_in_schema=False),
+) -> Response:
+    service: Service = request.app.state.service
+    scene_t = parse_time(service, t, t_us)
+    c2w = parse_pose_param(pose)
+    w, h = service.size(width, height)
+    fmt = format or protocol.negotiate_format(accept)
+    frame = await service.pool.run(partial(service.render_frame, scene_t, c2w, w, h,
+                                           "raw" if fmt == "msgpack" else fmt))
+    service.metrics.render.observe(frame["render_ms"] / 1e3, "http")
+    headers = {
+        protocol.HEADER_T_US: str(frame["t_us"]),
+        protocol.HEADER_T: repr(frame["t"]),
+        protocol.HEADER_ANCHOR_US: str(frame["anchor_us"]),
+        protocol.HEADER_EVENTS: str(frame["events"]),
+        protocol.HEADER_RENDER_MS: f"{frame['render_ms']:.3f}",
+        protocol.HEADER_WIDTH: str(frame["width"]),
+        protocol.HEADER_HEIGHT: str(frame["height"]),
+        protocol.HEADER_CHANNELS: str(frame["channels"]),
+        "Cache-Control": "no-store",
+    }
+    if fmt == "msgpack":
+        body = protocol.pack({k: frame[k] for k in protocol.FRAME_KEYS if k in frame})
+    else:
+        body = frame["data"]
+    return Response(body, media_type=protocol.MEDIA_TYPES[fmt], headers=headers)

@@ -1,0 +1,17 @@
+"""GET /scene: what the service serves (span, anchors, camera, trajectory, what can be rendered now)."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request
+
+router = APIRouter()
+
+
+@router.get("/scene", summary="The scene: time span, anchors, intrinsics, trajectory, live head")
+async def scene(request: Request) -> dict:
+    """Times are absolute µs on the checkpoint's clock (`*_us`) or seconds from `t_start_us` (`t`, `head_t`).
+
+    `renderable` is the most recent interval of time GET /render accepts now (`renderable_ranges`: all
+    of them, oldest first); `head_us` is the live head, the newest time whose events have all arrived.
+    """
+    return request.app.state.service.scene()

@@ -1,0 +1,244 @@
+"""WS /stream: frames pushed to the client, following the live head or sweeping a time range.
+
+Three tasks per connection:
+
+- the *receiver* reads subscriptions (msgpack or JSON), validates them and answers ``subscribed`` or
+  ``error`` (the previous subscription stays in force after an error);
+- the *producer* renders frames at the subscription's rate (live: whenever new events arrived, at
+  most ``fps`` per second; sweep: t0, t0 + speed/fps, ... up to t1) and puts each in a slot of size one;
+- the *sender* sends what is in the slot. A client slower than the producer finds the newest frame
+  there: the older one was dropped and counted (``dropped`` in every frame, and the metrics). Nothing
+  queues without bound however slow the client, and a client that stops reading costs one frame.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections import deque
+from functools import partial
+
+import numpy as np
+from edmcgs.clients import protocol
+from edmcgs.model.camera import parse_pose
+from edmcgs.server.errors import body_of
+from edmcgs.server.service import Service, invalid
+from fastapi import APIRouter, WebSocket
+from starlette.websockets import WebSocketDisconnect
+
+from edmcgs.errors import EdmcgsError, WindowUnavailable
+
+router = APIRouter()
+log = logging.getLogger("edmcgs.server")
+
+LIVE_IDLE_S = 0.5  # live mode re-checks its subscription at least this often while no events arrive
+
+
+class LatestSlot:
+    """Holds at most one item; ``put`` replaces an unsent one (and says so)."""
+
+    def __init__(self):
+        self._item = None
+
+    @property
+    def pending(self) -> bool:
+        return self._item is not None
+
+    def put(self, item) -> bool:
+        """Store ``item``; True when it replaced one that was never taken (a dropped frame)."""
+        replaced = self._item is not None
+        self._item = item
+        return replaced
+
+    def take(self):
+        item, self._item = self._item, None
+        return item
+
+
+class StreamSession:
+    """One websocket connection (see the module docstring)."""
+
+    def __init__(self, ws: WebSocket, service: Service):
+        self.ws, self.service = ws, service
+        self.sub: protocol.Subscription | None = None
+        self.pose: np.ndarray | None = None
+        self.size: tuple[int, int] = (0, 0)
+        self.fps = 1.0
+        self.restart = True  # the sweep starts over (a new subscription changed its timing)
+        self.changed = asyncio.Event()
+        self.frames = LatestSlot()
+        self.control: deque[dict] = deque(maxlen=16)  # acks and errors; bounded like everything else
+        self.wake = asyncio.Event()
+        self.seq = 0
+        self.dropped = 0
+
+    async def run(self) -> None:
+        tasks = [asyncio.create_task(c) for c in (self._receive(), self._produce(), self._send())]
+        try:
+            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+            for task in done:
+                exc = task.exception()
+                if exc is not None and not isinstance(exc, WebSocketDisconnect):
+                    log.warning("websocket stream ended by %s: %s", type(exc).__name__, exc)
+        finally:
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+
+    # ------------------------------------------------------------------ receiver
+    async def _receive(self) -> None:
+        while True:
+            message = await self.ws.receive()
+            if message["type"] == "websocket.disconnect":
+                return
+            raw = message.get("bytes") if message.get("bytes") is not None else message.get("text")
+            try:
+                self._apply(protocol.decode_message(raw))
+            except (protocol.ProtocolError, EdmcgsError) as exc:
+                self._control(body_of(exc))
+            else:
+                self._control({"type": "subscribed", "subscription": self.sub.to_message()})
+
+    def _apply(self, message: dict) -> None:
+        """Validate a (partial) subscription against the protocol and the server's limits, then use it."""
+        base = self.sub or protocol.Subscription()
+        sub = base.updated(message)
+        pose = None if sub.pose is None else parse_pose(sub.pose, name="pose")
+        size = self.service.size(sub.width, sub.height)
+        limit = self.service.settings.stream_max_fps
+        if sub.fps > limit:
+            raise invalid("fps", f"fps={sub.fps:g} exceeds the server's limit of {limit:g}")
+        engine = self.service.engine
+        for name in ("t0", "t1"):
+            if getattr(sub, name) is not None and abs(getattr(sub, name)) > 1e9:
+                raise invalid(name, f"{name} must be a number of seconds from the scene's start")
+        timing = ("mode", "t0", "t1", "t0_us", "t1_us", "speed", "loop")
+        if self.sub is None or any(getattr(sub, k) != getattr(self.sub, k) for k in timing):
+            self.restart = True
+        t0, t1 = self._sweep_range(sub)
+        if sub.mode == "sweep" and t1 < t0:
+            raise invalid("t1", f"the sweep ends ({engine.seconds_of(t1):.6f} s) before it starts "
+                                f"({engine.seconds_of(t0):.6f} s)")
+        self.sub, self.pose, self.size, self.fps = sub, pose, size, float(sub.fps)
+        self.changed.set()
+
+    def _sweep_range(self, sub: protocol.Subscription) -> tuple[int, int]:
+        engine = self.service.engine
+        t0 = sub.t0_us if sub.t0_us is not None else (
+            engine.t_us_of_seconds(sub.t0) if sub.t0 is not None else engine.first_us)
+        t1 = sub.t1_us if sub.t1_us is not None else (
+            engine.t_us_of_seconds(sub.t1) if sub.t1 is not None else engine.end_us)
+        return int(t0), int(t1)
+
+    def _control(self, message: dict) -> None:
+        self.control.append(message)
+        self.wake.set()
+
+    # ------------------------------------------------------------------ producer
+    async def _produce(self) -> None:
+        loop = asyncio.get_running_loop()
+        engine = self.service.engine
+        next_at = loop.time()
+        sweep_t = 0
+        last_window_end: int | None = None  # live: the stream time the previous frame reached
+        while True:
+            self.changed.clear()  # from here on, a new subscription wakes any wait below
+            sub = self.sub
+            if sub is None:
+                await self.changed.wait()
+                continue
+            if sub.mode == "live":
+                head = engine.head()
+                if head is None or (last_window_end is not None and head[0] <= last_window_end):
+                    await self._wait_for_events()
+                    continue
+                t_us = None
+            else:
+                t0, t1 = self._sweep_range(sub)
+                if self.restart:
+                    sweep_t, self.restart = t0, False
+                if sweep_t > t1:
+                    if not sub.loop:
+                        self._control({"type": "end", "seq": self.seq})
+                        self.sub = None
+                        continue
+                    sweep_t = t0
+                t_us = sweep_t
+                sweep_t += max(1, round(1e6 * sub.speed / sub.fps))
+            now = loop.time()
+            if now < next_at:
+                await asyncio.sleep(next_at - now)
+            next_at = max(next_at + 1.0 / self.fps, loop.time())  # never a burst to catch up
+            if self.changed.is_set():
+                continue  # a new subscription while waiting: render what is asked now
+            try:
+                frame = await self.service.pool.run(partial(
+                    self.service.render_frame, t_us, self.pose, *self.size, sub.format), wait=True)
+            except WindowUnavailable as exc:
+                if sub.mode == "live":
+                    # The head is outside the trained span, or before this pass's first anchor: wait
+                    # for it to move on rather than report every event batch.
+                    head = engine.head()
+                    last_window_end = None if head is None else head[0]
+                else:
+                    self._control(body_of(exc))
+                continue
+            except EdmcgsError as exc:
+                self._control(body_of(exc))
+                continue
+            self.service.metrics.render.observe(frame["render_ms"] / 1e3, "stream")
+            window_end = frame.pop("window_end_us")
+            if sub.mode == "live":
+                frame["arrived_unix_us"] = self.service.arrivals.first_after(last_window_end)
+                last_window_end = window_end
+            self._push(frame)
+
+    async def _wait_for_events(self) -> None:
+        """Until the ingest thread stores events, the subscription changes, or LIVE_IDLE_S passes."""
+        waiters = [asyncio.create_task(self.changed.wait()),
+                   asyncio.create_task(self.service.signal.wait(LIVE_IDLE_S))]
+        try:
+            await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for w in waiters:
+                w.cancel()
+
+    def _push(self, frame: dict) -> None:
+        frame["seq"] = self.seq
+        self.seq += 1
+        if self.frames.put(frame):
+            self.dropped += 1
+            self.service.metrics.frames_dropped.inc()
+        frame["dropped"] = self.dropped
+        self.wake.set()
+
+    # ------------------------------------------------------------------ sender
+    async def _send(self) -> None:
+        while True:
+            await self.wake.wait()
+            self.wake.clear()
+            # The frame first: an "end" queued after a sweep's last frame must follow it.
+            frame = self.frames.take()
+            if frame is not None:
+                await self.ws.send_bytes(protocol.pack(frame))
+                self.service.metrics.frames_sent.inc()
+            while self.control:
+                await self.ws.send_bytes(protocol.pack(self.control.popleft()))
+
+
+@router.websocket("/stream")
+async def stream(ws: WebSocket) -> None:
+    """See the module docstring and ``clients/protocol.py`` for the messages."""
+    service: Service = ws.app.state.service
+    await ws.accept()
+    service.metrics.stream_clients += 1
+    t0 = time.perf_counter()
+    try:
+        await StreamSession(ws, service).run()
+    finally:
+        service.metrics.stream_clients -= 1
+        with contextlib.suppress(RuntimeError):  # already closed by the client
+            await ws.close()
+        log.debug("stream closed after %.1f s", time.perf_counter() - t0)

@@ -1,0 +1,297 @@
+"""One running service: the model, the event source and its ingest thread, the ring, the engine, the
+render pool and the metrics. Opened and closed by the app's lifespan (``app.py``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from edmcgs.clients import protocol
+from edmcgs.model.checkpoint import load_checkpoint
+from edmcgs.sensor.anchors import AnchorStore
+from edmcgs.sensor.ingest import Ingest
+from edmcgs.sensor.open_source import open_source
+from edmcgs.sensor.pacing import Pacing
+from edmcgs.sensor.ring import EventRingBuffer
+from edmcgs.sensor.source import EventSource, SensorBatch
+from edmcgs.server import demo
+from edmcgs.server.encode import encode
+from edmcgs.server.engine import Engine
+from edmcgs.server.live import Arrivals, HeadSignal
+from edmcgs.server.metrics import CallbackCounter, Counter, Gauge, Histogram, Registry
+from edmcgs.server.render_pool import RenderPool
+from edmcgs.server.settings import Settings
+from edmcgs.server.timeline import Timeline
+
+from edmcgs.errors import EdmcgsError, InvalidInputError, RenderError
+
+log = logging.getLogger("edmcgs.server")
+
+ANCHOR_CAPACITY = 256
+"""Source frames kept for tau(t); each is a full image, so a looping replay must not keep them all."""
+
+
+def invalid(param: str, message: str) -> InvalidInputError:
+    """An InvalidInputError that names the offending request parameter (mapped to 422)."""
+    exc = InvalidInputError(message)
+    exc.param = param
+    return exc
+
+
+@dataclass(frozen=True)
+class Inputs:
+    """What to serve, resolved from the settings."""
+
+    checkpoint: Path
+    replay: Path | None
+    live: bool
+    loop: bool
+
+
+def resolve_inputs(settings: Settings) -> Inputs:
+    """The checkpoint and source to open: the given ones, or the bundled demo's."""
+    if settings.uses_demo:
+        ckpt, rec = demo.files()
+        return Inputs(ckpt, rec, live=False, loop=True)
+    return Inputs(settings.checkpoint, settings.replay, settings.live, settings.loop)
+
+
+class Metrics:
+    """The service's series (see ``GET /metrics``)."""
+
+    def __init__(self):
+        self.registry = Registry()
+        add = self.registry.add
+        self.requests = add(Counter("edmcgs_http_requests_total", "HTTP requests by route and status code.",
+                                    ("route", "code")))
+        self.latency = add(Histogram("edmcgs_http_request_duration_seconds",
+                                     "HTTP request latency by route (seconds).", ("route",)))
+        self.render = add(Histogram("edmcgs_render_seconds", "Render + encode time by path (seconds).",
+                                    ("path",)))
+        self.rejected = add(Counter("edmcgs_renders_rejected_total",
+                                    "GET /render refused with 503: every render worker and queue slot "
+                                    "taken."))
+        self.frames_sent = add(Counter("edmcgs_stream_frames_sent_total", "Websocket frames sent."))
+        self.frames_dropped = add(Counter("edmcgs_stream_frames_dropped_total",
+                                          "Websocket frames dropped because the client read slower than "
+                                          "they were rendered (latest wins)."))
+        self.stream_clients = 0
+
+
+class Service:
+    """Built by ``open`` (blocking: loads, opens, warms up, starts ingesting); ``close`` undoes it."""
+
+    def __init__(self, settings: Settings, inputs: Inputs, model, source: EventSource, ring: EventRingBuffer,
+                 anchors: AnchorStore | None, engine: Engine):
+        self.settings, self.inputs = settings, inputs
+        self.model, self.source, self.ring, self.anchors, self.engine = model, source, ring, anchors, engine
+        self.metrics = Metrics()
+        self.arrivals = Arrivals()
+        self.pool = RenderPool(settings.render_workers, settings.render_queue)
+        self.signal: HeadSignal | None = None
+        self.ingest: Ingest | None = None
+        self.started_unix = time.time()
+        self._register_metrics()
+
+    # ------------------------------------------------------------------ lifecycle
+    @classmethod
+    def open(cls, settings: Settings) -> Service:
+        inputs = resolve_inputs(settings)
+        if settings.torch_threads is not None:
+            import torch
+
+            torch.set_num_threads(settings.torch_threads)
+        model = load_checkpoint(inputs.checkpoint, settings.device)
+        meta = model.meta
+        pacing = Pacing(factor=settings.speed, loop=inputs.loop, batch_us=settings.replay_batch_us)
+        source = open_source(inputs.replay, live=inputs.live, pacing=pacing)
+        try:
+            info = source.info
+            if (info.width, info.height) != (meta.event_width, meta.event_height):
+                raise InvalidInputError(
+                    f"the event source is {info.width}x{info.height} but the checkpoint's event maps are "
+                    f"{meta.event_width}x{meta.event_height}: replay the recording it was trained on")
+            ring = EventRingBuffer(settings.ring_events)
+            anchors = AnchorStore(ANCHOR_CAPACITY) if info.has_frames else None
+            engine = Engine(model, ring, anchors, cache_size=settings.deform_cache)
+            if info.t_range_us is not None:
+                engine.timeline = replay_timeline(info.t_range_us, meta.t_start_us, meta.t_end_us,
+                                                  inputs.loop)
+            service = cls(settings, inputs, model, source, ring, anchors, engine)
+            seconds = engine.warm_up()
+            log.info("model %s on %s: %d Gaussians, warm-up %.1f s; source %s (%dx%d, %s)",
+                     inputs.checkpoint, settings.device, len(model.gaussians), seconds, info.sensor,
+                     info.width, info.height, "frames as anchors" if anchors is not None
+                     else "checkpoint anchors")
+            return service
+        except BaseException:
+            source.close()
+            raise
+
+    def start(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Start ingesting (the replay's real-time clock starts here) and waking live streams on ``loop``."""
+        self.signal = HeadSignal(loop)
+        self.ingest = Ingest(self.source, self.ring, self.anchors, on_batch=self._on_batch).start()
+
+    def close(self) -> None:
+        """Stop the ingest thread (joined), close the source, finish running renders."""
+        if self.ingest is not None:
+            self.ingest.stop(timeout=5.0)
+            if self.ingest.running:
+                log.warning("the ingest thread did not stop within 5 s")
+        self.source.close()
+        self.pool.close()
+
+    def _on_batch(self, batch: SensorBatch) -> None:
+        """Ingest thread, after each batch is stored."""
+        if self.engine.timeline is None and len(batch.events):
+            # A camera's clock is known at its first event; align it with the scene's start and loop
+            # over the trained span (see timeline.py).
+            meta = self.model.meta
+            self.engine.timeline = Timeline(int(batch.events.t[0]), meta.t_start_us,
+                                            meta.t_end_us - meta.t_start_us + 1)
+        wm = self.ring.watermark_us
+        if wm is not None:
+            self.arrivals.record(wm)
+        if self.signal is not None:
+            self.signal.notify()
+
+    # ------------------------------------------------------------------ health
+    def health(self) -> tuple[bool, dict]:
+        """(ready, details): ready when the model is loaded and the source delivers (or delivered)."""
+        ingest = self.ingest
+        head = self.engine.head()
+        source_state = ("error" if ingest is None or ingest.error is not None else
+                        "ended" if ingest.finished else "streaming" if ingest.running else "stopped")
+        ready = source_state in ("streaming", "ended") and head is not None
+        details = {
+            "ready": ready,
+            "model": "loaded",
+            "device": self.settings.device,
+            "source": source_state,
+            "source_error": None if ingest is None or ingest.error is None else str(ingest.error),
+            "events_in_ring": len(self.ring),
+            "head_us": None if head is None else head[1],
+            "uptime_s": round(time.time() - self.started_unix, 3),
+        }
+        return ready, details
+
+    # ------------------------------------------------------------------ requests
+    def size(self, width: int | None, height: int | None) -> tuple[int, int]:
+        """Output size: the camera's by default; one side alone keeps the aspect ratio; capped."""
+        native = self.model.meta.intrinsics
+        if width is None and height is None:
+            width, height = native.width, native.height
+        elif height is None:
+            height = max(1, round(width * native.height / native.width))
+        elif width is None:
+            width = max(1, round(height * native.width / native.height))
+        for name, value, cap in (("width", width, self.settings.max_width),
+                                 ("height", height, self.settings.max_height)):
+            if value < 1:
+                raise invalid(name, f"{name} must be >= 1, got {value}")
+            if value > cap:
+                raise invalid(name, f"{name}={value} exceeds the server's limit of {cap} px")
+        return int(width), int(height)
+
+    def render_frame(self, t_us: int | None, pose: np.ndarray | None, width: int, height: int,
+                     fmt: str) -> dict:
+        """Blocking (run on the pool): the protocol's frame map for one render, ``data`` encoded."""
+        t0 = time.perf_counter()
+        try:
+            rendered = self.engine.render(t_us, pose, width, height)
+            data = encode(rendered.pixels, fmt, jpeg_quality=self.settings.jpeg_quality,
+                          png_compress_level=self.settings.png_compress_level)
+        except EdmcgsError:
+            raise
+        except Exception as exc:  # torch / numba / Pillow failures: a 500 with a message, not a crash
+            raise RenderError(f"render failed: {type(exc).__name__}: {exc}") from exc
+        ms = (time.perf_counter() - t0) * 1e3
+        inst = rendered.instant
+        return {"type": "frame", "t_us": inst.t_us, "t": self.engine.seconds_of(inst.t_us),
+                "anchor_us": inst.anchor_us, "events": rendered.events, "render_ms": round(ms, 3),
+                "width": width, "height": height, "channels": int(rendered.pixels.shape[2]), "format": fmt,
+                "data": data, "window_end_us": inst.window[1]}
+
+    def scene(self) -> dict:
+        """The body of GET /scene."""
+        meta, engine = self.model.meta, self.engine
+        intr = meta.intrinsics
+        traj = meta.trajectory
+        head = engine.head()
+        ranges = engine.renderable()
+        info = self.source.info
+        return {
+            "t_start_us": meta.t_start_us,
+            "t_end_us": meta.t_end_us,
+            "duration_s": (meta.t_end_us - meta.t_start_us) / 1e6,
+            "anchors_us": [int(a) for a in meta.anchors_us],
+            "intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
+                           "width": intr.width, "height": intr.height},
+            "event_size": {"width": meta.event_width, "height": meta.event_height},
+            "trajectory": None if traj is None else {
+                "t_us": [int(t) for t in traj.t_us], "c2w": [m.reshape(-1).tolist() for m in traj.c2w]},
+            "channels": meta.channels,
+            "has_event_branch": meta.has_event_branch,
+            "num_gaussians": len(self.model.gaussians),
+            "head_us": None if head is None else head[1],
+            "head_t": None if head is None else engine.seconds_of(head[1]),
+            "stream_head_us": None if head is None else head[0],
+            "renderable": engine.range_dict(ranges[-1]) if ranges else None,
+            "renderable_ranges": [engine.range_dict(r) for r in ranges],
+            "source": {"sensor": info.sensor, "live": info.live, "width": info.width, "height": info.height,
+                       "has_frames": info.has_frames, "loop": self.inputs.loop,
+                       "speed": self.settings.speed if not info.live else None,
+                       "period_us": None if engine.timeline is None else engine.timeline.period_us},
+            "limits": {"max_width": self.settings.max_width, "max_height": self.settings.max_height,
+                       "stream_max_fps": self.settings.stream_max_fps},
+            "formats": list(protocol.RENDER_FORMATS),
+            "stream_formats": list(protocol.STREAM_FORMATS),
+        }
+
+    # ------------------------------------------------------------------ metrics
+    def _register_metrics(self) -> None:
+        add, ring = self.metrics.registry.add, self.ring
+
+        def dropped() -> dict[str, float]:
+            s = ring.stats()
+            return {"overflow": s.overflowed, "expired": s.expired, "late": s.late,
+                    "invalid": self.source.stats.dropped}
+
+        add(Gauge("edmcgs_up", "1 when the service is ready (model loaded, source delivering).",
+                  lambda: float(self.health()[0])))
+        add(CallbackCounter("edmcgs_events_ingested_total", "Events offered to the ring buffer.",
+                            lambda: ring.stats().pushed))
+        add(CallbackCounter("edmcgs_events_dropped_total",
+                            "Events dropped: ring overflow (oldest first), expired, late (behind the "
+                            "watermark), invalid (rejected by the source's validation).", dropped, "reason"))
+        add(Gauge("edmcgs_ring_events", "Events held in the ring buffer.", lambda: len(ring)))
+        add(Gauge("edmcgs_ring_capacity_events", "Capacity of the ring buffer.", lambda: ring.capacity))
+        add(Gauge("edmcgs_ring_fill_ratio", "Ring buffer fill (0..1).", lambda: ring.stats().fill))
+        add(CallbackCounter("edmcgs_deform_cache_total", "Deformed-state lookups by result.",
+                            lambda: {"hit": self.engine.cache.hits, "miss": self.engine.cache.misses},
+                            "result"))
+        add(Gauge("edmcgs_renders_in_flight", "Renders running or waiting for a worker.",
+                  lambda: self.pool.in_flight))
+        add(Gauge("edmcgs_stream_clients", "Open websocket streams.", lambda: self.metrics.stream_clients))
+
+
+def replay_timeline(t_range_us: tuple[int, int], scene_start_us: int, scene_end_us: int,
+                    loop: bool) -> Timeline:
+    """The timeline of a replay whose file spans ``t_range_us`` (inclusive; see timeline.py).
+
+    A file on the checkpoint's clock (its span overlaps the trained span) keeps its times; one on
+    another clock is aligned by its first timestamp with the scene's start.
+    """
+    first, last = t_range_us
+    period = last + 1 - first if loop else None
+    same_clock = first <= scene_end_us and last >= scene_start_us
+    if not same_clock:
+        log.warning("the recording's clock [%d, %d] µs does not overlap the checkpoint's span [%d, %d] µs: "
+                    "aligning its start with the scene's start", first, last, scene_start_us, scene_end_us)
+    return Timeline(first, first if same_clock else scene_start_us, period)

@@ -1,0 +1,58 @@
+"""Service settings: environment variables with the ``EDMCGS_`` prefix, overridden by CLI flags.
+
+Built by the app factory (or the CLI), never at import time.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field, SecretStr, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """Everything ``edmcgs-serve`` can be told. Each field is also ``EDMCGS_<NAME>`` in the environment."""
+
+    model_config = SettingsConfigDict(env_prefix="EDMCGS_", extra="forbid")
+
+    checkpoint: Path | None = Field(None, description="EdMCGS checkpoint to serve; none: the bundled demo's.")
+    replay: Path | None = Field(None, description="AEDAT4 or HDF5 recording to replay; none with no "
+                                                  "--live: the bundled demo's recording.")
+    live: bool = Field(False, description="Read a DAVIS346 over USB instead of replaying a file.")
+    speed: float = Field(1.0, gt=0, description="Replay speed, a real-time factor.")
+    loop: bool = Field(False, description="Start the replay over at its end (the demo always loops).")
+    host: str = Field("127.0.0.1", description="Interface to bind; loopback unless told otherwise.")
+    port: int = Field(8000, ge=0, le=65535, description="TCP port (0: any free port).")
+    device: str = Field("cpu", description="Torch device of the model: 'cpu', 'cuda', 'cuda:1' ...")
+    token: SecretStr | None = Field(None, description="When set, every route and the websocket require "
+                                                      "'Authorization: Bearer <token>'.")
+    max_width: int = Field(1920, gt=0, description="Largest width a client may ask for (px).")
+    max_height: int = Field(1920, gt=0, description="Largest height a client may ask for (px).")
+    render_workers: int = Field(2, gt=0, description="Renders running at once (threads of the render pool).")
+    render_queue: int = Field(8, ge=0, description="Renders waiting for a worker before GET /render "
+                                                   "answers 503 with Retry-After.")
+    stream_max_fps: float = Field(60.0, gt=0, description="Highest frame rate one websocket may ask for.")
+    replay_batch_us: int = Field(5_000, gt=0, description="Recording time per replay batch pushed to the "
+                                                          "ring (µs): the latency a replay adds.")
+    ring_events: int = Field(4_000_000, gt=0, description="Capacity of the event ring buffer (events).")
+    deform_cache: int = Field(32, ge=1, description="Deformed Gaussian states kept, keyed by (t, anchor, "
+                                                    "event count), shared by every client.")
+    jpeg_quality: int = Field(90, ge=1, le=100, description="JPEG quality of rendered frames.")
+    png_compress_level: int = Field(1, ge=0, le=9, description="zlib level of PNG frames (1: fast).")
+    torch_threads: int | None = Field(None, gt=0, description="torch intra-op threads; none: torch's own.")
+
+    @model_validator(mode="after")
+    def _one_source(self) -> Settings:
+        if self.live and self.replay is not None:
+            raise ValueError("replay and live are exclusive: give one event source")
+        if (self.live or self.replay is not None) and self.checkpoint is None:
+            raise ValueError("a checkpoint is required with replay or live (the model of that scene)")
+        if self.checkpoint is not None and self.replay is None and not self.live:
+            raise ValueError("a checkpoint needs an event source: give replay (a recording) or live")
+        return self
+
+    @property
+    def uses_demo(self) -> bool:
+        """True when neither a checkpoint nor a source is given: serve the bundled demo scene."""
+        return self.checkpoint is None and self.replay is None and not self.live
