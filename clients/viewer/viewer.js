@@ -328,9 +328,17 @@ async function drawPending() {
   }
 }
 
+// A frame of a closed stream, or a still while the stream plays, must not land on the canvas: both
+// can finish decoding after the switch.
+function current(frame) {
+  return frame.generation === undefined ? !state.playing
+    : state.playing && frame.generation === state.wsGeneration;
+}
+
 async function drawFrame(frame) {
   const canvas = $("view");
   const ctx = canvas.getContext("2d");
+  if (!current(frame)) return false;
   if (frame.format === "raw") {
     // uint8, row-major [height, width, channels] with 1 (grey), 3 (RGB) or 4 (RGBA) channels
     const { width, height, channels, data } = frame;
@@ -346,6 +354,7 @@ async function drawFrame(frame) {
   } else {
     const type = frame.format === "png" ? "image/png" : "image/jpeg";
     const bitmap = await createImageBitmap(new Blob([frame.data], { type }));
+    if (!current(frame)) { bitmap.close(); return false; }
     if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
       canvas.width = bitmap.width;
       canvas.height = bitmap.height;
@@ -354,6 +363,7 @@ async function drawFrame(frame) {
     bitmap.close();
   }
   shown(frame);
+  return true;
 }
 
 function shown(frame) {
@@ -429,6 +439,7 @@ function openStream() {
     subscribe();
   };
   ws.onmessage = (event) => {
+    if (generation !== state.wsGeneration) return;  // in flight when the stream was closed: stale
     let msg;
     try {
       msg = typeof event.data === "string" ? JSON.parse(event.data) : unpack(new Uint8Array(event.data));
@@ -453,6 +464,7 @@ function openStream() {
         // Event to screen, against the page's clock: exact on one machine, else as good as NTP.
         msg.eventLatencyMs = Date.now() - msg.arrived_unix_us / 1000;
       }
+      msg.generation = generation;
       queueFrame(msg);
     }
   };
@@ -468,6 +480,7 @@ function openStream() {
 
 function closeStream() {
   state.wsGeneration += 1;
+  state.pending = null;
   if (state.ws) state.ws.close(1000, "viewer paused");
   state.ws = null;
 }
@@ -510,8 +523,7 @@ async function renderStill() {
         events: Number(header("X-Edmcgs-Events")),
         render_ms: Number(header("X-Edmcgs-Render-Ms")),
       };
-      await drawFrame(frame);
-      state.latencyMs = performance.now() - sent;  // request to frame on screen
+      if (await drawFrame(frame)) state.latencyMs = performance.now() - sent;  // request to screen
     } while (state.renderAgain && !state.playing);
   } catch (err) {
     showError(`render: ${err.message}`);
@@ -629,4 +641,6 @@ async function start() {
 // The pure parts, for a console or a test page.
 window.edmcgsViewer = { state, unpack, poseAt, Orbit, quatFromRot, rotFromQuat, currentPose };
 
-start();
+// index.html inserts this script from <head>: wait for the page's elements.
+if (document.readyState === "loading") document.addEventListener("DOMContentLoaded", start);
+else start();

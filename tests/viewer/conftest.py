@@ -50,3 +50,28 @@ def page(browser):
         yield page
     finally:
         context.close()
+
+
+# The real service for the viewer and export tests: the server tests' own helpers (a scene built with
+# the model API, edmcgs-serve in a subprocess on a free loopback port), at a size worth looking at in
+# a screenshot, with a token required and a width/height cap the tests can run into from the page.
+VIEW_W, VIEW_H = 160, 120
+MAX_SIZE = 200
+
+
+@pytest.fixture(scope="package")
+def served(tmp_path_factory):
+    from bench.serve import build_scene
+    from tests.server.conftest import TOKEN, ServerProcess
+
+    rec, ckpt = build_scene(tmp_path_factory.mktemp("viewer-scene"), width=VIEW_W, height=VIEW_H,
+                            event_rate=20_000, init_points=2000, control_points=64)
+    srv = ServerProcess(["--replay", str(rec), "--checkpoint", str(ckpt), "--loop"],
+                        env={"EDMCGS_TOKEN": TOKEN, "EDMCGS_MAX_WIDTH": str(MAX_SIZE),
+                             "EDMCGS_MAX_HEIGHT": str(MAX_SIZE)})
+    try:
+        srv.wait_ready(TOKEN)
+        srv.token = TOKEN
+        yield srv
+    finally:
+        srv.stop()

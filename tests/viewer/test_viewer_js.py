@@ -1,8 +1,8 @@
 """The viewer's own JavaScript, run in the real browser: the msgpack decoder against Python's msgpack,
 the pose math against scipy, and the page's report of a server that has no scene.
 
-Served here by a plain static file server laid out as edmcgs-serve lays it out (the page at /, its
-files under /viewer/), with no API behind it.
+Served here by a plain static file server of the viewer's folder, at / as edmcgs-serve mounts it,
+with no API behind it (every API route: 404).
 """
 
 from __future__ import annotations
@@ -22,14 +22,6 @@ from tests.viewer.conftest import VIEWER
 
 
 class _StaticViewer(http.server.SimpleHTTPRequestHandler):
-    def translate_path(self, path):
-        path = path.split("?", 1)[0]
-        if path == "/":
-            return str(VIEWER / "index.html")
-        if path.startswith("/viewer/"):
-            return str(VIEWER / path.removeprefix("/viewer/"))
-        return str(VIEWER / "no-such-file")  # every API route: 404
-
     def log_message(self, *args):
         pass
 
@@ -197,3 +189,15 @@ def test_page_reports_a_server_without_a_scene(viewer):
     assert "cannot load the scene: 404" in viewer.locator("#error-text").inner_text()
     assert viewer.locator("#status").inner_text() == "no scene"
     assert json.loads(viewer.evaluate("JSON.stringify(window.edmcgsViewer.state.scene)")) is None
+
+
+def test_page_hands_its_token_to_every_request(page, static_url):
+    requests = []
+    page.on("request", lambda r: requests.append((r.url, r.headers.get("authorization"))))
+    page.goto(static_url + "?token=s3cret%2Fx")
+    page.locator("#error").wait_for(state="visible", timeout=5000)
+    by_name = {url.split("/")[-1].split("?")[0]: (url, auth) for url, auth in requests}
+    assert by_name["viewer.js"][0].endswith("viewer.js?token=s3cret%2Fx")
+    assert by_name["viewer.css"][0].endswith("viewer.css?token=s3cret%2Fx")
+    scene_url, scene_auth = by_name["scene"]
+    assert "token" not in scene_url and scene_auth == "Bearer s3cret/x"  # a header, not in the URL
