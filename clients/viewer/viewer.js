@@ -224,7 +224,7 @@ const state = {
   ws: null,
   wsGeneration: 0,
   sentAt: [],             // performance.now() of each subscription sent and not yet answered
-  ackedSentAt: null,      // ... of the one just answered, until its first frame arrives
+  acked: null,            // {sentAt, framesLeft}: the one just answered, until the frame that times it
   eventLatencyMs: null,
   viewDirty: false,       // a change of view waits for the next animation frame (one message per paint)
   rendering: false,       // a GET /render in flight
@@ -370,8 +370,11 @@ function shown(frame) {
   const now = performance.now();
   state.frames += 1;
   state.shown.push(now);
-  if (frame.latencyMs !== undefined) state.latencyMs = frame.latencyMs;
-  if (frame.eventLatencyMs !== undefined) state.eventLatencyMs = frame.eventLatencyMs;
+  if (frame.requestedAt !== undefined) state.latencyMs = now - frame.requestedAt;  // request to screen
+  if (frame.arrived_unix_us !== undefined && frame.arrived_unix_us !== null) {
+    // Event to screen against the page's clock: exact on the server's machine, else as good as NTP.
+    state.eventLatencyMs = Date.now() - frame.arrived_unix_us / 1000;
+  }
   state.tUs = frame.t_us;
   if (frame.t_us !== undefined && frame.t_us !== null) {
     $("time").textContent = `${secondsOf(frame.t_us).toFixed(3)} s`;
@@ -435,7 +438,7 @@ function openStream() {
   ws.onopen = () => {
     setStatus("live");
     state.sentAt = [];
-    state.ackedSentAt = null;
+    state.acked = null;
     subscribe();
   };
   ws.onmessage = (event) => {
@@ -452,17 +455,16 @@ function openStream() {
       showError(`stream: ${describeError(msg)}`);
       state.sentAt.shift();
     } else if (msg.type === "subscribed") {
-      // Answers come in the order of the subscriptions, and every frame after this answer uses
-      // that subscription: its first frame measures the pose-to-screen latency.
-      state.ackedSentAt = state.sentAt.shift() ?? null;
+      // Answers come in the order of the subscriptions. The server renders one frame at a time and
+      // sends a finished frame before an answer, so at most the first frame after the answer was
+      // rendered before it (with the previous pose): the second one certainly uses the new
+      // subscription. Timing to it is exact while the stream is busy (the usual case), and at most
+      // one frame interval long when the server was idle.
+      state.acked = { sentAt: state.sentAt.shift(), framesLeft: 2 };
     } else if (msg.type === "frame") {
-      if (state.ackedSentAt !== null) {
-        msg.latencyMs = performance.now() - state.ackedSentAt;
-        state.ackedSentAt = null;
-      }
-      if (msg.arrived_unix_us !== undefined && msg.arrived_unix_us !== null) {
-        // Event to screen, against the page's clock: exact on one machine, else as good as NTP.
-        msg.eventLatencyMs = Date.now() - msg.arrived_unix_us / 1000;
+      if (state.acked && state.acked.sentAt !== undefined && --state.acked.framesLeft === 0) {
+        msg.requestedAt = state.acked.sentAt;
+        state.acked = null;
       }
       msg.generation = generation;
       queueFrame(msg);
@@ -523,7 +525,8 @@ async function renderStill() {
         events: Number(header("X-Edmcgs-Events")),
         render_ms: Number(header("X-Edmcgs-Render-Ms")),
       };
-      if (await drawFrame(frame)) state.latencyMs = performance.now() - sent;  // request to screen
+      frame.requestedAt = sent;
+      await drawFrame(frame);
     } while (state.renderAgain && !state.playing);
   } catch (err) {
     showError(`render: ${err.message}`);
