@@ -242,14 +242,16 @@ class Client:
         url = urlunsplit((scheme, parts.netloc, parts.path + "/stream", "", ""))
         headers = {"Authorization": f"Bearer {self.token}"} if self.token else None
         try:
-            ws = connect(url, additional_headers=headers, open_timeout=self.timeout,
-                         close_timeout=2, max_size=2**28)
+            # Entered as a context manager (what websockets >= 17 asks for); Stream exits it on close.
+            opened = connect(url, additional_headers=headers, open_timeout=self.timeout, close_timeout=2,
+                             max_size=2**28)
+            ws = opened.__enter__()
         except InvalidStatus as exc:
             status = exc.response.status_code
             cls = Unauthorized if status in (401, 403) else _BY_STATUS.get(status, ServerError)
             raise cls(status, f"websocket refused: {exc.response.body.decode(errors='replace') or status}") \
                 from None
-        return Stream(ws, message, self.timeout if timeout is None else timeout)
+        return Stream(ws, opened, message, self.timeout if timeout is None else timeout)
 
     def close(self) -> None:
         self._http.close()
@@ -269,8 +271,9 @@ class Stream:
     the server raises its typed error (the stream stays usable: send a corrected ``update``).
     """
 
-    def __init__(self, ws: ClientConnection, message: dict, timeout: float):
+    def __init__(self, ws: ClientConnection, opened, message: dict, timeout: float):
         self._ws = ws
+        self._opened = opened
         self._timeout = timeout
         self.subscription: dict | None = None  # as confirmed by the server
         self._send(message)
@@ -309,7 +312,7 @@ class Stream:
             yield frame
 
     def close(self) -> None:
-        self._ws.close()
+        self._opened.__exit__(None, None, None)
 
     def __enter__(self) -> Stream:
         return self

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from typing import Any, Literal
 
 import msgpack
@@ -181,24 +181,21 @@ class Subscription:
     width: int | None = None
     height: int | None = None
     format: Literal["jpeg", "png", "raw"] = "jpeg"
-    extra: dict = field(default_factory=dict, repr=False)  # not on the wire; unknown keys are rejected
 
     def to_message(self) -> dict:
         """The map to send (``None`` fields left out)."""
-        return {k: v for k, v in asdict(self).items() if v is not None and k != "extra"}
+        return {k: v for k, v in asdict(self).items() if v is not None}
 
     def updated(self, message: dict) -> Subscription:
         """A copy with the fields of ``message`` applied, validated; raises ProtocolError."""
         if not isinstance(message, dict):
             raise ProtocolError(None, "a subscription must be a map (msgpack map or JSON object)")
-        known = {f.name for f in fields(self)} - {"extra"}
+        known = {f.name for f in fields(self)}
         unknown = sorted(set(message) - known)
         if unknown:
             raise ProtocolError(unknown[0], f"unknown subscription field {unknown[0]!r}; "
                                             f"known: {', '.join(sorted(known))}")
-        values = asdict(self)
-        values.pop("extra")
-        values.update(message)
+        values = asdict(self) | message
         return _validated(values)
 
 

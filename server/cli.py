@@ -66,7 +66,8 @@ def main(argv: list[str] | None = None) -> int:
             where = ".".join(str(p) for p in err["loc"]) or "settings"
             print(f"edmcgs-serve: {where}: {err['msg']}", file=sys.stderr)
         return 2
-    logging.getLogger("uvicorn.access").addFilter(_RedactToken())
+    for name in ("uvicorn.access", "uvicorn.error"):  # access lines, and websocket accept lines
+        logging.getLogger(name).addFilter(_RedactToken())
     # Open before serving, so a bad checkpoint, recording or device is one line, not a traceback.
     try:
         service = Service.open(settings)
@@ -79,6 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     server = uvicorn.Server(config)
     try:
         server.run()
+    except KeyboardInterrupt:  # uvicorn re-raises Ctrl-C after its graceful shutdown
+        return 130
     finally:
         if not server.started:  # the lifespan never ran: close what was opened here
             service.close()

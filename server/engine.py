@@ -108,7 +108,7 @@ class Engine:
         if not self.first_us <= t_us <= self.end_us:
             self._unavailable(f"{what} is outside the checkpoint's span: the first anchor is at "
                               f"{self._fmt(self.first_us)} and the span ends at {self._fmt(self.end_us)}")
-        if stream_t > wm:
+        if stream_t > wm or (tl.period_us is not None and stream_t < tl.stream_origin_us):
             self._unavailable(f"{what} has not been streamed yet")
         a_stream = self._anchor_stream(stream_t, t_us)
         a_scene = t_us - (stream_t - a_stream) if a_stream is not None else None

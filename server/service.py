@@ -73,9 +73,6 @@ class Metrics:
                                      "HTTP request latency by route (seconds).", ("route",)))
         self.render = add(Histogram("edmcgs_render_seconds", "Render + encode time by path (seconds).",
                                     ("path",)))
-        self.rejected = add(Counter("edmcgs_renders_rejected_total",
-                                    "GET /render refused with 503: every render worker and queue slot "
-                                    "taken."))
         self.frames_sent = add(Counter("edmcgs_stream_frames_sent_total", "Websocket frames sent."))
         self.frames_dropped = add(Counter("edmcgs_stream_frames_dropped_total",
                                           "Websocket frames dropped because the client read slower than "
@@ -276,6 +273,9 @@ class Service:
         add(CallbackCounter("edmcgs_deform_cache_total", "Deformed-state lookups by result.",
                             lambda: {"hit": self.engine.cache.hits, "miss": self.engine.cache.misses},
                             "result"))
+        add(CallbackCounter("edmcgs_renders_rejected_total",
+                            "GET /render refused with 503: every render worker and queue slot taken.",
+                            lambda: self.pool.rejected))
         add(Gauge("edmcgs_renders_in_flight", "Renders running or waiting for a worker.",
                   lambda: self.pool.in_flight))
         add(Gauge("edmcgs_stream_clients", "Open websocket streams.", lambda: self.metrics.stream_clients))

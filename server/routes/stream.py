@@ -239,6 +239,6 @@ async def stream(ws: WebSocket) -> None:
         await StreamSession(ws, service).run()
     finally:
         service.metrics.stream_clients -= 1
-        with contextlib.suppress(RuntimeError):  # already closed by the client
+        with contextlib.suppress(RuntimeError, WebSocketDisconnect):  # the client is already gone
             await ws.close()
         log.debug("stream closed after %.1f s", time.perf_counter() - t0)

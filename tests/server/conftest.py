@@ -51,7 +51,8 @@ class ServerProcess:
             stdout=self._log, stderr=subprocess.STDOUT, env=full_env)
 
     def log(self) -> str:
-        self._log.flush()
+        if not self._log.closed:
+            self._log.flush()
         return self.log_path.read_text(errors="replace")
 
     def wait_ready(self, token: str | None = None) -> None:
@@ -83,7 +84,8 @@ class ServerProcess:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait(5)
-        self._log.close()
+        if not self._log.closed:
+            self._log.close()
         return self.proc.returncode
 
 

@@ -1,0 +1,121 @@
+"""Unit tests of the service's pure parts: timeline, state cache, metrics text, wire schema."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+from edmcgs.clients import protocol
+from edmcgs.server.metrics import CallbackCounter, Counter, Gauge, Histogram, Registry
+from edmcgs.server.state_cache import StateCache
+from edmcgs.server.timeline import Timeline
+
+T0 = 1_600_000_000_000_000
+
+
+def test_timeline_without_loop_is_an_offset():
+    tl = Timeline(stream_origin_us=T0, scene_origin_us=5, period_us=None)
+    assert tl.scene_of(T0 + 7) == 12
+    assert tl.stream_of(12, not_after_us=T0) == T0 + 7  # may lie beyond the head; the caller checks
+    assert tl.pass_start(T0 + 7) is None
+
+
+def test_timeline_loops_and_picks_the_latest_pass():
+    period = 2_000_001
+    tl = Timeline(T0, T0, period)
+    assert tl.scene_of(T0 + period + 10) == T0 + 10
+    assert tl.scene_of(T0 + 3 * period - 1) == T0 + period - 1
+    assert tl.pass_start(T0 + 2 * period + 5) == T0 + 2 * period
+    head = T0 + 2 * period + 500_000
+    assert tl.stream_of(T0 + 400_000, head) == T0 + 2 * period + 400_000
+    assert tl.stream_of(T0 + 600_000, head) == T0 + period + 600_000  # not reached in this pass yet
+    assert tl.stream_of(T0 + 600_000, T0 + 100) < T0  # not streamed at all yet
+    for stream_t in (T0, T0 + 1, head, T0 + 7 * period - 1):
+        assert tl.stream_of(tl.scene_of(stream_t), stream_t) == stream_t
+    with pytest.raises(ValueError):
+        Timeline(T0, T0, 0)
+
+
+def test_state_cache_computes_once_for_concurrent_callers():
+    cache = StateCache(2)
+    calls = []
+
+    def compute():
+        calls.append(1)
+        time.sleep(0.05)
+        return object()
+
+    results = []
+    threads = [threading.Thread(target=lambda: results.append(cache.get("k", compute))) for _ in range(6)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert len(calls) == 1 and len({id(r) for r in results}) == 1
+    assert (cache.misses, cache.hits) == (1, 5)
+    cache.get("a", object)
+    cache.get("b", object)
+    assert len(cache) == 2 and cache.get("k", lambda: "recomputed") == "recomputed"  # evicted, LRU
+
+
+def test_state_cache_does_not_keep_failures():
+    cache = StateCache(4)
+
+    def boom():
+        raise RuntimeError("no")
+
+    with pytest.raises(RuntimeError):
+        cache.get("k", boom)
+    assert cache.get("k", lambda: 3) == 3
+
+
+def test_metrics_text_format():
+    reg = Registry()
+    c = reg.add(Counter("x_total", "Things.", ("route", "code")))
+    c.inc(1, "/render", "200")
+    c.inc(2, "/render", "200")
+    c.inc(1, 'a"b', "500")
+    h = reg.add(Histogram("lat_seconds", "Latency.", ("route",), buckets=(0.1, 1.0)))
+    h.observe(0.05, "/r")
+    h.observe(0.5, "/r")
+    h.observe(5.0, "/r")
+    reg.add(Gauge("fill", "Fill.", lambda: 0.25))
+    reg.add(CallbackCounter("dropped_total", "Dropped.", lambda: {"late": 3, "overflow": 0}, "reason"))
+    lines = reg.render().splitlines()
+    assert "# TYPE x_total counter" in lines
+    assert 'x_total{route="/render",code="200"} 3' in lines
+    assert 'x_total{route="a\\"b",code="500"} 1' in lines
+    assert 'lat_seconds_bucket{route="/r",le="0.1"} 1' in lines
+    assert 'lat_seconds_bucket{route="/r",le="1"} 2' in lines
+    assert 'lat_seconds_bucket{route="/r",le="+Inf"} 3' in lines
+    assert 'lat_seconds_count{route="/r"} 3' in lines and 'lat_seconds_sum{route="/r"} 5.55' in lines
+    assert "fill 0.25" in lines and 'dropped_total{reason="late"} 3' in lines
+
+
+def test_subscription_validation_names_the_field():
+    sub = protocol.Subscription().updated({"mode": "sweep", "t0": 0, "t1": 1.5,
+                                           "pose": [0, 0, 0, 1, 0, 0, 0]})
+    assert sub.mode == "sweep" and sub.pose == [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
+    assert sub.updated({"fps": 12}).t1 == 1.5  # partial updates keep the rest
+    for bad, field in (({"mode": "replay"}, "mode"), ({"fps": 0}, "fps"), ({"fps": float("nan")}, "fps"),
+                       ({"width": 1.5}, "width"), ({"loop": "yes"}, "loop"), ({"pose": [1, 2]}, "pose"),
+                       ({"pose": [float("inf")] * 16}, "pose"), ({"format": "gif"}, "format"),
+                       ({"speed": -1}, "speed"), ({"colour": 1}, "colour"), ({"t0": True}, "t0")):
+        with pytest.raises(protocol.ProtocolError) as info:
+            sub.updated(bad)
+        assert info.value.param == field
+    with pytest.raises(protocol.ProtocolError):
+        protocol.decode_message(b"\xc1")
+
+
+def test_accept_negotiation_and_pose_text():
+    assert protocol.negotiate_format(None) == "png"
+    assert protocol.negotiate_format("image/jpeg") == "jpeg"
+    assert protocol.negotiate_format("application/msgpack;q=0.5, image/jpeg;q=0.9") == "jpeg"
+    assert protocol.negotiate_format("image/jpeg;q=0, */*") == "png"
+    assert protocol.negotiate_format("application/x-msgpack") == "msgpack"
+    assert protocol.parse_pose_text("1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1")[5] == 1.0
+    assert protocol.parse_pose_text("[0, 0, 0, 1, 0, 0, 0]") == [0, 0, 0, 1, 0, 0, 0]
+    with pytest.raises(protocol.ProtocolError):
+        protocol.parse_pose_text("1,2,x,4,5,6,7")
