@@ -18,6 +18,8 @@ from edmcgs.model.render_io import RenderOutput, check_inputs
 from edmcgs.model.sh import sh_to_color
 from torch import Tensor
 
+from edmcgs.errors import InvalidInputError
+
 __all__ = ["RenderOutput", "rasterize"]
 
 
@@ -48,6 +50,9 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
     All tensors share one float dtype and device. Raises InvalidInputError (naming the argument)
     on bad shapes, NaN/Inf, negative scales, opacities outside [0, 1] or a zero quaternion.
     """
+    if not isinstance(means, torch.Tensor):
+        raise InvalidInputError(f"means must be a torch.Tensor, got {type(means).__name__} "
+                                "(rasterize_fast takes numpy arrays)")
     chk = check_inputs(means, quats, scales, opacities, colors, w2c, intrinsics, background, near)
     width, height = intrinsics.width, intrinsics.height
     need_grad = torch.is_grad_enabled() and any(

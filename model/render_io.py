@@ -34,15 +34,16 @@ class RenderOutput:
 
 @dataclass
 class Checked:
-    """Validated inputs as tensors of one float dtype on one device (the means')."""
+    """Validated inputs: torch tensors of one float dtype on one device (the means'), or, for the
+    fast path, float32 numpy arrays."""
 
-    means: torch.Tensor      # [N, 3]
-    quats: torch.Tensor      # [N, 4]
-    scales: torch.Tensor     # [N, 3]
-    opacities: torch.Tensor  # [N]
-    colors: torch.Tensor     # [N, C] or [N, K, C]
-    w2c: torch.Tensor        # [4, 4]
-    background: torch.Tensor  # [C]
+    means: Any       # [N, 3]
+    quats: Any       # [N, 4]
+    scales: Any      # [N, 3]
+    opacities: Any   # [N]
+    colors: Any      # [N, C] or [N, K, C]
+    w2c: Any         # [4, 4] (torch: means' dtype; numpy: float64)
+    background: Any  # [C] (torch: means' dtype; numpy: float32)
     channels: int
 
 
@@ -50,21 +51,39 @@ def _shape_error(name: str, want: str, got) -> InvalidInputError:
     return InvalidInputError(f"{name} must have shape {want}, got {tuple(got)}")
 
 
+def as_float32_arrays(**named) -> dict:
+    """numpy float32 C-contiguous copies (or views) of array-likes and torch tensors, by name."""
+    out = {}
+    for name, value in named.items():
+        if isinstance(value, torch.Tensor):
+            value = value.detach().cpu().numpy()
+        try:
+            out[name] = np.ascontiguousarray(value, dtype=np.float32)
+        except (TypeError, ValueError) as exc:
+            raise InvalidInputError(f"{name} must be an array of numbers") from exc
+    return out
+
+
 def check_inputs(means, quats, scales, opacities, colors, w2c, intrinsics, background, near) -> Checked:
     """Validate everything at the public boundary; raise InvalidInputError naming the argument.
 
-    Tensors must share one floating dtype and device; the rasterizers convert numpy first.
+    The five Gaussian arrays are all torch tensors (one floating dtype, one device) or all numpy
+    arrays (the fast path converts to float32 first).
     """
     named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors}
+    is_torch = isinstance(means, torch.Tensor)
+    kind = torch.Tensor if is_torch else np.ndarray
     for name, value in named.items():
-        if not isinstance(value, torch.Tensor):
-            raise InvalidInputError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
-    if not means.is_floating_point():
+        if not isinstance(value, kind):
+            raise InvalidInputError(f"{name} must be a {kind.__module__}.{kind.__name__}, "
+                                    f"got {type(value).__name__}")
+    if is_torch and not means.is_floating_point():
         raise InvalidInputError(f"means must be a floating-point tensor, got {means.dtype}")
     for name, value in named.items():
-        if value.dtype != means.dtype or value.device != means.device:
-            raise InvalidInputError(f"{name} must match means' dtype and device ({means.dtype}, "
-                                    f"{means.device}), got ({value.dtype}, {value.device})")
+        if value.dtype != means.dtype or (is_torch and value.device != means.device):
+            where = f"({means.dtype}, {means.device})" if is_torch else f"({means.dtype})"
+            got = f"({value.dtype}, {value.device})" if is_torch else f"({value.dtype})"
+            raise InvalidInputError(f"{name} must match means' dtype and device {where}, got {got}")
     if means.ndim != 2 or means.shape[1] != 3:
         raise _shape_error("means", "[N, 3]", means.shape)
     n = means.shape[0]
@@ -87,36 +106,34 @@ def check_inputs(means, quats, scales, opacities, colors, w2c, intrinsics, backg
     if isinstance(near, bool) or not isinstance(near, (int, float)) or not math.isfinite(near) or near <= 0:
         raise InvalidInputError(f"near must be a finite number > 0, got {near!r}")
 
+    xp = torch if is_torch else np
     with torch.no_grad():
-        # One host sync for every check, so validation stays cheap on an accelerator too.
-        flags = torch.stack([
-            *(torch.isfinite(v).all() for v in named.values()),
-            (scales >= 0).all(),
-            ((opacities >= 0) & (opacities <= 1)).all(),
-            (quats.abs().amax(-1) > 0).all(),
-        ]).tolist() if n else [True] * 8
-    for ok, name in zip(flags[:5], named, strict=True):
-        if not ok:
-            raise InvalidInputError(f"{name} contains NaN or Inf")
-    if not flags[5]:
-        raise InvalidInputError("scales must be >= 0 (linear scales, not log-scales)")
-    if not flags[6]:
-        raise InvalidInputError("opacities must lie in [0, 1] (activated, not logits)")
-    if not flags[7]:
-        raise InvalidInputError("quats has a zero quaternion; it describes no rotation")
+        for name, value in named.items():
+            if not bool(xp.isfinite(value).all()):
+                raise InvalidInputError(f"{name} contains NaN or Inf")
+        if not bool((scales >= 0).all()):
+            raise InvalidInputError("scales must be >= 0 (linear scales, not log-scales)")
+        if not bool(((opacities >= 0) & (opacities <= 1)).all()):
+            raise InvalidInputError("opacities must lie in [0, 1] (activated, not logits)")
+        if not bool((quats != 0).any(-1).all()):
+            raise InvalidInputError("quats has a zero quaternion; it describes no rotation")
 
-    w2c_t = torch.as_tensor(validate_pose(w2c, name="w2c"), dtype=means.dtype, device=means.device)
+    w2c64 = validate_pose(w2c, name="w2c")
     if background is None:
-        bg = torch.zeros(channels, dtype=means.dtype, device=means.device)
+        bg = np.zeros(channels)
     else:
         if isinstance(background, torch.Tensor):
             background = background.detach().cpu().numpy()
         try:
-            bg_np = np.broadcast_to(np.asarray(background, dtype=np.float64), (channels,))
+            bg = np.array(np.broadcast_to(np.asarray(background, dtype=np.float64), (channels,)))
         except (TypeError, ValueError) as exc:
             raise InvalidInputError(
                 f"background must be a number or {channels} numbers, got {background!r}") from exc
-        if not np.isfinite(bg_np).all():
+        if not np.isfinite(bg).all():
             raise InvalidInputError("background contains NaN or Inf")
-        bg = torch.as_tensor(np.array(bg_np), dtype=means.dtype, device=means.device)
-    return Checked(means, quats, scales, opacities, colors, w2c_t, bg, channels)
+    if is_torch:
+        w2c_out = torch.as_tensor(w2c64, dtype=means.dtype, device=means.device)
+        bg_out = torch.as_tensor(bg, dtype=means.dtype, device=means.device)
+    else:
+        w2c_out, bg_out = w2c64, bg.astype(np.float32)
+    return Checked(means, quats, scales, opacities, colors, w2c_out, bg_out, channels)

@@ -32,3 +32,24 @@ def random_scene(n, width, height, *, seed=0, sh_degree=None, channels=3, px_sig
         colors = rng.normal(0, 0.5, (n, (sh_degree + 1) ** 2, channels))
     return dict(means=means, quats=quats, scales=scales, opacities=opac, colors=colors,
                 w2c=world_to_camera(c2w), intrinsics=k)
+
+
+def with_values(scene, **changes):
+    """A copy of scene with arr[index] = value for each name=(index, value)."""
+    out = dict(scene)
+    for name, (index, value) in changes.items():
+        arr = np.array(out[name], copy=True)
+        arr[index] = value
+        out[name] = arr
+    return out
+
+
+def at_camera_depth(scene, idx, z):
+    """Move Gaussians idx to camera depth z (keeping their ray)."""
+    w2c = scene["w2c"]
+    means = np.array(scene["means"], copy=True)
+    cam = means[idx] @ w2c[:3, :3].T + w2c[:3, 3]
+    cam = cam * (np.asarray(z)[..., None] / cam[..., 2:3]) if np.all(cam[..., 2] != 0) else cam
+    cam[..., 2] = z
+    means[idx] = (cam - w2c[:3, 3]) @ w2c[:3, :3]
+    return dict(scene, means=means)

@@ -9,7 +9,7 @@ from edmcgs.model.rasterize import rasterize
 
 from edmcgs.errors import InvalidInputError, PoseError
 from tests.raster import reference
-from tests.raster.scenes import random_scene
+from tests.raster.scenes import at_camera_depth, random_scene, with_values
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
 BG = [0.1, 0.2, 0.3]
@@ -126,31 +126,12 @@ def test_gradients_reach_every_parameter():
 
 # ----------------------------------------------------------------------------------- edge cases
 
-def _with(scene, **changes):
-    out = dict(scene)
-    for name, (index, value) in changes.items():
-        arr = np.array(out[name], copy=True)
-        arr[index] = value
-        out[name] = arr
-    return out
-
-
-def _camera_z(scene, idx, z):
-    """Move Gaussians idx to camera depth z (keeping their ray)."""
-    w2c = scene["w2c"]
-    means = np.array(scene["means"], copy=True)
-    cam = means[idx] @ w2c[:3, :3].T + w2c[:3, 3]
-    cam = cam * (np.asarray(z)[..., None] / cam[..., 2:3]) if np.all(cam[..., 2] != 0) else cam
-    cam[..., 2] = z
-    means[idx] = (cam - w2c[:3, 3]) @ w2c[:3, :3]
-    return dict(scene, means=means)
-
-
 def test_behind_the_camera_and_on_the_near_plane_are_culled_without_nan():
     scene = random_scene(40, 40, 30, seed=14)
     near = 0.5
-    scene = _camera_z(scene, slice(0, 4), [-3.0, -1e-9, 0.0, near])  # behind, at the camera, on the plane
-    scene = _camera_z(scene, slice(4, 6), [near * (1 + 1e-6), 0.51])  # just in front: kept
+    # behind, at the camera, on the near plane
+    scene = at_camera_depth(scene, slice(0, 4), [-3.0, -1e-9, 0.0, near])
+    scene = at_camera_depth(scene, slice(4, 6), [near * (1 + 1e-6), 0.51])  # just in front: kept
     out, args = render(scene, background=BG, grad=True, near=near)
     assert_matches(out, ref_render(scene, background=BG, near=near), 1e-9)
     (out.image.sum() + out.depth.sum()).backward()
@@ -162,8 +143,8 @@ def test_behind_the_camera_and_on_the_near_plane_are_culled_without_nan():
 @pytest.mark.parametrize("scale", [1e-8, 1e-3, 1.0, 1e3])
 def test_extreme_scales_stay_finite_and_match(scale):
     scene = random_scene(30, 40, 30, seed=15)
-    scene = _with(scene, scales=(slice(0, 10), scale))
-    scene = _with(scene, scales=((slice(10, 15), 0), scale))  # one extreme axis: needles / pancakes
+    scene = with_values(scene, scales=(slice(0, 10), scale))
+    scene = with_values(scene, scales=((slice(10, 15), 0), scale))  # one extreme axis: needles / pancakes
     out, args = render(scene, background=BG, grad=True)
     assert_matches(out, ref_render(scene, background=BG), 1e-8)
     (out.image.sum() + out.depth.sum()).backward()
@@ -172,9 +153,9 @@ def test_extreme_scales_stay_finite_and_match(scale):
 
 def test_flat_covariances_zero_scale_axes():
     scene = random_scene(30, 40, 30, seed=16, px_sigma=(2.0, 5.0))
-    scene = _with(scene, scales=((slice(0, 10), 2), 0.0))                 # flat discs
-    scene = _with(scene, scales=((slice(10, 20), slice(1, 3)), 0.0))     # lines
-    scene = _with(scene, scales=(slice(20, 25), 0.0))                     # points: just the low-pass
+    scene = with_values(scene, scales=((slice(0, 10), 2), 0.0))                 # flat discs
+    scene = with_values(scene, scales=((slice(10, 20), slice(1, 3)), 0.0))     # lines
+    scene = with_values(scene, scales=(slice(20, 25), 0.0))                     # points: just the low-pass
     out, args = render(scene, background=BG, grad=True)
     assert_matches(out, ref_render(scene, background=BG), 1e-9)
     out.image.sum().backward()
@@ -183,7 +164,7 @@ def test_flat_covariances_zero_scale_axes():
 
 @pytest.mark.parametrize("opacity", [1.0, 1 - 1e-7])
 def test_opacity_near_one_is_clamped(opacity):
-    scene = _with(random_scene(20, 30, 20, seed=17), opacities=(slice(None), opacity))
+    scene = with_values(random_scene(20, 30, 20, seed=17), opacities=(slice(None), opacity))
     out, _ = render(scene, background=BG)
     assert_matches(out, ref_render(scene, background=BG), 1e-9)
     assert out.alpha.max() <= 1 - 1e-4 + 1e-12
@@ -194,7 +175,7 @@ def test_empty_or_fully_culled_scene_is_background(n):
     scene = random_scene(max(n, 1), 20, 10, seed=18)
     scene = {k: (v[:n] if k in FIELDS else v) for k, v in scene.items()}
     if n:
-        scene = _camera_z(scene, slice(None), [-1.0] * n)
+        scene = at_camera_depth(scene, slice(None), [-1.0] * n)
     out, args = render(scene, background=BG, grad=True)
     assert out.image.shape == (10, 20, 3)
     np.testing.assert_array_equal(out.image.detach().numpy(), np.broadcast_to(BG, (10, 20, 3)))
@@ -259,6 +240,7 @@ def test_non_finite_input_names_the_argument(name, bad):
     ("colors", torch.zeros(5, 5, 3), "colors must be"),
     ("colors", torch.zeros(5, 3, dtype=torch.float64), "colors must match means' dtype"),
     ("means", np.zeros((5, 3), np.float32), "means must be a torch.Tensor"),
+    ("quats", np.zeros((5, 4), np.float32), "quats must be a torch.Tensor"),
 ])
 def test_bad_arguments_are_named(name, value, message):
     args, w2c, k = _good()

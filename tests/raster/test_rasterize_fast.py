@@ -1,0 +1,187 @@
+"""The numba inference rasterizer against the float64 reference and the differentiable rasterizer."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from edmcgs.model.camera import Intrinsics
+from edmcgs.model.rasterize import rasterize
+from edmcgs.model.rasterize_fast import rasterize_fast
+
+from edmcgs.errors import InvalidInputError, PoseError
+from tests.raster import reference
+from tests.raster.scenes import at_camera_depth, random_scene, with_values
+
+FIELDS = ("means", "quats", "scales", "opacities", "colors")
+BG = [0.1, 0.2, 0.3]
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def fast(scene, background=None, **kw):
+    return rasterize_fast(*(scene[n] for n in FIELDS), scene["w2c"], scene["intrinsics"],
+                          background=background, return_alpha=True, return_depth=True, **kw)
+
+
+def ref_render(scene, background=None, **kw):
+    k = scene["intrinsics"]
+    return reference.render(*(scene[n] for n in FIELDS), scene["w2c"], k.fx, k.fy, k.cx, k.cy, k.width,
+                            k.height, background=background, **kw)
+
+
+def assert_matches(out, ref, atol):
+    assert out.image.dtype == np.float32 and out.alpha.dtype == np.float32
+    np.testing.assert_allclose(out.image, ref[0], atol=atol, rtol=0)
+    np.testing.assert_allclose(out.alpha, ref[1], atol=atol, rtol=0)
+    np.testing.assert_allclose(out.depth, ref[2], atol=atol * 10, rtol=0)
+
+
+@pytest.mark.parametrize("sh_degree, channels", [(None, 3), (None, 1), (0, 3), (1, 3), (2, 1), (3, 3)])
+def test_matches_the_reference(sh_degree, channels):
+    scene = random_scene(250, 61, 43, seed=30 + (sh_degree or 0), sh_degree=sh_degree, channels=channels)
+    out = fast(scene, background=BG[:channels])
+    assert out.image.shape == (43, 61, channels)
+    assert_matches(out, ref_render(scene, background=BG[:channels]), 2e-5)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_matches_the_differentiable_rasterizer(seed):
+    """The contract: <= 1e-3 max abs per pixel against ``rasterize`` (float32) on dense scenes."""
+    scene = random_scene(3000, 120, 90, seed=40 + seed, sh_degree=3, px_sigma=(0.7, 5.0))
+    out = fast(scene, background=BG)
+    ref = rasterize(*(torch.tensor(scene[n], dtype=torch.float32) for n in FIELDS), scene["w2c"],
+                    scene["intrinsics"], background=BG, return_alpha=True, return_depth=True)
+    assert ref.alpha.mean() > 0.9  # dense: many layers per pixel
+    np.testing.assert_allclose(out.image, ref.image.numpy(), atol=1e-3, rtol=0)
+    np.testing.assert_allclose(out.alpha, ref.alpha.numpy(), atol=1e-3, rtol=0)
+    np.testing.assert_allclose(out.depth, ref.depth.numpy(), atol=1e-2, rtol=0)
+
+
+@pytest.mark.parametrize("alpha_min, t_min", [(0.0, 0.0), (0.05, 1e-4), (1 / 255, 0.3)])
+def test_knobs_follow_the_same_math(alpha_min, t_min):
+    scene = random_scene(200, 40, 30, seed=50, opacity=(0.5, 1.0))
+    out = fast(scene, background=BG, alpha_min=alpha_min, t_min=t_min)
+    assert_matches(out, ref_render(scene, background=BG, alpha_min=alpha_min, t_min=t_min), 2e-5)
+
+
+def test_opaque_stacks_stop_at_the_transmittance_floor():
+    scene = random_scene(400, 48, 40, seed=51, opacity=(0.9, 1.0), px_sigma=(4.0, 10.0))
+    ref = ref_render(scene, background=BG)
+    assert (ref[1] > 1 - 2e-4).mean() > 0.5
+    assert_matches(fast(scene, background=BG), ref, 2e-5)
+
+
+def test_behind_the_camera_and_on_the_near_plane():
+    scene = at_camera_depth(random_scene(40, 40, 30, seed=52), slice(0, 4), [-3.0, -1e-9, 0.0, 0.5])
+    scene = at_camera_depth(scene, slice(4, 6), [0.5 * (1 + 1e-6), 0.51])
+    assert_matches(fast(scene, background=BG, near=0.5), ref_render(scene, background=BG, near=0.5), 2e-5)
+
+
+@pytest.mark.parametrize("scale", [1e-8, 1e-3, 1.0, 1e3])
+def test_extreme_scales(scale):
+    scene = with_values(random_scene(30, 40, 30, seed=53), scales=(slice(0, 10), scale))
+    scene = with_values(scene, scales=((slice(10, 15), 0), scale))
+    assert_matches(fast(scene, background=BG), ref_render(scene, background=BG), 2e-5)
+
+
+def test_flat_covariances_and_opacity_one():
+    scene = random_scene(30, 40, 30, seed=54, px_sigma=(2.0, 5.0))
+    scene = with_values(scene, scales=((slice(0, 10), 2), 0.0))
+    scene = with_values(scene, scales=((slice(10, 20), slice(1, 3)), 0.0))
+    scene = with_values(scene, scales=(slice(20, 25), 0.0), opacities=(slice(0, 15), 1.0))
+    out = fast(scene, background=BG)
+    assert_matches(out, ref_render(scene, background=BG), 2e-5)
+    assert out.alpha.max() <= 1 - 1e-4 + 1e-6
+
+
+@pytest.mark.parametrize("n", [0, 5])
+def test_empty_or_fully_culled_scene_is_background(n):
+    scene = random_scene(max(n, 1), 20, 10, seed=55)
+    scene = {k: (v[:n] if k in FIELDS else v) for k, v in scene.items()}
+    if n:
+        scene = at_camera_depth(scene, slice(None), [-1.0] * n)
+    out = fast(scene, background=BG)
+    np.testing.assert_array_equal(out.image, np.broadcast_to(np.float32(BG), (10, 20, 3)))
+    assert (out.alpha == 0).all() and (out.depth == 0).all()
+
+
+@pytest.mark.parametrize("width, height", [(1, 1), (17, 1), (1, 23), (16, 16), (33, 2), (9, 40)])
+def test_tiny_and_thin_images(width, height):
+    scene = random_scene(50, width, height, seed=width * 31 + height, px_sigma=(0.5, 3.0), margin=1.0)
+    out = fast(scene, background=BG)
+    assert out.image.shape == (height, width, 3)
+    assert_matches(out, ref_render(scene, background=BG), 2e-5)
+
+
+def test_no_nan_from_wild_but_finite_inputs():
+    rng = np.random.default_rng(56)
+    n = 2000
+    k = Intrinsics(50.0, 50.0, 15.5, 10.5, 32, 22)
+    out = rasterize_fast(rng.normal(size=(n, 3)) * np.exp(rng.uniform(-20, 8, (n, 1))),
+                         rng.normal(size=(n, 4)) * np.exp(rng.uniform(-30, 30, (n, 1))),
+                         np.exp(rng.uniform(-25, 7, (n, 3))), rng.uniform(0, 1, n),
+                         rng.normal(size=(n, 16, 3)), np.eye(4), k, return_alpha=True, return_depth=True,
+                         near=1e-6)
+    for a in (out.image, out.alpha, out.depth):
+        assert np.isfinite(a).all()
+
+
+def test_accepts_torch_tensors_and_other_float_dtypes():
+    scene = random_scene(100, 30, 20, seed=57, sh_degree=1)
+    base = fast(scene, background=BG)
+    tensors = {n: torch.tensor(scene[n], requires_grad=True) for n in FIELDS}
+    out = rasterize_fast(*tensors.values(), torch.tensor(scene["w2c"]), scene["intrinsics"],
+                         background=torch.tensor(BG))
+    np.testing.assert_array_equal(out.image, base.image)
+    assert out.alpha is None and out.depth is None
+    halves = {n: scene[n].astype(np.float16) for n in FIELDS}  # converted to float32 at the boundary
+    assert rasterize_fast(*halves.values(), scene["w2c"], scene["intrinsics"]).image.dtype == np.float32
+
+
+@pytest.mark.parametrize("name", FIELDS)
+def test_non_finite_input_names_the_argument(name):
+    scene = random_scene(5, 10, 8, seed=58)
+    scene = with_values(scene, **{name: ((0,) * scene[name].ndim, np.inf)})
+    with pytest.raises(InvalidInputError, match=f"{name} contains NaN or Inf"):
+        fast(scene)
+
+
+def test_bad_arguments_are_named():
+    scene = random_scene(5, 10, 8, seed=59)
+    with pytest.raises(InvalidInputError, match="opacities must lie in"):
+        fast(with_values(scene, opacities=(0, -0.5)))
+    with pytest.raises(InvalidInputError, match="quats must have shape"):
+        fast(dict(scene, quats=scene["quats"][:3]))
+    with pytest.raises(InvalidInputError, match="means must be an array of numbers"):
+        fast(dict(scene, means="not an array"))
+    with pytest.raises(PoseError, match="w2c"):
+        fast(dict(scene, w2c=np.full((4, 4), np.nan)))
+    for knob in ("alpha_min", "t_min"):
+        with pytest.raises(InvalidInputError, match=knob):
+            fast(scene, **{knob: -0.1})
+        with pytest.raises(InvalidInputError, match=knob):
+            fast(scene, **{knob: float("nan")})
+
+
+def test_a_new_process_loads_the_kernels_from_the_jit_cache():
+    """The first render of a fresh process must not recompile: every kernel is a cache hit."""
+    fast(random_scene(20, 20, 10, seed=60, sh_degree=2))  # make sure the cache is written
+    script = (
+        "import json, numpy as np\n"
+        "from edmcgs.model import rasterize_fast as rf\n"
+        "from edmcgs.model.camera import Intrinsics\n"
+        "rf.rasterize_fast(np.zeros((1, 3)) + [0, 0, 2], [[1, 0, 0, 0]], np.full((1, 3), .1), [.5],"
+        " np.zeros((1, 9, 3)), np.eye(4), Intrinsics(10., 10., 4., 4., 9, 9))\n"
+        "print(json.dumps({k: [sum(f.stats.cache_hits.values()), sum(f.stats.cache_misses.values())]"
+        " for k, f in (('pre', rf._preprocess), ('bin', rf._bin), ('blend', rf._blend))}))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_DISABLE_JIT"}
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=ROOT, env=env,
+                          timeout=300, check=True)
+    stats = json.loads(done.stdout.strip().splitlines()[-1])
+    for kernel, (hits, misses) in stats.items():
+        assert hits >= 1 and misses == 0, (kernel, hits, misses)
