@@ -11,8 +11,9 @@ Frames come either as a sequence (``simulate_frames``) or from a render callback
 (``simulate_render``), which bisects a step wherever the image changes by more than a fraction of
 C, the adaptive sampling of ESIM.
 
-Speed: three numba kernels, each parallel over pixel rows: log luminance, a count pass, then an emit
-pass that writes each row's events at its prefix-sum offset; a stable sort by time merges the rows.
+Speed: three numba passes over pixel rows (one thread, or parallel over rows): log luminance, a count
+pass, then an emit pass that writes each row's events at its prefix-sum offset; a stable counting sort
+by time merges the rows.
 """
 
 from __future__ import annotations
@@ -77,23 +78,21 @@ class SimulatorConfig:
 # kernels
 
 
-@nb.njit(parallel=True, cache=True)
-def _log_luminance_kernel(img, scale, eps, out):  # pragma: no cover - compiled
-    """img [H, W, C] (C = 1 or 3) of any real dtype -> out [H, W] float64. Returns the non-finite count."""
-    h, w, c = img.shape
+@nb.njit(cache=True, inline="always")
+def _log_row(img, y, scale, eps, out):  # pragma: no cover - compiled
+    """Row y of img [H, W, C] (C = 1 or 3, any real dtype) -> out[y] float64; returns the non-finite count."""
     bad = 0
-    for y in nb.prange(h):
-        for x in range(w):
-            if c == 3:
-                v = (0.299 * img[y, x, 0] + 0.587 * img[y, x, 1] + 0.114 * img[y, x, 2]) * scale
-            else:
-                v = img[y, x, 0] * scale
-            if not np.isfinite(v):
-                bad += 1
-                v = 0.0
-            elif v < 0.0:
-                v = 0.0
-            out[y, x] = np.log(v + eps)
+    for x in range(img.shape[1]):
+        if img.shape[2] == 3:
+            v = (0.299 * img[y, x, 0] + 0.587 * img[y, x, 1] + 0.114 * img[y, x, 2]) * scale
+        else:
+            v = img[y, x, 0] * scale
+        if not np.isfinite(v):
+            bad += 1
+            v = 0.0
+        elif v < 0.0:
+            v = 0.0
+        out[y, x] = np.log(v + eps)
     return bad
 
 
@@ -133,37 +132,85 @@ def _walk(l0, l1, ref, cp, cn, last, t0, dt, refractory, out_t, out_p, k, emit):
     return ref, last, k
 
 
-@nb.njit(parallel=True, cache=True)
-def _count_kernel(l0, l1, ref, cp, cn, last, t0, dt, refractory):  # pragma: no cover - compiled
-    """Events per row for the step l0 -> l1, without touching the state."""
-    h, w = l0.shape
-    counts = np.zeros(h, np.int64)
+@nb.njit(cache=True, inline="always")
+def _count_row(y, l0, l1, ref, cp, cn, last, t0, dt, refractory):  # pragma: no cover - compiled
+    """Events row y would fire for the step l0 -> l1 (the state is not touched)."""
     dummy_t = np.empty(0, np.int64)
     dummy_p = np.empty(0, np.int8)
-    for y in nb.prange(h):
-        n = 0
-        for x in range(w):
-            _, _, n = _walk(l0[y, x], l1[y, x], ref[y, x], cp[y, x], cn[y, x], last[y, x],
-                            t0, dt, refractory, dummy_t, dummy_p, n, False)
-        counts[y] = n
+    n = 0
+    for x in range(l0.shape[1]):
+        _, _, n = _walk(l0[y, x], l1[y, x], ref[y, x], cp[y, x], cn[y, x], last[y, x],
+                        t0, dt, refractory, dummy_t, dummy_p, n, False)
+    return n
+
+
+@nb.njit(cache=True, inline="always")
+def _emit_row(y, l0, l1, ref, cp, cn, last, t0, dt, refractory, k,
+              out_t, out_x, out_y, out_p):  # pragma: no cover - compiled
+    """Write row y's events from index k on, and advance its state (ref, last, l0 <- l1)."""
+    for x in range(l0.shape[1]):
+        k0 = k
+        ref[y, x], last[y, x], k = _walk(l0[y, x], l1[y, x], ref[y, x], cp[y, x], cn[y, x],
+                                         last[y, x], t0, dt, refractory, out_t, out_p, k, True)
+        for i in range(k0, k):
+            out_x[i] = x
+            out_y[i] = y
+        l0[y, x] = l1[y, x]
+
+
+# Each pass exists twice: one thread, or rows spread over numba's threads. Rows are independent
+# (counts first, then each row writes at its prefix-sum offset), so both give identical events.
+# A parallel region costs a scheduler timeslice whenever a core is taken by another process, so on a
+# shared 2-core machine the serial passes are the faster ones (see bench.simulate).
+
+@nb.njit(cache=True)
+def _log_serial(img, scale, eps, out):  # pragma: no cover - compiled
+    bad = 0
+    for y in range(img.shape[0]):
+        bad += _log_row(img, y, scale, eps, out)
+    return bad
+
+
+@nb.njit(parallel=True, cache=True)
+def _log_parallel(img, scale, eps, out):  # pragma: no cover - compiled
+    bad = 0
+    for y in nb.prange(img.shape[0]):
+        bad += _log_row(img, y, scale, eps, out)
+    return bad
+
+
+@nb.njit(cache=True)
+def _count_serial(l0, l1, ref, cp, cn, last, t0, dt, refractory):  # pragma: no cover - compiled
+    counts = np.zeros(l0.shape[0], np.int64)
+    for y in range(l0.shape[0]):
+        counts[y] = _count_row(y, l0, l1, ref, cp, cn, last, t0, dt, refractory)
     return counts
 
 
 @nb.njit(parallel=True, cache=True)
-def _emit_kernel(l0, l1, ref, cp, cn, last, t0, dt, refractory, offsets,
+def _count_parallel(l0, l1, ref, cp, cn, last, t0, dt, refractory):  # pragma: no cover - compiled
+    counts = np.zeros(l0.shape[0], np.int64)
+    for y in nb.prange(l0.shape[0]):
+        counts[y] = _count_row(y, l0, l1, ref, cp, cn, last, t0, dt, refractory)
+    return counts
+
+
+@nb.njit(cache=True)
+def _emit_serial(l0, l1, ref, cp, cn, last, t0, dt, refractory, offsets,
                  out_t, out_x, out_y, out_p):  # pragma: no cover - compiled
-    """Write each row's events from its offset, and advance the state (ref, last, l0 <- l1)."""
-    h, w = l0.shape
-    for y in nb.prange(h):
-        k = offsets[y]
-        for x in range(w):
-            k0 = k
-            ref[y, x], last[y, x], k = _walk(l0[y, x], l1[y, x], ref[y, x], cp[y, x], cn[y, x],
-                                             last[y, x], t0, dt, refractory, out_t, out_p, k, True)
-            for i in range(k0, k):
-                out_x[i] = x
-                out_y[i] = y
-            l0[y, x] = l1[y, x]
+    for y in range(l0.shape[0]):
+        _emit_row(y, l0, l1, ref, cp, cn, last, t0, dt, refractory, offsets[y], out_t, out_x, out_y, out_p)
+
+
+@nb.njit(parallel=True, cache=True)
+def _emit_parallel(l0, l1, ref, cp, cn, last, t0, dt, refractory, offsets,
+                   out_t, out_x, out_y, out_p):  # pragma: no cover - compiled
+    for y in nb.prange(l0.shape[0]):
+        _emit_row(y, l0, l1, ref, cp, cn, last, t0, dt, refractory, offsets[y], out_t, out_x, out_y, out_p)
+
+
+_PASSES = {False: (_log_serial, _count_serial, _emit_serial),
+           True: (_log_parallel, _count_parallel, _emit_parallel)}
 
 
 @nb.njit(cache=True)
@@ -182,18 +229,15 @@ def _time_order(t, t0, dt):  # pragma: no cover - compiled
     return order
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(cache=True)
 def _max_abs_diff(a, b):  # pragma: no cover - compiled
-    h, w = a.shape
-    row = np.zeros(h)
-    for y in nb.prange(h):
-        m = 0.0
-        for x in range(w):
+    m = 0.0
+    for y in range(a.shape[0]):
+        for x in range(a.shape[1]):
             d = abs(a[y, x] - b[y, x])
             if d > m:
                 m = d
-        row[y] = m
-    return row.max()
+    return m
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -230,13 +274,16 @@ def luminance(image: np.ndarray) -> np.ndarray:
     return hwc[:, :, 0]
 
 
-def log_luminance(image: np.ndarray, eps: float = 1e-3) -> np.ndarray:
-    """L = log(max(luminance, 0) + eps): float64 [H, W]. Raises InvalidInputError on NaN/Inf input."""
+def log_luminance(image: np.ndarray, eps: float = 1e-3, *, parallel: bool = False) -> np.ndarray:
+    """L = log(max(luminance, 0) + eps): float64 [H, W]. Raises InvalidInputError on NaN/Inf input.
+
+    parallel: spread the rows over numba's threads (see ``EventSimulator``).
+    """
     hwc, scale = _as_hwc(image, "image")
     if not (math.isfinite(eps) and eps > 0):
         raise InvalidInputError(f"eps must be a positive finite number, got {eps!r}")
     out = np.empty(hwc.shape[:2], np.float64)
-    if _log_luminance_kernel(np.ascontiguousarray(hwc), scale, float(eps), out):
+    if _PASSES[bool(parallel)][0](np.ascontiguousarray(hwc), scale, float(eps), out):
         raise InvalidInputError("image holds NaN or Inf values")
     return out
 
@@ -246,10 +293,15 @@ class EventSimulator:
 
     State per pixel: the reference level, the last log luminance, its thresholds C+ and C- and the
     time of its last event (for the refractory period).
+
+    parallel: run the passes over pixel rows on numba's threads. The events are identical either way;
+    serial (the default) is faster unless the cores are otherwise idle, and leaves them to the renderer.
     """
 
-    def __init__(self, config: SimulatorConfig | None = None) -> None:
+    def __init__(self, config: SimulatorConfig | None = None, *, parallel: bool = False) -> None:
         self.config = config or SimulatorConfig()
+        self._log_pass, self._count_pass, self._emit_pass = _PASSES[bool(parallel)]
+        self.parallel = bool(parallel)
         seeds = np.random.SeedSequence(self.config.seed).spawn(2)
         self._mismatch_rng = np.random.default_rng(seeds[0])
         self._noise_rng = np.random.default_rng(seeds[1])
@@ -287,7 +339,7 @@ class EventSimulator:
 
         The thresholds are drawn here on the first reset only (a pixel keeps its mismatch).
         """
-        self.reset_log(t_us, log_luminance(image, self.config.eps))
+        self.reset_log(t_us, log_luminance(image, self.config.eps, parallel=self.parallel))
 
     def reset_log(self, t_us: int, log_lum: np.ndarray) -> None:
         """``reset`` from an L map already computed (float64 [H, W])."""
@@ -309,7 +361,7 @@ class EventSimulator:
 
     def step(self, t_us: int, image: np.ndarray) -> Events:
         """Advance to ``t_us`` (> the last sample) with this frame; returns the events in (t_last, t_us]."""
-        return self.step_log(t_us, log_luminance(image, self.config.eps))
+        return self.step_log(t_us, log_luminance(image, self.config.eps, parallel=self.parallel))
 
     def step_log(self, t_us: int, log_lum: np.ndarray) -> Events:
         """``step`` from an L map already computed (float64 [H, W])."""
@@ -321,7 +373,7 @@ class EventSimulator:
         l1 = _check_log(log_lum, self._l.shape)
         t0, dt = self._t_us, t_us - self._t_us
         args = (self._l, l1, self._ref, self._cp, self._cn, self._last, t0, dt, self.config.refractory_us)
-        counts = _count_kernel(*args)
+        counts = self._count_pass(*args)
         offsets = np.zeros(len(counts), np.int64)
         np.cumsum(counts[:-1], out=offsets[1:])
         n = int(counts.sum())
@@ -329,7 +381,7 @@ class EventSimulator:
         x = np.empty(n, np.uint16)
         y = np.empty(n, np.uint16)
         p = np.empty(n, np.int8)
-        _emit_kernel(*args, offsets, t, x, y, p)
+        self._emit_pass(*args, offsets, t, x, y, p)
         self._t_us = t_us
         if self.config.noise_rate_hz > 0:
             t, x, y, p = self._add_noise(t0, dt, t, x, y, p)

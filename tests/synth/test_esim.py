@@ -191,3 +191,14 @@ def test_adaptive_sampling_refines_where_the_image_changes_fast():
     assert ev == simulate_frames(samples, [_moving_edge(int(s)) for s in samples], SimulatorConfig(eps=EPS))
     err = C * _polarity_sum(ev, 6, 24, 0, 40_000) - (log_l[-1] - log_l[0])
     assert np.abs(err).max() < C
+
+
+def test_parallel_passes_give_the_same_events():
+    t, frames = _random_walk_frames(n=12, h=30, w=41, seed=5)
+    cfg = SimulatorConfig(eps=EPS, refractory_us=500, threshold_sigma=0.05, seed=2)
+    serial, parallel = EventSimulator(cfg), EventSimulator(cfg, parallel=True)
+    serial.reset(int(t[0]), frames[0])
+    parallel.reset(int(t[0]), frames[0])
+    for t1, frame in zip(t[1:], frames[1:], strict=True):
+        assert serial.step(int(t1), frame) == parallel.step(int(t1), frame)
+    np.testing.assert_array_equal(log_luminance(frames[3], EPS), log_luminance(frames[3], EPS, parallel=True))
