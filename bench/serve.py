@@ -22,6 +22,7 @@ import argparse
 import json
 import math
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -107,3 +108,249 @@ def build_scene(folder: str | os.PathLike, *, width: int = 346, height: int = 26
     ckpt_path = folder / "scene.ckpt"
     save_checkpoint(model, ckpt_path)
     return Path(rec_path), ckpt_path
+
+
+# ------------------------------------------------------------------------------- a real server
+
+STARTUP_S = 180.0  # torch import, numba cache load (a recompile after a rasterizer change: ~30 s)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class ServerProcess:
+    """``edmcgs-serve`` as a user runs it (``python -m edmcgs.server.cli``), on a free loopback port.
+
+    ``args``: CLI arguments; ``env``: EDMCGS_* settings (the caller's own EDMCGS_* are not inherited).
+    Output goes to a log file (``log()``); ``stop()`` sends a signal and waits.
+    """
+
+    def __init__(self, args: list[str], env: dict[str, str] | None = None):
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.log_path = Path(tempfile.gettempdir()) / f"edmcgs-serve-{self.port}.log"
+        self._log = open(self.log_path, "w+b")  # closed in stop()
+        full_env = {k: v for k, v in os.environ.items() if not k.startswith("EDMCGS_")} | (env or {})
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "edmcgs.server.cli", *args, "--port", str(self.port)],
+            stdout=self._log, stderr=subprocess.STDOUT, env=full_env)
+
+    def log(self) -> str:
+        if not self._log.closed:
+            self._log.flush()
+        return self.log_path.read_text(errors="replace")
+
+    def wait_ready(self, token: str | None = None, timeout: float = STARTUP_S) -> None:
+        """Until GET /healthz answers 200; raises with the server's log if it exits or times out."""
+        import httpx
+
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"edmcgs-serve exited with {self.proc.returncode}:\n{self.log()}")
+            try:
+                if httpx.get(self.url + "/healthz", headers=headers, timeout=2).status_code == 200:
+                    return
+            except httpx.TransportError:
+                pass
+            time.sleep(0.2)
+        self.stop()
+        raise RuntimeError(f"edmcgs-serve not ready after {timeout} s:\n{self.log()}")
+
+    def rss_mb(self) -> float:
+        """Resident memory of the server process (MB)."""
+        for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+        raise RuntimeError("no VmRSS")
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 15.0) -> int:
+        """Send ``sig``, wait (kill after ``timeout`` s); returns the exit code."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5)
+        if not self._log.closed:
+            self._log.close()
+        return self.proc.returncode
+
+
+# ------------------------------------------------------------------------------- measurements
+
+def _percentile(values, q: float) -> float:
+    return float(np.percentile(np.asarray(values, dtype=np.float64), q)) if len(values) else float("nan")
+
+
+def _orbit_pose(scene: dict, angle: float, t_us: int) -> list[float]:
+    """The event camera's pose at t, turned by ``angle`` about the vertical through a point 1 m ahead."""
+    traj = scene["trajectory"]
+    i = int(np.clip(np.searchsorted(traj["t_us"], t_us), 0, len(traj["t_us"]) - 1))
+    c2w = np.asarray(traj["c2w"][i]).reshape(4, 4)
+    pivot = c2w[:3, :3] @ np.array([0.0, 0.0, 1.0]) + c2w[:3, 3]
+    c, s = math.cos(angle), math.sin(angle)
+    rot = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    out = np.eye(4)
+    out[:3, :3] = rot @ c2w[:3, :3]
+    out[:3, 3] = rot @ (c2w[:3, 3] - pivot) + pivot
+    return out.reshape(-1).tolist()
+
+
+def measure_single(client, scene: dict, seconds: float) -> dict:
+    """One client, GET /render as JPEG at a new time each request (no cache hit: deform every time)."""
+    r = scene["renderable"]
+    lo, hi = r["t_us_min"], r["t_us_max"]
+    latencies, server_ms, events = [], [], []
+    k, t_end = 0, time.perf_counter() + seconds
+    while time.perf_counter() < t_end:
+        t_us = lo + (k * 7_919) % (hi - lo)  # a prime step: every request a new instant
+        t0 = time.perf_counter()
+        _, meta = client.render(t_us=t_us, format="jpeg")
+        latencies.append((time.perf_counter() - t0) * 1e3)
+        server_ms.append(meta.render_ms)
+        events.append(meta.events)
+        k += 1
+    return {"render_p50_ms": _percentile(latencies, 50), "render_p90_ms_1_client": _percentile(latencies, 90),
+            "render_server_p50_ms": _percentile(server_ms, 50), "render_requests_1_client": len(latencies),
+            "events_per_render_median": _percentile(events, 50)}
+
+
+def measure_four(url: str, token: str | None, scene: dict, seconds: float, clients: int = 4) -> dict:
+    """Four clients, each orbiting its own pose, all watching the same 30 Hz playback of the scene."""
+    from edmcgs.clients.client import Client
+
+    r = scene["renderable"]
+    lo, hi = r["t_us_min"], r["t_us_max"]
+    latencies: list[list[float]] = [[] for _ in range(clients)]
+    start = time.perf_counter()
+    stop = start + seconds
+
+    def run(i: int) -> None:
+        with Client(url, token=token, timeout=30) as client:
+            n = 0
+            while (now := time.perf_counter()) < stop:
+                frame = int((now - start) * 30)  # the shared playback clock, 30 frames per second
+                t_us = lo + (frame * 33_333) % (hi - lo)
+                pose = _orbit_pose(scene, 0.3 * math.sin(0.5 * n + i * math.pi / 2), t_us)
+                t0 = time.perf_counter()
+                client.render(t_us=t_us, pose=pose, format="jpeg")
+                latencies[i].append((time.perf_counter() - t0) * 1e3)
+                n += 1
+
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(clients)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    elapsed = time.perf_counter() - start
+    flat = [v for per in latencies for v in per]
+    return {"render_rps_4_clients": len(flat) / elapsed, "render_p50_ms_4_clients": _percentile(flat, 50),
+            "render_p99_ms_4_clients": _percentile(flat, 99)}
+
+
+def measure_stream(client, seconds: float) -> dict:
+    """One websocket client in live mode asking for 60 fps (JPEG, the event camera's pose)."""
+    frames, latencies = 0, []
+    with client.stream({"mode": "live", "fps": 60, "format": "jpeg"}) as stream:
+        assert stream.receive(timeout=30) is not None  # first frame: not timed
+        start = time.perf_counter()
+        while time.perf_counter() - start < seconds:
+            frame = stream.receive(timeout=30)
+            received_us = time.time_ns() // 1000
+            frames += 1
+            if frame.arrived_unix_us is not None:
+                latencies.append((received_us - frame.arrived_unix_us) / 1e3)
+        elapsed = time.perf_counter() - start
+        dropped = frame.dropped
+    return {"stream_fps": frames / elapsed, "event_to_frame_ms": _percentile(latencies, 50),
+            "event_to_frame_p90_ms": _percentile(latencies, 90), "stream_frames_dropped": dropped}
+
+
+def _table(results: dict) -> str:
+    rows = [f"{'key':<28} {'value':>10}  target"]
+    for key, value in results.items():
+        if not isinstance(value, float | int) or isinstance(value, bool):
+            continue
+        target = TARGETS.get(key)
+        mark = ""
+        if target is not None:
+            op, bound = target
+            ok = value <= bound if op == "<=" else value >= bound
+            mark = f"{op} {bound:g}  {'ok' if ok else 'MISSED'}"
+        rows.append(f"{key:<28} {value:>10.2f}  {mark}")
+    return "\n".join(rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m bench.serve", description=__doc__.split("\n\n")[0])
+    p.add_argument("--json", type=Path, help="write the results here")
+    p.add_argument("--checkpoint", type=Path, help="serve this checkpoint (with --replay)")
+    p.add_argument("--replay", type=Path, help="its recording")
+    p.add_argument("--seconds", type=float, default=8.0, help="duration of each measurement")
+    args = p.parse_args(argv)
+    from edmcgs.clients.client import Client
+    from tqdm import tqdm
+
+    steps = tqdm(total=5, desc="bench.serve", unit="step")
+    with tempfile.TemporaryDirectory(prefix="bench-serve-") as tmp:
+        if args.checkpoint is None:
+            steps.set_postfix_str("building the scene")
+            rec, ckpt = build_scene(tmp)
+            scene_name = ("bench.serve synthetic: untrained EdMCGS, 20k Gaussians, 512 control points, "
+                          "346x260, 300k ev/s")
+        else:
+            if args.replay is None:
+                p.error("--checkpoint needs --replay")
+            rec, ckpt, scene_name = args.replay, args.checkpoint, str(args.checkpoint)
+        steps.update()
+        steps.set_postfix_str("starting edmcgs-serve")
+        server = ServerProcess(["--replay", str(rec), "--checkpoint", str(ckpt), "--loop"])
+        try:
+            server.wait_ready()
+            with Client(server.url, timeout=30) as client:
+                scene = client.scene()
+                # Let the replay cover its whole first pass, so every time of the scene is renderable.
+                while (client.scene()["renderable"] or {}).get("t_us_max", 0) < scene["t_end_us"] - 20_000:
+                    time.sleep(0.1)
+                scene = client.scene()
+                steps.update()
+                steps.set_postfix_str("one client")
+                results = measure_single(client, scene, args.seconds)
+                steps.update()
+                steps.set_postfix_str("four clients")
+                results |= measure_four(server.url, None, scene, args.seconds)
+                steps.update()
+                steps.set_postfix_str("websocket")
+                results |= measure_stream(client, args.seconds)
+                steps.update()
+                metrics = client.metrics()
+        finally:
+            code = server.stop()
+        steps.close()
+    cache = {line.split("{")[1].split("}")[0]: float(line.rsplit(" ", 1)[1]) for line in metrics.splitlines()
+             if line.startswith("edmcgs_deform_cache_total{")}
+    results |= {
+        "deform_cache_hits": cache.get('result="hit"', 0.0),
+        "deform_cache_misses": cache.get('result="miss"', 0.0),
+        "scene": scene_name, "width": scene["intrinsics"]["width"], "height": scene["intrinsics"]["height"],
+        "num_gaussians": scene["num_gaussians"], "has_event_branch": scene["has_event_branch"],
+        "seconds_per_measurement": args.seconds, "cpus": os.cpu_count(),
+        "load_average_1m": os.getloadavg()[0], "server_exit_code": code,
+    }
+    print(_table(results))
+    print(f"scene: {scene_name}; load average {results['load_average_1m']:.1f} on {os.cpu_count()} CPUs "
+          "(the machine is shared: medians are noisy)")
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(results, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
