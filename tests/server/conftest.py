@@ -8,6 +8,7 @@ import threading
 import time
 from pathlib import Path
 
+import httpx
 import pytest
 
 from bench.serve import ServerProcess, build_scene, free_port
@@ -33,6 +34,15 @@ def server(scene_files):
                         env={"EDMCGS_TOKEN": TOKEN, "EDMCGS_MAX_WIDTH": "1024", "EDMCGS_MAX_HEIGHT": "1024"})
     try:
         srv.wait_ready(TOKEN)
+        # Tests render anywhere in the 2 s scene: let the replay's first pass cover it.
+        deadline = time.monotonic() + 30
+        while True:
+            auth = {"Authorization": f"Bearer {TOKEN}"}
+            scene = httpx.get(srv.url + "/scene", headers=auth, timeout=10).json()
+            if scene["renderable"] and scene["renderable"]["t_us_max"] >= scene["t_end_us"] - 20_000:
+                break
+            assert time.monotonic() < deadline, "the replay does not advance"
+            time.sleep(0.1)
         yield srv
     finally:
         srv.stop()

@@ -18,9 +18,9 @@ from edmcgs.server.app import create_app
 from edmcgs.server.service import Service
 from edmcgs.server.settings import Settings
 
-from bench.serve import build_scene
+from bench.serve import ServerProcess, build_scene
 from edmcgs.errors import CheckpointError
-from tests.server.conftest import ServerProcess, ThreadServer
+from tests.server.conftest import ThreadServer
 
 AEDAT4 = "/work/shared/data/dvxplorer_person.aedat4"
 
