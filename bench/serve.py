@@ -11,9 +11,13 @@ Keys (targets of issue 6, on the demo scene at 346x260):
                              that includes it, received by the client                 <= 50
 
 Without ``--checkpoint``/``--replay`` the bench builds its own scene from the model API (an untrained
-EdMCGS initialised from synthetic anchor frames at 346x260 with the default config, and a recording
-of random events at ~300k ev/s), because it must run before a trained demo exists; the numbers say
-which scene they come from. Client-side latencies include HTTP; all clients run in this process.
+EdMCGS initialised from synthetic anchor frames at 346x260 with the ``demo`` preset and 20k Gaussians,
+and a recording of random events at ~300k ev/s), because it must run before a trained demo exists; the
+numbers say which scene they come from. Client-side latencies include HTTP; all clients run in this process.
+
+The machine is shared: wall-clock numbers depend on what else runs. ``server_cpu_ms_per_*`` (CPU time
+of the server process per render or frame, all threads) depend far less on it: on an idle 2-core
+machine the throughput bound is about 2000 / that many renders per second.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -42,9 +47,13 @@ TARGETS = {"render_p50_ms": ("<=", 25.0), "render_rps_4_clients": (">=", 60.0),
 
 def build_scene(folder: str | os.PathLike, *, width: int = 346, height: int = 260, duration_s: float = 2.0,
                 anchor_every_s: float = 0.25, event_rate: float = 300_000.0, init_points: int = 20_000,
-                control_points: int = 512, t0_us: int = 1_600_000_000_000_000, seed: int = 0,
+                control_points: int = 256, t0_us: int = 1_600_000_000_000_000, seed: int = 0,
                 config_overrides: dict | None = None) -> tuple[Path, Path]:
     """Write ``scene.h5`` (our recording) and ``scene.ckpt`` (an untrained EdMCGS of it) to ``folder``.
+
+    The model uses the ``demo`` preset (the CPU-sized config the bundled demo is trained with: 256
+    control points, a 128x4 deformation MLP) with ``init_points`` Gaussians (the demo densifies to
+    at most 30k).
 
     Anchors are RGB frames of a few coloured discs drifting over a gradient, the camera slides 10 cm
     along x, events are uniform in space and time at ``event_rate`` per second with random polarity;
@@ -52,7 +61,7 @@ def build_scene(folder: str | os.PathLike, *, width: int = 346, height: int = 26
     """
     from edmcgs.model.camera import Intrinsics, Trajectory
     from edmcgs.model.checkpoint import save_checkpoint
-    from edmcgs.model.config import EdmcgsConfig
+    from edmcgs.model.config import preset
     from edmcgs.model.edmcgs import EdMCGS
     from edmcgs.sensor.events import Events
     from edmcgs.sensor.frames import Frames
@@ -99,8 +108,8 @@ def build_scene(folder: str | os.PathLike, *, width: int = 346, height: int = 26
                     sensor="bench.serve synthetic", metadata={"scene": "bench.serve", "seed": seed})
     rec_path = write_recording(folder / "scene.h5", rec)
 
-    config = EdmcgsConfig(init_points=init_points, num_control_points=control_points,
-                          **(config_overrides or {}))
+    config = replace(preset("demo"), init_points=init_points, num_control_points=control_points,
+                     **(config_overrides or {}))
     model = EdMCGS.from_arrays(anchors_t_us=anchor_t, anchor_images=anchor_images, intrinsics=intr,
                                anchor_poses=anchor_poses, t_end_us=t_end,
                                trajectory=Trajectory(traj_t, traj_c2w), event_size=(width, height),
@@ -168,6 +177,11 @@ class ServerProcess:
                 return int(line.split()[1]) / 1024
         raise RuntimeError("no VmRSS")
 
+    def cpu_s(self) -> float:
+        """CPU time the server process has used (user + system, all threads), seconds."""
+        fields = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
     def stop(self, sig: int = signal.SIGINT, timeout: float = 15.0) -> int:
         """Send ``sig``, wait (kill after ``timeout`` s); returns the exit code."""
         if self.proc.poll() is None:
@@ -222,7 +236,8 @@ def measure_single(client, scene: dict, seconds: float) -> dict:
 
 
 def measure_four(url: str, token: str | None, scene: dict, seconds: float, clients: int = 4) -> dict:
-    """Four clients, each orbiting its own pose, all watching the same 30 Hz playback of the scene."""
+    """Four clients orbiting their own poses around the same instant, which moves on twice a second
+    (viewers scrubbing a slow-motion playback together): the deformation is shared, the renders not."""
     from edmcgs.clients.client import Client
 
     r = scene["renderable"]
@@ -235,8 +250,8 @@ def measure_four(url: str, token: str | None, scene: dict, seconds: float, clien
         with Client(url, token=token, timeout=30) as client:
             n = 0
             while (now := time.perf_counter()) < stop:
-                frame = int((now - start) * 30)  # the shared playback clock, 30 frames per second
-                t_us = lo + (frame * 33_333) % (hi - lo)
+                step = int((now - start) * 2)  # the shared instant: 2 steps per second
+                t_us = lo + (step * 33_333) % (hi - lo)
                 pose = _orbit_pose(scene, 0.3 * math.sin(0.5 * n + i * math.pi / 2), t_us)
                 t0 = time.perf_counter()
                 client.render(t_us=t_us, pose=pose, format="jpeg")
@@ -251,7 +266,7 @@ def measure_four(url: str, token: str | None, scene: dict, seconds: float, clien
     elapsed = time.perf_counter() - start
     flat = [v for per in latencies for v in per]
     return {"render_rps_4_clients": len(flat) / elapsed, "render_p50_ms_4_clients": _percentile(flat, 50),
-            "render_p99_ms_4_clients": _percentile(flat, 99)}
+            "render_p99_ms_4_clients": _percentile(flat, 99), "render_requests_4_clients": len(flat)}
 
 
 def measure_stream(client, seconds: float) -> dict:
@@ -269,7 +284,8 @@ def measure_stream(client, seconds: float) -> dict:
         elapsed = time.perf_counter() - start
         dropped = frame.dropped
     return {"stream_fps": frames / elapsed, "event_to_frame_ms": _percentile(latencies, 50),
-            "event_to_frame_p90_ms": _percentile(latencies, 90), "stream_frames_dropped": dropped}
+            "event_to_frame_p90_ms": _percentile(latencies, 90), "stream_frames": frames,
+            "stream_frames_dropped": dropped}
 
 
 def _table(results: dict) -> str:
@@ -293,6 +309,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--checkpoint", type=Path, help="serve this checkpoint (with --replay)")
     p.add_argument("--replay", type=Path, help="its recording")
     p.add_argument("--seconds", type=float, default=8.0, help="duration of each measurement")
+    p.add_argument("--gaussians", type=int, default=20_000, help="Gaussians of the built scene (default 20k)")
     args = p.parse_args(argv)
     from edmcgs.clients.client import Client
     from tqdm import tqdm
@@ -301,9 +318,9 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="bench-serve-") as tmp:
         if args.checkpoint is None:
             steps.set_postfix_str("building the scene")
-            rec, ckpt = build_scene(tmp)
-            scene_name = ("bench.serve synthetic: untrained EdMCGS, 20k Gaussians, 512 control points, "
-                          "346x260, 300k ev/s")
+            rec, ckpt = build_scene(tmp, init_points=args.gaussians)
+            scene_name = (f"bench.serve synthetic: untrained EdMCGS, demo preset, {args.gaussians} "
+                          "Gaussians, 346x260, 300k ev/s")
         else:
             if args.replay is None:
                 p.error("--checkpoint needs --replay")
@@ -321,13 +338,22 @@ def main(argv: list[str] | None = None) -> int:
                 scene = client.scene()
                 steps.update()
                 steps.set_postfix_str("one client")
+                cpu0 = server.cpu_s()
                 results = measure_single(client, scene, args.seconds)
+                cpu1 = server.cpu_s()
+                results["server_cpu_ms_per_render_1_client"] = \
+                    (cpu1 - cpu0) * 1e3 / results["render_requests_1_client"]
                 steps.update()
                 steps.set_postfix_str("four clients")
                 results |= measure_four(server.url, None, scene, args.seconds)
+                cpu2 = server.cpu_s()
+                results["server_cpu_ms_per_render_4_clients"] = \
+                    (cpu2 - cpu1) * 1e3 / results.pop("render_requests_4_clients")
                 steps.update()
                 steps.set_postfix_str("websocket")
                 results |= measure_stream(client, args.seconds)
+                results["server_cpu_ms_per_frame_stream"] = \
+                    (server.cpu_s() - cpu2) * 1e3 / results["stream_frames"]
                 steps.update()
                 metrics = client.metrics()
         finally:

@@ -9,7 +9,6 @@ Every method here blocks; the routes call them on the render pool's threads.
 
 from __future__ import annotations
 
-import threading
 import time
 from dataclasses import dataclass
 
@@ -74,7 +73,8 @@ class Engine:
         self.scene_anchors = np.asarray(self.meta.anchors_us, dtype=np.int64)
         self.first_us = int(self.scene_anchors[0])  # the Markov chain has no state before it
         self.end_us = int(self.meta.t_end_us)
-        self._render_lock = threading.Lock() if model.center.device.type != "cpu" else None
+        # The numba rasterizer on a CPU; the torch one where the model lives on a GPU.
+        self.fast = model.center.device.type == "cpu"
 
     # ------------------------------------------------------------------ time
     def t_us_of_seconds(self, t: float) -> int:
@@ -85,11 +85,15 @@ class Engine:
         return (int(t_us) - self.meta.t_start_us) / 1e6
 
     def head(self) -> tuple[int, int] | None:
-        """(stream µs, scene µs) of the head: the time below which every event has arrived."""
+        """(stream µs, scene µs) of the head: the newest time whose events and anchor have all arrived.
+
+        The ring's watermark W says every event with t < W is in; a source delivers the frames of
+        [.., W) with those events, so an anchor exactly at W may still be coming: the head is W - 1.
+        """
         wm, tl = self.ring.watermark_us, self.timeline
         if wm is None or tl is None:
             return None
-        return wm, tl.scene_of(wm)
+        return wm - 1, tl.scene_of(wm - 1)
 
     def resolve(self, t_us: int | None) -> Instant:
         """The instant rendered for scene time ``t_us`` (None: the head), or TimeNotRenderable."""
@@ -225,11 +229,7 @@ class Engine:
         state, n_events = self.state(instant)
         c2w = self.default_pose(instant.t_us) if pose is None else pose
         intr = self.intrinsics(width, height)
-        if self._render_lock is None:
-            image = self.model.render(state, c2w, intr, fast=True)
-        else:  # a GPU model: torch calls from several threads would serialise anyway
-            with self._render_lock:
-                image = self.model.render(state, c2w, intr, fast=True)
+        image = self.model.render(state, c2w, intr, fast=self.fast)
         return Rendered(to_uint8(image), instant, n_events)
 
     def warm_up(self) -> float:
@@ -240,7 +240,7 @@ class Engine:
         t0 = time.perf_counter()
         state = self.model.deform(self.first_us, None)
         c2w = self.default_pose(self.first_us) if self.meta.trajectory is not None else np.eye(4)
-        self.model.render(state, c2w, self.meta.intrinsics, fast=True)
+        self.model.render(state, c2w, self.meta.intrinsics, fast=self.fast)
         one = Events(np.zeros(1, np.int64), np.zeros(1, np.uint16), np.zeros(1, np.uint16),
                      np.ones(1, np.int8))
         emap = accumulate(one, self.meta.event_width, self.meta.event_height)

@@ -32,8 +32,9 @@ from edmcgs.errors import EdmcgsError, InvalidInputError, RenderError
 
 log = logging.getLogger("edmcgs.server")
 
-ANCHOR_CAPACITY = 256
-"""Source frames kept for tau(t); each is a full image, so a looping replay must not keep them all."""
+ANCHOR_CAPACITY = 64
+"""Source frames kept for tau(t): each is a whole image (270 kB at 346x260 RGB), and a looping replay
+adds them again every pass. Times whose anchor was evicted answer 416 like evicted events."""
 
 
 def invalid(param: str, message: str) -> InvalidInputError:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from edmcgs.model.checkpoint import load_checkpoint
+from edmcgs.sensor.anchors import AnchorStore
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.recording import read_recording
 from edmcgs.sensor.ring import EventRingBuffer
@@ -31,13 +32,13 @@ def test_everything_streamed_so_far_is_renderable(scene):
     engine, events = _engine(scene, capacity=10**6, loop=False)
     t0 = engine.first_us
     engine.ring.push(events.time_slice(t0, t0 + 600_000), complete_until_us=t0 + 600_000)
-    assert engine.renderable() == [(t0, t0 + 600_000)]
+    assert engine.renderable() == [(t0, t0 + 599_999)]  # the watermark is exclusive
     inst = engine.resolve(t0 + 400_000)
     assert inst.anchor_us == t0 + 250_000 and inst.window == (t0 + 250_000, t0 + 400_000)
-    assert engine.resolve(None).t_us == t0 + 600_000  # the head
+    assert engine.resolve(None).t_us == t0 + 599_999  # the head
     with pytest.raises(TimeNotRenderable, match="not been streamed yet") as info:
         engine.resolve(t0 + 700_000)
-    assert info.value.valid_range["t_us_max"] == t0 + 600_000
+    assert info.value.valid_range["t_us_max"] == t0 + 599_999
     with pytest.raises(TimeNotRenderable, match="outside the checkpoint's span"):
         engine.resolve(t0 - 1)
 
@@ -48,7 +49,7 @@ def test_after_overflow_the_range_starts_at_the_first_anchor_still_covered(scene
     engine.ring.push(events.time_slice(t0, t0 + 1_500_000), complete_until_us=t0 + 1_500_000)
     oldest = engine.ring.oldest_us
     (lo, hi), = engine.renderable()
-    assert hi == t0 + 1_500_000 and lo > oldest and (lo - t0) % 250_000 == 0 and lo - 250_000 <= oldest
+    assert hi == t0 + 1_499_999 and lo > oldest and (lo - t0) % 250_000 == 0 and lo - 250_000 <= oldest
     with pytest.raises(TimeNotRenderable, match="renderable now"):
         engine.state(engine.resolve(lo - 1))  # its anchor's events were dropped
     _, n = engine.state(engine.resolve(lo + 100_000))
@@ -70,7 +71,7 @@ def test_a_loop_maps_every_pass_onto_the_scene(scene):
     _, n = engine.state(inst)
     assert n == len(events.time_slice(t0 + 750_000, t0 + 900_000))
     head = engine.resolve(None)
-    assert head.t_us == head.anchor_us == t0 + 500_000  # the head sits on an anchor: an empty window
+    assert head.t_us == t0 + 499_999 and head.anchor_us == t0 + 250_000
 
 
 def test_nothing_renderable_before_events(scene):
@@ -80,3 +81,17 @@ def test_nothing_renderable_before_events(scene):
         engine.resolve(None)
     assert info.value.valid_range is None
     assert np.isfinite(engine.seconds_of(engine.first_us))
+
+
+def test_at_a_pass_boundary_the_first_anchor_comes_from_the_pass_that_has_it(scene):
+    """The ring is complete up to the end of pass 1, whose next anchor (pass 2's first) has not arrived:
+    t = the first anchor must be served from pass 1, not fail for want of pass 2's frame."""
+    rec, _ = scene
+    engine, events = _engine(scene, capacity=10**6, loop=True)
+    engine.anchors = AnchorStore(16)
+    engine.anchors.add_frames(rec.anchors)
+    t0, period = engine.first_us, engine.timeline.period_us
+    engine.ring.push(events, complete_until_us=t0 + period)
+    inst = engine.resolve(t0)
+    assert inst.window == (t0, t0) and inst.anchor_us == t0
+    assert engine.resolve(None).t_us == engine.end_us
