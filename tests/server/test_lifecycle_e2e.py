@@ -144,6 +144,8 @@ def test_cli_errors_are_one_line(scene_files, tmp_path):
     wrong_size = _cli("--replay", AEDAT4, "--checkpoint", str(ckpt), "--port", "0")
     assert wrong_size.returncode == 1
     assert "320x240" in wrong_size.stderr and "64x48" in wrong_size.stderr
+    live = _cli("--live", "--checkpoint", str(ckpt), "--port", "0")  # no DAVIS on this machine
+    assert live.returncode == 1 and "no camera found" in live.stderr and "Traceback" not in live.stderr
 
 
 def test_missing_demo_says_how_to_serve_a_scene(monkeypatch, tmp_path):
