@@ -21,6 +21,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("recording", help="the HDF5 recording it was trained on (with held-out frames)")
     parser.add_argument("--csv", help="write one row per held-out frame here")
     parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     parser.add_argument("--reference-renderer", action="store_true",
                         help="render with the differentiable PyTorch rasterizer instead of the fast one")
     args = parser.parse_args(argv)
@@ -32,10 +33,15 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args) -> int:
+    import torch
+
     from edmcgs.model.checkpoint import load_checkpoint
     from edmcgs.model.evaluation import evaluate, summarize
     from edmcgs.model.metrics import LPIPS_SKIPPED
 
+    if args.threads < 1:
+        raise InvalidInputError(f"--threads must be >= 1, got {args.threads}")
+    torch.set_num_threads(args.threads)
     model = load_checkpoint(args.checkpoint, device=args.device)
     data = training_data(read_recording(args.recording))
     if not np.array_equal(data.anchors_t_us, model.meta.anchors_us):

@@ -67,10 +67,14 @@ def training_data(rec: Recording) -> TrainingData:
 
 
 def build_config(name: str, overrides: list[str], rec: Recording) -> EdmcgsConfig:
-    """Preset, then the recording's contrast threshold, then ``--set`` overrides."""
+    """Preset, then what the recording states (contrast threshold, a synthetic scene's constant
+    background colour), then ``--set`` overrides."""
     cfg = preset(name)
     if rec.contrast_threshold is not None:
         cfg = cfg.replace(contrast_threshold=float(rec.contrast_threshold))
+    background = rec.metadata.get("background")
+    if isinstance(background, list) and len(background) == 3:
+        cfg = cfg.replace(background=tuple(float(v) for v in background))
     return cfg.with_overrides(overrides)
 
 
@@ -84,7 +88,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoint at --output")
     parser.add_argument("--history", help="write the periodic held-out evaluation to this CSV")
-    parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch CPU threads (default 1: on a CPU shared with other work, OpenMP threads "
+                             "that spin-wait for each other are many times slower than one thread)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     try:
@@ -102,8 +108,9 @@ def _run(args) -> int:
     from edmcgs.model.evaluation import evaluate, summarize
     from edmcgs.model.trainer import Trainer, write_history_csv
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    if args.threads < 1:
+        raise InvalidInputError(f"--threads must be >= 1, got {args.threads}")
+    torch.set_num_threads(args.threads)
     rec = read_recording(args.recording)
     data = training_data(rec)
     out = Path(args.output)

@@ -55,8 +55,8 @@ class EdmcgsConfig:
     """Positional-encoding frequencies of the control point's position for g_phi."""
     event_hidden: int = 64
     """Hidden width of g_phi."""
-    background: float = 0.0
-    """Grey level of the background behind all Gaussians, in [0, 1]."""
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Linear RGB colour behind all Gaussians, in [0, 1] (grey models use its Rec. 601 luma)."""
 
     # --- losses --------------------------------------------------------------------------------
     lambda_dssim: float = 0.2
@@ -78,6 +78,9 @@ class EdmcgsConfig:
     train_scale: float = 1.0
     """Render and supervise at this fraction of the image resolution (the event maps fed to Phi stay
     at full resolution)."""
+    event_render_scale: float = 1.0
+    """The two renders of the event loss are made at this fraction of the training resolution (the
+    log-luminance change is a smooth target; a coarser render costs a fraction of the time)."""
     substeps: int = 16
     """Sub-step times per gap between anchors at which event windows are pre-accumulated."""
     max_pair_steps: int = 16
@@ -181,10 +184,11 @@ class EdmcgsConfig:
                 raise InvalidInputError(f"config.{name} must be >= 0, got {getattr(self, name)}")
         if self.sh_degree > 3:
             raise InvalidInputError(f"config.sh_degree must be <= 3, got {self.sh_degree}")
-        if not 0.0 < self.train_scale <= 1.0:
-            raise InvalidInputError(f"config.train_scale must be in (0, 1], got {self.train_scale}")
-        if not 0.0 <= self.background <= 1.0:
-            raise InvalidInputError(f"config.background must be in [0, 1], got {self.background}")
+        for name in ("train_scale", "event_render_scale"):
+            if not 0.0 < getattr(self, name) <= 1.0:
+                raise InvalidInputError(f"config.{name} must be in (0, 1], got {getattr(self, name)}")
+        if len(self.background) != 3 or not all(0.0 <= v <= 1.0 for v in self.background):
+            raise InvalidInputError(f"config.background must be 3 numbers in [0, 1], got {self.background}")
         if self.contrast_threshold <= 0 or self.log_eps <= 0 or self.radius_init <= 0:
             raise InvalidInputError("config.contrast_threshold, log_eps and radius_init must be > 0")
         lo, hi = self.event_warmup
@@ -204,7 +208,7 @@ def _plain(value):
 
 
 def _coerce(f: dataclasses.Field, value):
-    if f.type in ("tuple[float, float]",):
+    if f.type.startswith("tuple["):
         return tuple(float(v) for v in value)
     return value
 
@@ -223,11 +227,11 @@ def _parse(f: dataclasses.Field, raw: str):
             return int(raw)
         if kind == "float":
             return float(raw)
-        if kind == "tuple[float, float]":
-            parts = [float(v) for v in raw.strip("()[] ").split(",")]
-            if len(parts) != 2:
+        if kind.startswith("tuple["):
+            parts = tuple(float(v) for v in raw.strip("()[] ").split(","))
+            if len(parts) != kind.count("float"):
                 raise ValueError(raw)
-            return tuple(parts)
+            return parts
     except ValueError as exc:
         raise InvalidInputError(f"--set {f.name}={raw!r}: not a valid {kind}") from exc
     return raw
@@ -237,7 +241,7 @@ def _demo() -> EdmcgsConfig:
     # Sized for a 2-core CPU: fewer, cheaper iterations at reduced resolution.
     return EdmcgsConfig(
         init_points=6000, max_gaussians=30000, num_control_points=256, deform_width=128, deform_depth=4,
-        iterations=3000, train_scale=0.5, eval_every=500, checkpoint_every=500,
+        iterations=3000, train_scale=1.0, eval_every=500, checkpoint_every=500,
         lr_means=4e-4, lr_deform=2e-3, lr_event=2e-3, densify_every=100, opacity_reset_every=0,
         event_warmup=(0.15, 0.3),
     )

@@ -21,6 +21,7 @@ from edmcgs.model.config import EdmcgsConfig
 from edmcgs.model.control_points import ControlPoints
 from edmcgs.model.deformation import DeformationField
 from edmcgs.model.event_branch import EventEncoder, EventTransition, sample_global, sample_local
+from edmcgs.model.event_loss import LUMA
 from edmcgs.model.gaussians import Gaussians, GaussianState
 from edmcgs.model.initialization import backproject_anchors, scene_center_and_extent
 from edmcgs.model.quaternion import quat_normalize
@@ -147,7 +148,8 @@ class EdMCGS(nn.Module):
         rng = np.random.default_rng(config.seed)
         center, extent = scene_center_and_extent(poses, intrinsics, init_depth)
         points, colors, scales = backproject_anchors(images, poses, intrinsics, center, extent,
-                                                     config.init_points, rng)
+                                                     config.init_points, rng,
+                                                     background_color(config, images.shape[3]).numpy())
         gaussians = Gaussians.from_points(points, colors, scales, sh_degree=config.sh_degree)
         m = min(config.num_control_points, len(gaussians))
         control = ControlPoints.sample(gaussians.means.detach(), m, skin_k=config.skin_k,
@@ -268,7 +270,13 @@ class EdMCGS(nn.Module):
                 from edmcgs.model.rasterize_fast import rasterize_fast
 
                 arrays = [t.detach().cpu().numpy() for t in _fields(state)]
-                out = rasterize_fast(*arrays, w2c.astype(np.float32), intrinsics, background=bg)
+                threads = torch.get_num_threads()
+                try:
+                    out = rasterize_fast(*arrays, w2c.astype(np.float32), intrinsics, background=bg)
+                finally:
+                    # numba's OpenMP layer sets the process-wide OpenMP thread count, which is also
+                    # torch's; put back what the caller chose.
+                    torch.set_num_threads(threads)
                 image = np.asarray(out.image, dtype=np.float32)
             else:
                 dev = state.means.device
@@ -283,13 +291,19 @@ class EdMCGS(nn.Module):
     def _background(self, background) -> np.ndarray:
         c = self.meta.channels
         if background is None:
-            return np.full(c, self.config.background, dtype=np.float32)
+            return background_color(self.config, c).numpy()
         bg = np.asarray(background, dtype=np.float32).reshape(-1)
         if bg.size == 1:
             bg = np.repeat(bg, c)
         if bg.size != c or not np.all(np.isfinite(bg)):
             raise InvalidInputError(f"background must be a number or {c} finite numbers, got {background!r}")
         return bg
+
+
+def background_color(config: EdmcgsConfig, channels: int) -> Tensor:
+    """[C] float32 background of renders: the config's RGB, or its Rec. 601 luma for grey."""
+    rgb = torch.tensor(config.background, dtype=torch.float32)
+    return rgb if channels == 3 else (rgb @ torch.tensor(LUMA)).reshape(1)
 
 
 def render_image(state: GaussianState, w2c: Tensor, intrinsics: Intrinsics, background: Tensor) -> Tensor:

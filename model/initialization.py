@@ -11,7 +11,6 @@ from __future__ import annotations
 import numpy as np
 import torch
 from edmcgs.model.camera import Intrinsics
-from edmcgs.model.neighbors import knn
 
 
 def scene_center_and_extent(poses: np.ndarray, intrinsics: Intrinsics,
@@ -28,7 +27,7 @@ def scene_center_and_extent(poses: np.ndarray, intrinsics: Intrinsics,
     b = (proj @ origins[:, :, None]).sum(0)[:, 0]
     eig = np.linalg.eigvalsh(a)
     center = None
-    if eig[0] > 0.05 * eig[-1]:
+    if eig[0] > 1e-3 * eig[-1]:
         candidate = np.linalg.solve(a, b)
         depths = ((candidate - origins) * axes).sum(1)
         if np.all(depths > 0):
@@ -41,18 +40,20 @@ def scene_center_and_extent(poses: np.ndarray, intrinsics: Intrinsics,
 
 
 def backproject_anchors(images: np.ndarray, poses: np.ndarray, intrinsics: Intrinsics, center: np.ndarray,
-                        extent: float, n: int, rng: np.random.Generator,
-                        jitter: float = 0.1) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                        extent: float, n: int, rng: np.random.Generator, background: np.ndarray,
+                        jitter: float = 0.05) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``n`` Gaussians on random anchor pixels at the centre's depth.
 
-    images: np.ndarray  # [F, H, W, C] uint8
-    poses: np.ndarray   # [F, 4, 4] float64 c2w
+    images: np.ndarray      # [F, H, W, C] uint8
+    poses: np.ndarray       # [F, 4, 4] float64 c2w
+    background: np.ndarray  # [C] in [0, 1]: pixels of this colour (within 2/255) are already explained
+                            #  by the background and get no Gaussian (unless every pixel is such)
     returns (points [n, 3], colors [n, C] in [0, 1], scales [n]) float32 tensors
     """
     f, h, w, _ = images.shape
-    view = rng.integers(0, f, n)
-    u = rng.integers(0, w, n)
-    v = rng.integers(0, h, n)
+    differs = np.abs(images.astype(np.float32) / 255.0 - background).max(-1) > 2.0 / 255.0
+    candidates = np.flatnonzero(differs) if differs.any() else np.arange(differs.size)
+    view, v, u = np.unravel_index(rng.choice(candidates, n), (f, h, w))
     c2w = poses[view]
     depth_center = ((center - c2w[:, :3, 3]) * c2w[:, :3, 2]).sum(1)
     z = np.maximum(depth_center + rng.uniform(-jitter, jitter, n) * extent, 1e-3 * depth_center)
@@ -60,7 +61,8 @@ def backproject_anchors(images: np.ndarray, poses: np.ndarray, intrinsics: Intri
     world = (c2w[:, :3, :3] @ cam[:, :, None])[:, :, 0] + c2w[:, :3, 3]
     colors = images[view, v, u].astype(np.float32) / 255.0
     points = torch.from_numpy(world.astype(np.float32))
-    # 3DGS's initial scale: the RMS distance to the 3 nearest neighbours.
-    d2, _ = knn(points, points, 3, exclude_self=True)
-    scales = d2.mean(1).sqrt().clamp(1e-4 * extent, 0.05 * extent)
-    return points, torch.from_numpy(colors), scales
+    # Half the mean spacing of the samples on the image plane (n / f of them over each view's
+    # candidate pixels), lifted to each point's depth: neighbouring splats overlap a little.
+    spacing_px = np.sqrt(candidates.size / n)
+    scales = torch.from_numpy((0.5 * spacing_px * z / intrinsics.fx).astype(np.float32))
+    return points, torch.from_numpy(colors), scales.clamp(1e-4 * extent, 0.05 * extent)

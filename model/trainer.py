@@ -21,7 +21,7 @@ import torch.nn.functional as F
 from edmcgs.model.camera import world_to_camera
 from edmcgs.model.checkpoint import save_checkpoint
 from edmcgs.model.density import GradientStats, densify_and_prune, reset_opacity, screen_space_grad
-from edmcgs.model.edmcgs import EdMCGS, render_image
+from edmcgs.model.edmcgs import EdMCGS, background_color, render_image
 from edmcgs.model.evaluation import evaluate, summarize
 from edmcgs.model.event_loss import event_loss
 from edmcgs.model.gaussians import GaussianState
@@ -62,6 +62,8 @@ class Trainer:
         intr = model.meta.intrinsics
         w, h = max(8, round(intr.width * cfg.train_scale)), max(8, round(intr.height * cfg.train_scale))
         self.intr = intr if (w, h) == (intr.width, intr.height) else intr.scaled(w, h)
+        ew, eh = max(8, round(w * cfg.event_render_scale)), max(8, round(h * cfg.event_render_scale))
+        self.event_intr = self.intr if (ew, eh) == (w, h) else self.intr.scaled(ew, eh)
         images = torch.from_numpy(data.anchor_images).float() / 255.0
         self.anchor_images = _resize(images, h, w).to(self.device)
         self.anchor_w2c = self._w2c(data.anchor_poses)
@@ -72,7 +74,7 @@ class Trainer:
             g, s1 = self.grid.times.shape
             self.grid_w2c = self._w2c(data.trajectory.at(self.grid.times.reshape(-1))).reshape(g, s1, 4, 4)
             self.grid_t = [[model.meta.normalized_time(int(t)) for t in row] for row in self.grid.times]
-        self.background = torch.full((model.meta.channels,), cfg.background, device=self.device)
+        self.background = background_color(cfg, model.meta.channels).to(self.device)
         self.optimizer = self._build_optimizer()
         self.stats = GradientStats(len(model.gaussians), self.device)
         self.step = 0
@@ -114,8 +116,8 @@ class Trainer:
             self.model.event_scale.fill_(ramp(progress, *cfg.event_warmup))
 
     # ------------------------------------------------------------------ one step
-    def _render(self, state: GaussianState, w2c: Tensor) -> Tensor:
-        return render_image(state, w2c, self.intr, self.background)
+    def _render(self, state: GaussianState, w2c: Tensor, intr=None) -> Tensor:
+        return render_image(state, w2c, intr or self.intr, self.background)
 
     def _gap_motion(self, gap: int, k: int):
         """Control-point motion at grid time (gap, k): the next anchor's state at the gap's end."""
@@ -152,9 +154,10 @@ class Trainer:
             for trans, rot, k in ((trans_a, rot_a, a), (trans_b, rot_b, b)):
                 st = model.state_from_motion(trans, rot)
                 st = GaussianState(st.means, st.quats, st.scales, st.opacities, st.colors.detach())
-                renders.append(self._render(st, self.grid_w2c[gap, k]))
+                renders.append(self._render(st, self.grid_w2c[gap, k], self.event_intr))
             events = self.grid.cum[gap, b] - self.grid.cum[gap, a]
-            events = _resize(events[None, :, :, None], self.intr.height, self.intr.width)[0, :, :, 0]
+            ei = self.event_intr
+            events = _resize(events[None, :, :, None], ei.height, ei.width)[0, :, :, 0]
             terms["event"] = event_loss(renders[0], renders[1], events, cfg.contrast_threshold, cfg.log_eps)
             loss = loss + cfg.lambda_event * terms["event"]
             if cfg.tli:
@@ -237,7 +240,8 @@ class Trainer:
         was_training = self.model.training
         self.model.eval()
         try:
-            return summarize(evaluate(self.model, self.data, idx))
+            # The PyTorch renderer: the numba one would reset torch's OpenMP thread count mid-training.
+            return summarize(evaluate(self.model, self.data, idx, fast=False))
         finally:
             self.model.train(was_training)
 
