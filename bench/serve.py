@@ -11,9 +11,10 @@ Keys (targets of issue 6, on the demo scene at 346x260):
                              that includes it, received by the client                 <= 50
 
 Without ``--checkpoint``/``--replay`` the bench builds its own scene from the model API (an untrained
-EdMCGS initialised from synthetic anchor frames at 346x260 with the ``demo`` preset and 20k Gaussians,
+EdMCGS initialised from synthetic anchor frames at 346x260 with the ``demo`` preset, 6000 Gaussians,
 and a recording of random events at ~300k ev/s), because it must run before a trained demo exists; the
-numbers say which scene they come from. Client-side latencies include HTTP; all clients run in this process.
+numbers say which scene they come from (``--gaussians 20000`` for a densified one). Client-side
+latencies include HTTP; all clients run in this process.
 
 The machine is shared: wall-clock numbers depend on what else runs. ``server_cpu_ms_per_*`` (CPU time
 of the server process per render or frame, all threads) depend far less on it: on an idle 2-core
@@ -46,14 +47,14 @@ TARGETS = {"render_p50_ms": ("<=", 25.0), "render_rps_4_clients": (">=", 60.0),
 # --------------------------------------------------------------------------------------- the scene
 
 def build_scene(folder: str | os.PathLike, *, width: int = 346, height: int = 260, duration_s: float = 2.0,
-                anchor_every_s: float = 0.25, event_rate: float = 300_000.0, init_points: int = 20_000,
-                control_points: int = 256, t0_us: int = 1_600_000_000_000_000, seed: int = 0,
+                anchor_every_s: float = 0.25, event_rate: float = 300_000.0, init_points: int | None = None,
+                control_points: int | None = None, t0_us: int = 1_600_000_000_000_000, seed: int = 0,
                 config_overrides: dict | None = None) -> tuple[Path, Path]:
     """Write ``scene.h5`` (our recording) and ``scene.ckpt`` (an untrained EdMCGS of it) to ``folder``.
 
-    The model uses the ``demo`` preset (the CPU-sized config the bundled demo is trained with: 256
-    control points, a 128x4 deformation MLP) with ``init_points`` Gaussians (the demo densifies to
-    at most 30k).
+    The model uses the ``demo`` preset (the CPU-sized config the bundled demo is trained with: 6000
+    initial Gaussians, 256 control points, a 128x4 deformation MLP), with ``init_points`` Gaussians and
+    ``control_points`` control points when given (training densifies the demo to at most 30k Gaussians).
 
     Anchors are RGB frames of a few coloured discs drifting over a gradient, the camera slides 10 cm
     along x, events are uniform in space and time at ``event_rate`` per second with random polarity;
@@ -108,7 +109,9 @@ def build_scene(folder: str | os.PathLike, *, width: int = 346, height: int = 26
                     sensor="bench.serve synthetic", metadata={"scene": "bench.serve", "seed": seed})
     rec_path = write_recording(folder / "scene.h5", rec)
 
-    config = replace(preset("demo"), init_points=init_points, num_control_points=control_points,
+    config = preset("demo")
+    config = replace(config, init_points=init_points or config.init_points,
+                     num_control_points=control_points or config.num_control_points,
                      **(config_overrides or {}))
     model = EdMCGS.from_arrays(anchors_t_us=anchor_t, anchor_images=anchor_images, intrinsics=intr,
                                anchor_poses=anchor_poses, t_end_us=t_end,
@@ -309,7 +312,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--checkpoint", type=Path, help="serve this checkpoint (with --replay)")
     p.add_argument("--replay", type=Path, help="its recording")
     p.add_argument("--seconds", type=float, default=8.0, help="duration of each measurement")
-    p.add_argument("--gaussians", type=int, default=20_000, help="Gaussians of the built scene (default 20k)")
+    p.add_argument("--gaussians", type=int, help="Gaussians of the built scene (default: the demo preset's "
+                                                 "6000; a trained demo has up to 30k)")
     args = p.parse_args(argv)
     from edmcgs.clients.client import Client
     from tqdm import tqdm
@@ -319,7 +323,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.checkpoint is None:
             steps.set_postfix_str("building the scene")
             rec, ckpt = build_scene(tmp, init_points=args.gaussians)
-            scene_name = (f"bench.serve synthetic: untrained EdMCGS, demo preset, {args.gaussians} "
+            scene_name = (f"bench.serve synthetic: untrained EdMCGS, demo preset, {args.gaussians or 'its'} "
                           "Gaussians, 346x260, 300k ev/s")
         else:
             if args.replay is None:
