@@ -72,6 +72,10 @@ def main(argv: list[str] | None = None) -> int:
             where = ".".join(str(p) for p in err["loc"]) or "settings"
             print(f"edmcgs-serve: {where}: {err['msg']}", file=sys.stderr)
         return 2
+    if settings.token is None and settings.host not in ("127.0.0.1", "localhost", "::1"):
+        logging.getLogger("edmcgs.server").warning(
+            "serving on %s without EDMCGS_TOKEN: anyone who can reach this port can use the service",
+            settings.host)
     for name in ("uvicorn.access", "uvicorn.error"):  # access lines, and websocket accept lines
         logging.getLogger(name).addFilter(_RedactToken())
     # Open before serving, so a bad checkpoint, recording or device is one line, not a traceback.
