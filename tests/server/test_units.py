@@ -119,3 +119,36 @@ def test_accept_negotiation_and_pose_text():
     assert protocol.parse_pose_text("[0, 0, 0, 1, 0, 0, 0]") == [0, 0, 0, 1, 0, 0, 0]
     with pytest.raises(protocol.ProtocolError):
         protocol.parse_pose_text("1,2,x,4,5,6,7")
+
+
+def test_arrivals_find_the_oldest_batch_new_to_a_frame():
+    from edmcgs.server.live import Arrivals
+
+    arrivals = Arrivals(keep=3)
+    for until in (100, 200, 300, 400):
+        arrivals.record(until)
+        time.sleep(0.002)
+    at_300, at_400 = arrivals.first_after(250), arrivals.first_after(350)
+    assert at_300 is not None and at_400 is not None and at_300 < at_400
+    assert arrivals.first_after(400) is None  # nothing new since
+    # Bounded: the batch complete until 100 is forgotten, the oldest kept one (200) answers instead.
+    assert arrivals.first_after(50) == arrivals.first_after(150) == arrivals.first_after(None) < at_300
+
+
+def test_head_signal_wakes_waiters_from_another_thread():
+    import asyncio
+
+    from edmcgs.server.live import HeadSignal
+
+    async def scenario():
+        signal = HeadSignal(asyncio.get_running_loop())
+        t0 = time.perf_counter()
+        threading.Timer(0.05, signal.notify).start()
+        await signal.wait(5.0)
+        woke = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        await signal.wait(0.05)  # nobody notifies: the timeout
+        return woke, time.perf_counter() - t1
+
+    woke, timed_out = asyncio.run(scenario())
+    assert woke < 2.0 and 0.04 < timed_out < 2.0
