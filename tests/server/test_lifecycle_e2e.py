@@ -10,6 +10,7 @@ import threading
 import time
 
 import dv_processing as dv
+import httpx
 import numpy as np
 import pytest
 from edmcgs.clients.client import Busy, Client, ServerError
@@ -19,7 +20,7 @@ from edmcgs.server.service import Service
 from edmcgs.server.settings import Settings
 
 from bench.serve import ServerProcess, build_scene
-from edmcgs.errors import CheckpointError
+from edmcgs.errors import CheckpointError, ReplayFormatError
 from tests.server.conftest import ThreadServer
 
 AEDAT4 = "/work/shared/data/dvxplorer_person.aedat4"
@@ -187,3 +188,32 @@ def test_replays_a_real_aedat4_on_the_checkpoints_anchors(aedat_checkpoint):
             assert image.shape == (240, 320, 3)
     finally:
         srv.stop()
+
+
+def test_a_failing_source_makes_healthz_503_and_keeps_what_was_buffered(scene_files):
+    def failing_source(settings: Settings) -> Service:
+        service = Service.open(settings)
+        read, calls = service.source.read, [0]
+
+        def read_then_fail():
+            calls[0] += 1
+            if calls[0] > 60:  # ~0.3 s of the recording in, an injected I/O failure
+                raise ReplayFormatError("injected: the recording became unreadable")
+            return read()
+
+        service.source.read = read_then_fail
+        return service
+
+    with ThreadServer(create_app(_settings(scene_files), service_factory=failing_source)) as srv, \
+            Client(srv.url) as client:
+        deadline = time.monotonic() + 20
+        while httpx.get(srv.url + "/healthz", timeout=10).status_code == 200:
+            assert time.monotonic() < deadline, "the source failure never showed"
+            time.sleep(0.05)
+        r = httpx.get(srv.url + "/healthz", timeout=10)
+        assert r.status_code == 503 and r.headers["retry-after"] == "1"
+        body = r.json()
+        assert body["ready"] is False and body["source"] == "error" and "injected" in body["source_error"]
+        _, meta = client.render(t=0.2)  # the events already in the ring still render
+        assert meta.events > 0
+        assert "edmcgs_up 0" in client.metrics()
