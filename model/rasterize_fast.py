@@ -4,7 +4,7 @@ Three kernels: per-Gaussian preprocessing (EWA projection, SH colour, screen rec
 of ``projection`` and ``sh``, in float64, parallel over Gaussians), binning into 16x16 tiles in
 depth order, and per-tile front-to-back blending, parallel over tiles. Blending visits each splat's
 ``screen_rect`` (the pixels where its alpha can reach ``alpha_min``; this changes no pixel value)
-in aligned runs of 8 pixels with a branch-free float32 body and ``simd_exp``, which LLVM turns
+in runs of 8 pixels with a branch-free float32 body and ``simd_exp``, which LLVM turns
 into AVX2 code; a pixel that has stopped is marked by a negative transmittance.
 
 JIT cache: kernels are compiled with ``cache=True``. numba keeps the cache beside this file
@@ -41,12 +41,12 @@ def _jit(**options):
     return wrap
 
 
-@_jit(parallel=True)
+@_jit()
 def _preprocess(means, quats, scales, opac, coeffs, use_sh, w2c, fx, fy, cx, cy, width, height, near,
                 alpha_min, splat, depth, rect, color):
-    """Per Gaussian, in float64: splat[i] = (mean x, mean y, -A/2, -B, -C/2, opacity) with (A, B, C)
-    the conic, depth[i] = camera z, rect[i] = pixel rectangle (x0, y0, x1, y1), all 0 when culled;
-    color[i] = its colour."""
+    """Per Gaussian, in float64: splat[i] = (mean x, mean y, -A/2, -B, -C/2, opacity) with
+    (A, B, C) the conic, depth[i] = camera z, rect[i] = pixel rectangle (x0, y0, x1, y1), all 0
+    when culled; color[i] = its colour."""
     n = means.shape[0]
     ncoef = coeffs.shape[1]
     nch = coeffs.shape[2]
@@ -63,7 +63,7 @@ def _preprocess(means, quats, scales, opac, coeffs, use_sh, w2c, fx, fy, cx, cy,
     lim_yn, lim_yp = cy / fy + slack_y, (height - cy) / fy + slack_y
     grid_x = (width + TILE - 1) // TILE
     grid_y = (height + TILE - 1) // TILE
-    for i in numba.prange(n):
+    for i in range(n):
         rect[i, 0] = 0
         rect[i, 1] = 0
         rect[i, 2] = 0
@@ -116,11 +116,10 @@ def _preprocess(means, quats, scales, opac, coeffs, use_sh, w2c, fx, fy, cx, cy,
         tx1 = min(max(np.floor((u + radius + TILE - 1) / TILE), 0.0), grid_x)
         ty0 = min(max(np.floor((v - radius) / TILE), 0.0), grid_y)
         ty1 = min(max(np.floor((v + radius + TILE - 1) / TILE), 0.0), grid_y)
-        if alpha_min > 0:
-            tau = max(2.0 * math.log(o / alpha_min) * 1.001 + 1e-3, 0.0)
-            ex, ey = math.sqrt(tau * ca), math.sqrt(tau * cc)
-        else:
-            ex = ey = math.inf
+        # the ellipse (pixel - mean)^T conic (pixel - mean) <= tau holds every pixel whose alpha can
+        # reach alpha_min; 0.1% + 1e-3 of slack in tau covers float32 rounding in the blending
+        tau = max(2.0 * math.log(o / alpha_min) * 1.001 + 1e-3, 0.0) if alpha_min > 0 else math.inf
+        ex, ey = math.sqrt(tau * ca), math.sqrt(tau * cc)
         x0 = min(max(max(tx0 * TILE, np.ceil(u - ex)), 0.0), width)
         x1 = min(max(min(min(tx1 * TILE, width), np.floor(u + ex) + 1), 0.0), width)
         y0 = min(max(max(ty0 * TILE, np.ceil(v - ey)), 0.0), height)
@@ -160,10 +159,29 @@ def _preprocess(means, quats, scales, opac, coeffs, use_sh, w2c, fx, fy, cx, cy,
 
 
 @_jit()
-def _bin(rect, depth, grid_x, grid_y):
+def _depth_order(rect, depth_bits):
+    """The splats with a non-empty rectangle, sorted by depth, ties by index: an LSD radix sort
+    (stable) of the float32 depths' bit patterns, which order like the depths as these are > 0."""
+    order = np.nonzero((rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1]))[0]
+    spare = np.empty_like(order)
+    for shift in (0, 11, 22):
+        count = np.zeros(2049, np.int64)
+        for g in order:
+            count[((depth_bits[g] >> shift) & 2047) + 1] += 1
+        for d in range(2048):
+            count[d + 1] += count[d]
+        for g in order:
+            d = (depth_bits[g] >> shift) & 2047
+            spare[count[d]] = g
+            count[d] += 1
+        order, spare = spare, order
+    return order
+
+
+@_jit()
+def _bin(rect, depth_bits, grid_x, grid_y):
     """Tile lists: ids[start[t]:start[t + 1]] are the splats of tile t, front to back."""
-    vis = np.nonzero((rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1]))[0]
-    order = vis[np.argsort(depth[vis], kind="mergesort")]
+    order = _depth_order(rect, depth_bits)
     start = np.zeros(grid_x * grid_y + 1, np.int64)
     for g in order:
         for ty in range(rect[g, 1] // TILE, (rect[g, 3] - 1) // TILE + 1):
@@ -184,9 +202,10 @@ def _bin(rect, depth, grid_x, grid_y):
 
 _STATE = 5 * TILE * TILE
 """Per-tile state: transmittance (negative once the pixel stopped), 3 colour sums, depth sum."""
-_WORK_ITEMS = 64
-"""Tiles are dealt to this many parallel work items round-robin, so that busy image regions are
-shared between threads whatever numba's static split of the range."""
+_WORK_ITEMS = 128
+"""Tiles are dealt round-robin to this many parallel work items, handed to threads one at a time:
+busy image regions are shared, and a thread the OS preempts (a loaded machine) holds up only the
+item it is on, not a fixed half of the image."""
 
 
 @_jit(fastmath={"contract"}, inline="always")
@@ -240,9 +259,12 @@ def _blend(start, ids, splat, depth, rect, color, background, width, height, gri
                 c0 = color[g, 0]
                 c1 = color[g, 1] if nch == 3 else np.float32(0.0)
                 c2 = color[g, 2] if nch == 3 else np.float32(0.0)
+                # runs of 8 pixels covering [x0, x1): one run anywhere in the tile row when the
+                # span fits in it, else the two halves (pixels outside the span are skipped anyway)
+                first = min(x0, TILE - 8) if x1 - x0 <= 8 else 0
                 for ly in range(y0, y1):
                     dy = np.float32(ly) - my
-                    for hx in range(x0 - x0 % 8, x1, 8):
+                    for hx in range(first, x1, 8):
                         _blend_run(st, np.uint64(ly * TILE + hx), np.float32(hx) - mx, ca, cb * dy,
                                    cc * dy * dy, o, c0, c1, c2, z, alpha_min, t_min)
                 if (k - start[t]) % 16 == 15:  # every 16 splats: has every pixel stopped?
@@ -290,11 +312,15 @@ def rasterize_fast(means, quats, scales, opacities, colors, w2c, intrinsics: Int
                 intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, width, height, float(near),
                 float(alpha_min), splat, depth_key, rect, color)
     grid_x, grid_y = -(-width // TILE), -(-height // TILE)
-    start, ids = _bin(rect, depth_key, grid_x, grid_y)
+    start, ids = _bin(rect, depth_key.view(np.uint32), grid_x, grid_y)
     image = np.empty((height, width, chk.channels), np.float32)
     alpha = np.empty((height, width), np.float32)
     depth = np.empty((height, width), np.float32)
-    _blend(start, ids, splat, depth_key, rect, color, chk.background, width, height, grid_x,
-           np.float32(alpha_min), np.float32(t_min), image, alpha, depth)
+    previous = numba.set_parallel_chunksize(1)  # work items go to threads one at a time
+    try:
+        _blend(start, ids, splat, depth_key, rect, color, chk.background, width, height, grid_x,
+               np.float32(alpha_min), np.float32(t_min), image, alpha, depth)
+    finally:
+        numba.set_parallel_chunksize(previous)
     return RenderOutput(image=image, alpha=alpha if return_alpha else None,
                         depth=depth if return_depth else None)
