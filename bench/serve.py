@@ -323,8 +323,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.checkpoint is None:
             steps.set_postfix_str("building the scene")
             rec, ckpt = build_scene(tmp, init_points=args.gaussians)
-            scene_name = (f"bench.serve synthetic: untrained EdMCGS, demo preset, {args.gaussians or 'its'} "
-                          "Gaussians, 346x260, 300k ev/s")
+            scene_name = "bench.serve synthetic: untrained EdMCGS, demo preset, 346x260, 300k ev/s"
         else:
             if args.replay is None:
                 p.error("--checkpoint needs --replay")
@@ -374,8 +373,8 @@ def main(argv: list[str] | None = None) -> int:
         "load_average_1m": os.getloadavg()[0], "server_exit_code": code,
     }
     print(_table(results))
-    print(f"scene: {scene_name}; load average {results['load_average_1m']:.1f} on {os.cpu_count()} CPUs "
-          "(the machine is shared: medians are noisy)")
+    print(f"scene: {scene_name}, {results['num_gaussians']} Gaussians; load average "
+          f"{results['load_average_1m']:.1f} on {os.cpu_count()} CPUs (a shared machine: medians are noisy)")
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(results, indent=2) + "\n")
