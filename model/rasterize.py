@@ -62,14 +62,18 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
         splats = ewa_project(chk.means, chk.quats, chk.scales, chk.w2c, intrinsics, near)
         rect = screen_rect(splats, chk.opacities, width, height, near)
         visible = ((rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])).nonzero().squeeze(1)
-    rect, depth_key = rect[visible], splats.depth[visible]
-    v_means, v_opac = chk.means[visible], chk.opacities[visible]
+
+    def pick(t: Tensor) -> Tensor:  # index_select: far faster than boolean/advanced indexing on CPU
+        return t.index_select(0, visible)
+
+    rect, depth_key = pick(rect), pick(splats.depth)
+    v_means, v_opac = pick(chk.means), pick(chk.opacities)
     if need_grad:
-        splats = ewa_project(v_means, chk.quats[visible], chk.scales[visible], chk.w2c, intrinsics, near)
+        splats = ewa_project(v_means, pick(chk.quats), pick(chk.scales), chk.w2c, intrinsics, near)
         mean2d, conic, z = splats.mean2d, splats.conic, splats.depth
     else:
-        mean2d, conic, z = splats.mean2d[visible], splats.conic[visible], depth_key
-    feat = _colors(chk.colors[visible], v_means, chk.w2c)
+        mean2d, conic, z = pick(splats.mean2d), pick(splats.conic), depth_key
+    feat = _colors(pick(chk.colors), v_means, chk.w2c)
     if return_depth:
         feat = torch.cat([feat, z[:, None]], dim=-1)
 

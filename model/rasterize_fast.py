@@ -286,13 +286,17 @@ def _blend(start, ids, splat, depth, rect, color, background, width, height, gri
 
 def rasterize_fast(means, quats, scales, opacities, colors, w2c, intrinsics: Intrinsics, *, background=None,
                    near: float = 0.01, return_depth: bool = False, return_alpha: bool = False,
-                   alpha_min: float = ALPHA_MIN, t_min: float = T_MIN) -> RenderOutput:
+                   alpha_min: float = ALPHA_MIN, t_min: float = T_MIN,
+                   threads: int | None = None) -> RenderOutput:
     """Render Gaussians on the CPU; the arguments of ``rasterize`` as numpy (torch tensors accepted).
 
     means [N, 3], quats [N, 4] (w, x, y, z), scales [N, 3] linear, opacities [N] in [0, 1],
     colors [N, C] or SH [N, K, C]; converted to float32. w2c [4, 4], intrinsics, background and
     near as in ``rasterize``. alpha_min: a splat is skipped where its alpha is below this;
     t_min: a pixel stops once blending would leave less transmittance than this.
+    threads: threads for the blending (default: numba's, all cores); a service on a shared or
+    small machine may prefer 1, as a preempted worker thread stalls the whole parallel region.
+    Set for this call only (numba's thread count is per calling thread).
     returns RenderOutput of float32 numpy arrays: image [H, W, C], alpha [H, W] and depth [H, W]
     (expected camera z) when asked for.
     """
@@ -301,6 +305,10 @@ def rasterize_fast(means, quats, scales, opacities, colors, w2c, intrinsics: Int
     for name, value in (("alpha_min", alpha_min), ("t_min", t_min)):
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < ALPHA_MAX:
             raise InvalidInputError(f"{name} must be a number in [0, {ALPHA_MAX}), got {value!r}")
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int)
+                                or not 1 <= threads <= numba.config.NUMBA_NUM_THREADS):
+        raise InvalidInputError(f"threads must be an integer in [1, {numba.config.NUMBA_NUM_THREADS}], "
+                                f"got {threads!r}")
     width, height = intrinsics.width, intrinsics.height
     n = chk.means.shape[0]
     coeffs = chk.colors if chk.colors.ndim == 3 else np.ascontiguousarray(chk.colors[:, None, :])
@@ -317,10 +325,14 @@ def rasterize_fast(means, quats, scales, opacities, colors, w2c, intrinsics: Int
     alpha = np.empty((height, width), np.float32)
     depth = np.empty((height, width), np.float32)
     previous = numba.set_parallel_chunksize(1)  # work items go to threads one at a time
+    previous_threads = numba.get_num_threads()
     try:
+        if threads is not None:
+            numba.set_num_threads(threads)
         _blend(start, ids, splat, depth_key, rect, color, chk.background, width, height, grid_x,
                np.float32(alpha_min), np.float32(t_min), image, alpha, depth)
     finally:
         numba.set_parallel_chunksize(previous)
+        numba.set_num_threads(previous_threads)
     return RenderOutput(image=image, alpha=alpha if return_alpha else None,
                         depth=depth if return_depth else None)

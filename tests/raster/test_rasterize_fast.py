@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numba
 import numpy as np
 import pytest
 import torch
@@ -148,6 +149,16 @@ def test_non_finite_input_names_the_argument(name):
     scene = with_values(scene, **{name: ((0,) * scene[name].ndim, np.inf)})
     with pytest.raises(InvalidInputError, match=f"{name} contains NaN or Inf"):
         fast(scene)
+
+
+def test_thread_count_changes_nothing_but_speed():
+    scene = random_scene(500, 70, 50, seed=61, sh_degree=1)
+    one = fast(scene, background=BG, threads=1)
+    many = min(2, numba.config.NUMBA_NUM_THREADS)
+    np.testing.assert_array_equal(fast(scene, background=BG, threads=many).image, one.image)
+    np.testing.assert_array_equal(fast(scene, background=BG).image, one.image)
+    with pytest.raises(InvalidInputError, match="threads"):
+        fast(scene, threads=0)
 
 
 def test_bad_arguments_are_named():
