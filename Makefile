@@ -1,7 +1,7 @@
 # The two commands of the README, and the checks of CONTRIBUTING.md.
 PY := .venv/bin/python
 
-.PHONY: serve test lint bench
+.PHONY: serve test lint bench demo
 
 serve:  ## set up, then serve the bundled demo scene on http://127.0.0.1:8000
 	scripts/bootstrap.sh
@@ -17,3 +17,9 @@ lint:
 bench:  ## every benchmark, JSON into reports/bench/
 	mkdir -p reports/bench
 	for b in render sensor simulate serve; do $(PY) -m bench.$$b --json reports/bench/$$b.json || exit 1; done
+
+demo:   ## regenerate the bundled demo scene (server/demo/) from the synthetic benchmark
+	scripts/bootstrap.sh
+	.venv/bin/edmcgs synth jumpingjack --fps 5 --size small --seed 0 --compress -q -o server/demo/scene.h5
+	.venv/bin/edmcgs train server/demo/scene.h5 --config demo -o server/demo/scene.ckpt \
+	    --set init_points=3000 --set iterations=1500 --set event_render_scale=0.5
