@@ -1,6 +1,6 @@
 """Benchmark of the service: a real ``edmcgs-serve`` process, driven over HTTP and the websocket.
 
-    .venv/bin/python -m bench.serve [--json PATH] [--checkpoint CKPT --replay REC] [--seconds S]
+    .venv/bin/python -m bench.serve [--json PATH] [--checkpoint CKPT --replay REC | --built] [--size WxH]
 
 Keys (targets of issue 6, on the demo scene at 346x260):
     render_p50_ms            GET /render, one client, the event branch included      <= 25
@@ -10,10 +10,10 @@ Keys (targets of issue 6, on the demo scene at 346x260):
     event_to_frame_ms        median, an event's arrival in the ring -> a live frame
                              that includes it, received by the client                 <= 50
 
-Without ``--checkpoint``/``--replay`` the bench builds its own scene from the model API (an untrained
-EdMCGS initialised from synthetic anchor frames at 346x260 with the ``demo`` preset, 6000 Gaussians,
-and a recording of random events at ~300k ev/s), because it must run before a trained demo exists; the
-numbers say which scene they come from (``--gaussians 20000`` for a densified one). Client-side
+By default it serves the bundled demo scene and renders at ``--size`` 346x260. ``--built`` serves a
+scene the bench builds from the model API instead (an untrained EdMCGS initialised from synthetic anchor
+frames at 346x260 with the ``demo`` preset, 6000 Gaussians, and random events at ~300k ev/s;
+``--gaussians 20000`` for a densified one); the numbers say which scene they come from. Client-side
 latencies include HTTP; all clients run in this process.
 
 The machine is shared: wall-clock numbers depend on what else runs. ``server_cpu_ms_per_*`` (CPU time
@@ -219,7 +219,7 @@ def _orbit_pose(scene: dict, angle: float, t_us: int) -> list[float]:
     return out.reshape(-1).tolist()
 
 
-def measure_single(client, scene: dict, seconds: float) -> dict:
+def measure_single(client, scene: dict, seconds: float, size: tuple[int, int]) -> dict:
     """One client, GET /render as JPEG at a new time each request (no cache hit: deform every time)."""
     r = scene["renderable"]
     lo, hi = r["t_us_min"], r["t_us_max"]
@@ -228,7 +228,7 @@ def measure_single(client, scene: dict, seconds: float) -> dict:
     while time.perf_counter() < t_end:
         t_us = lo + (k * 7_919) % (hi - lo)  # a prime step: every request a new instant
         t0 = time.perf_counter()
-        _, meta = client.render(t_us=t_us, format="jpeg")
+        _, meta = client.render(t_us=t_us, width=size[0], height=size[1], format="jpeg")
         latencies.append((time.perf_counter() - t0) * 1e3)
         server_ms.append(meta.render_ms)
         events.append(meta.events)
@@ -238,7 +238,8 @@ def measure_single(client, scene: dict, seconds: float) -> dict:
             "events_per_render_median": _percentile(events, 50)}
 
 
-def measure_four(url: str, token: str | None, scene: dict, seconds: float, clients: int = 4) -> dict:
+def measure_four(url: str, token: str | None, scene: dict, seconds: float, size: tuple[int, int],
+                 clients: int = 4) -> dict:
     """Four clients orbiting their own poses around the same instant, which moves on twice a second
     (viewers scrubbing a slow-motion playback together): the deformation is shared, the renders not."""
     from edmcgs.clients.client import Client
@@ -257,7 +258,7 @@ def measure_four(url: str, token: str | None, scene: dict, seconds: float, clien
                 t_us = lo + (step * 33_333) % (hi - lo)
                 pose = _orbit_pose(scene, 0.3 * math.sin(0.5 * n + i * math.pi / 2), t_us)
                 t0 = time.perf_counter()
-                client.render(t_us=t_us, pose=pose, format="jpeg")
+                client.render(t_us=t_us, pose=pose, width=size[0], height=size[1], format="jpeg")
                 latencies[i].append((time.perf_counter() - t0) * 1e3)
                 n += 1
 
@@ -272,10 +273,11 @@ def measure_four(url: str, token: str | None, scene: dict, seconds: float, clien
             "render_p99_ms_4_clients": _percentile(flat, 99), "render_requests_4_clients": len(flat)}
 
 
-def measure_stream(client, seconds: float) -> dict:
+def measure_stream(client, seconds: float, size: tuple[int, int]) -> dict:
     """One websocket client in live mode asking for 60 fps (JPEG, the event camera's pose)."""
     frames, latencies = 0, []
-    with client.stream({"mode": "live", "fps": 60, "format": "jpeg"}) as stream:
+    sub = {"mode": "live", "fps": 60, "format": "jpeg", "width": size[0], "height": size[1]}
+    with client.stream(sub) as stream:
         assert stream.receive(timeout=30) is not None  # first frame: not timed
         start = time.perf_counter()
         while time.perf_counter() - start < seconds:
@@ -306,10 +308,19 @@ def _table(results: dict) -> str:
     return "\n".join(rows)
 
 
+def _size(text: str) -> tuple[int, int]:
+    w, h = text.lower().split("x")
+    return int(w), int(h)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m bench.serve", description=__doc__.split("\n\n")[0])
     p.add_argument("--json", type=Path, help="write the results here")
-    p.add_argument("--checkpoint", type=Path, help="serve this checkpoint (with --replay)")
+    p.add_argument("--checkpoint", type=Path,
+                   help="serve this checkpoint (with --replay; default: the bundled demo scene)")
+    p.add_argument("--built", action="store_true",
+                   help="serve a scene built by the bench (untrained) instead of the demo")
+    p.add_argument("--size", type=_size, default=(346, 260), help="rendered WIDTHxHEIGHT (default 346x260)")
     p.add_argument("--replay", type=Path, help="its recording")
     p.add_argument("--seconds", type=float, default=8.0, help="duration of each measurement")
     p.add_argument("--gaussians", type=int, help="Gaussians of the built scene (default: the demo preset's "
@@ -320,7 +331,11 @@ def main(argv: list[str] | None = None) -> int:
 
     steps = tqdm(total=5, desc="bench.serve", unit="step")
     with tempfile.TemporaryDirectory(prefix="bench-serve-") as tmp:
-        if args.checkpoint is None:
+        if args.checkpoint is None and not args.built:
+            from edmcgs.server import demo
+
+            args.checkpoint, args.replay = demo.files()
+        if args.built:
             steps.set_postfix_str("building the scene")
             rec, ckpt = build_scene(tmp, init_points=args.gaussians)
             scene_name = "bench.serve synthetic: untrained EdMCGS, demo preset, 346x260, 300k ev/s"
@@ -342,19 +357,19 @@ def main(argv: list[str] | None = None) -> int:
                 steps.update()
                 steps.set_postfix_str("one client")
                 cpu0 = server.cpu_s()
-                results = measure_single(client, scene, args.seconds)
+                results = measure_single(client, scene, args.seconds, args.size)
                 cpu1 = server.cpu_s()
                 results["server_cpu_ms_per_render_1_client"] = \
                     (cpu1 - cpu0) * 1e3 / results["render_requests_1_client"]
                 steps.update()
                 steps.set_postfix_str("four clients")
-                results |= measure_four(server.url, None, scene, args.seconds)
+                results |= measure_four(server.url, None, scene, args.seconds, args.size)
                 cpu2 = server.cpu_s()
                 results["server_cpu_ms_per_render_4_clients"] = \
                     (cpu2 - cpu1) * 1e3 / results.pop("render_requests_4_clients")
                 steps.update()
                 steps.set_postfix_str("websocket")
-                results |= measure_stream(client, args.seconds)
+                results |= measure_stream(client, args.seconds, args.size)
                 results["server_cpu_ms_per_frame_stream"] = \
                     (server.cpu_s() - cpu2) * 1e3 / results["stream_frames"]
                 steps.update()
@@ -367,7 +382,7 @@ def main(argv: list[str] | None = None) -> int:
     results |= {
         "deform_cache_hits": cache.get('result="hit"', 0.0),
         "deform_cache_misses": cache.get('result="miss"', 0.0),
-        "scene": scene_name, "width": scene["intrinsics"]["width"], "height": scene["intrinsics"]["height"],
+        "scene": scene_name, "width": args.size[0], "height": args.size[1],
         "num_gaussians": scene["num_gaussians"], "has_event_branch": scene["has_event_branch"],
         "seconds_per_measurement": args.seconds, "cpus": os.cpu_count(),
         "load_average_1m": os.getloadavg()[0], "server_exit_code": code,
