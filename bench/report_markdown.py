@@ -102,10 +102,14 @@ def summary(*, settings: ReportSettings, command: str, machine: str, minutes: fl
         scale = "the paper's grid at the demo preset's length"
     length = "the scene's length" if s.duration_s is None else f"{s.duration_s:g} s"
     train_scale = "its train scale" if s.train_scale is None else f"train scale {s.train_scale:g}"
+    cached = sum(r["cached"] for r in runs)
+    reused = ""
+    if cached:
+        reused = f" ({cached} of {len(runs)} training runs reused from `cache/`, timed when they ran)"
     out = [
         f"# edmcgs report ({s.name})", "",
-        f"Made by `{command}` in {minutes:.1f} min on {machine}. Timings are wall-clock medians on a shared "
-        "machine: noisy; compare them within this report only.", "",
+        f"Made by `{command}` in {minutes:.1f} min{reused} on {machine}. Timings are wall-clock medians on a "
+        "shared machine: noisy; compare them within this report only.", "",
         f"Scenes {', '.join(s.scenes)} ({s.size}, {length}), anchors at {', '.join(f'{f:g}' for f in s.fps)} "
         f"fps, preset `{s.preset}` ({train_scale}), {s.iterations} training steps per run: {scale}.", "",
         "## 1. Ablations", "",

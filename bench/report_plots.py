@@ -106,6 +106,7 @@ def ablation_bars(table: list[dict], path: Path) -> None:
             ax.annotate("not reported" if np.isnan(q) else f"{q:.2f}", (p + 0.2, q if np.isfinite(q) else o),
                         ha="center", va="bottom", fontsize=7, rotation=0 if np.isfinite(q) else 90)
         ax.set_xticks(pos, [VARIANTS[v][1] for v in variants], rotation=20, ha="right")
+        ax.set_xlim(-0.7, len(variants) - 0.3)
         ax.set_ylabel("held-out PSNR (dB)")
         finite = [v for v in ours + paper if np.isfinite(v)]
         ax.set_ylim(min(finite) - 3, max(finite) + 4)

@@ -45,7 +45,7 @@ def train_run(rec: Recording, rec_key: str, switches: dict, *, preset: str, iter
     key = run_key(rec_key, overrides, preset, device)
     result_path, ckpt_path = cache / f"{key}.json", cache / f"{key}.ckpt"
     if result_path.exists() and ckpt_path.exists():
-        return json.loads(result_path.read_text())
+        return json.loads(result_path.read_text()) | {"cached": True}
     cache.mkdir(parents=True, exist_ok=True)
     data = training_data(rec)
     cfg = build_config(preset, overrides, rec)
@@ -96,7 +96,7 @@ def train_run(rec: Recording, rec_key: str, switches: dict, *, preset: str, iter
                        "psnr": r.psnr, "ssim": r.ssim} for r in rows],
     }
     result_path.write_text(json.dumps(result, indent=1))
-    return result
+    return result | {"cached": False}
 
 
 def load_run_model(result: dict, cache: Path, device: str = "cpu") -> EdMCGS:
