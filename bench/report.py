@@ -3,7 +3,7 @@
     .venv/bin/python -m bench.report [--full] [--out reports/] [--scenes a,b] [--fps 5,10]
         [--variants full,no_events,...] [--iterations N] [--threads 1] [--device cpu]
 
-The default is small (one scene, 1 s, 150 steps per run: about 15 minutes on a shared 2-core CPU);
+The default is small (one scene, 1 s, 200 steps per run: about 10 minutes on a shared 2-core CPU);
 ``--full`` is the paper's grid (four scenes at 5 and 10 fps, every ablation, 3000 steps per run: hours
 on a CPU). Built recordings and trained runs are cached under ``OUT/cache``, so a second run only
 redoes what changed. Sections: the ablation table (with the paper's averages beside it), held-out

@@ -84,9 +84,9 @@ def scene_recordings(scene: str, rates: list[float], s: ReportSettings, cache: P
     base, base_key = cached_build(build_config(scene, base_fps, s), cache, progress=progress)
     out = {}
     for fps in rates:
-        every = base_fps / fps
-        if math.isclose(every, round(every)):
-            out[fps] = (fewer_anchors(base, round(every)), f"{base_key}_every{round(every)}")
+        every = round(base_fps / fps)
+        if math.isclose(base_fps / fps, every) and (len(base.anchors) - 1) % every == 0:
+            out[fps] = (fewer_anchors(base, every), f"{base_key}_every{every}")
         else:
             out[fps] = cached_build(build_config(scene, fps, s), cache, progress=progress)
     return out
