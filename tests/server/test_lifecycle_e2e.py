@@ -21,9 +21,10 @@ from edmcgs.server.settings import Settings
 
 from bench.serve import ServerProcess, build_scene
 from edmcgs.errors import CheckpointError, ReplayFormatError
+from tests.sensor.conftest import DVXPLORER
 from tests.server.conftest import ThreadServer
 
-AEDAT4 = "/work/shared/data/dvxplorer_person.aedat4"
+AEDAT4 = str(DVXPLORER)  # the real DVXplorer recording in ../shared/data
 
 
 def _settings(scene_files, **extra) -> Settings:
