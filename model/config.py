@@ -31,6 +31,9 @@ class EdmcgsConfig:
     # --- representation ----------------------------------------------------------------------
     init_points: int = 20000
     """Number of Gaussians at initialisation (back-projected anchor pixels)."""
+    init_anchors: int = 0
+    """Back-project the first this many anchors at initialisation (0: all). One anchor gives a single
+    canonical copy of a moving object; all give every pose, which the deformation must then hide."""
     max_gaussians: int = 200000
     """Densification stops adding Gaussians above this count."""
     sh_degree: int = 0
@@ -71,6 +74,11 @@ class EdmcgsConfig:
     """C: log-luminance change per event (taken from the recording when it states one)."""
     log_eps: float = 1e-3
     """epsilon of the log-luminance L = log(I + epsilon), I in [0, 1]."""
+    event_loss_levels: int = 1
+    """Pyramid levels of the event loss (1: per pixel, as in the paper; more: also 2x, 4x ... pooled)."""
+    anchored_pairs: float = 0.0
+    """Probability that the event loss's first time t_a is the gap's anchor (else uniform on the grid):
+    such a pair compares the render at t_b with the anchor moved on by all events since."""
 
     # --- training ------------------------------------------------------------------------------
     iterations: int = 30000
@@ -174,11 +182,11 @@ class EdmcgsConfig:
         """Raise ``InvalidInputError`` naming the first field out of its range."""
         positive = ("init_points", "max_gaussians", "num_control_points", "skin_k", "graph_k",
                     "deform_width", "deform_depth", "event_hidden", "iterations", "substeps",
-                    "max_pair_steps", "densify_every", "eval_frames")
+                    "event_loss_levels", "max_pair_steps", "densify_every", "eval_frames")
         for name in positive:
             if getattr(self, name) <= 0:
                 raise InvalidInputError(f"config.{name} must be > 0, got {getattr(self, name)}")
-        for name in ("sh_degree", "pos_freqs", "time_freqs", "event_pos_freqs", "eval_every",
+        for name in ("init_anchors", "sh_degree", "pos_freqs", "time_freqs", "event_pos_freqs", "eval_every",
                      "checkpoint_every", "opacity_reset_every"):
             if getattr(self, name) < 0:
                 raise InvalidInputError(f"config.{name} must be >= 0, got {getattr(self, name)}")
@@ -189,6 +197,8 @@ class EdmcgsConfig:
                 raise InvalidInputError(f"config.{name} must be in (0, 1], got {getattr(self, name)}")
         if len(self.background) != 3 or not all(0.0 <= v <= 1.0 for v in self.background):
             raise InvalidInputError(f"config.background must be 3 numbers in [0, 1], got {self.background}")
+        if not 0.0 <= self.anchored_pairs <= 1.0:
+            raise InvalidInputError(f"config.anchored_pairs must be in [0, 1], got {self.anchored_pairs}")
         if self.contrast_threshold <= 0 or self.log_eps <= 0 or self.radius_init <= 0:
             raise InvalidInputError("config.contrast_threshold, log_eps and radius_init must be > 0")
         lo, hi = self.event_warmup
