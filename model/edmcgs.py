@@ -147,7 +147,8 @@ class EdMCGS(nn.Module):
         torch.manual_seed(config.seed)
         rng = np.random.default_rng(config.seed)
         center, extent = scene_center_and_extent(poses, intrinsics, init_depth)
-        points, colors, scales = backproject_anchors(images, poses, intrinsics, center, extent,
+        k = config.init_anchors or len(images)
+        points, colors, scales = backproject_anchors(images[:k], poses[:k], intrinsics, center, extent,
                                                      config.init_points, rng,
                                                      background_color(config, images.shape[3]).numpy())
         gaussians = Gaussians.from_points(points, colors, scales, sh_degree=config.sh_degree)

@@ -146,7 +146,7 @@ class Trainer:
         if not static and self.grid is not None:
             gap = int(self.rng.integers(self.grid.num_gaps))
             s = self.grid.substeps
-            a = int(self.rng.integers(0, s))
+            a = 0 if self.rng.random() < cfg.anchored_pairs else int(self.rng.integers(0, s))
             b = int(self.rng.integers(a + 1, min(s, a + cfg.max_pair_steps) + 1))
             trans_a, rot_a, disp_a = self._gap_motion(gap, a)
             trans_b, rot_b, disp_b = self._gap_motion(gap, b)
@@ -158,7 +158,8 @@ class Trainer:
             events = self.grid.cum[gap, b] - self.grid.cum[gap, a]
             ei = self.event_intr
             events = _resize(events[None, :, :, None], ei.height, ei.width)[0, :, :, 0]
-            terms["event"] = event_loss(renders[0], renders[1], events, cfg.contrast_threshold, cfg.log_eps)
+            terms["event"] = event_loss(renders[0], renders[1], events, cfg.contrast_threshold, cfg.log_eps,
+                                        levels=cfg.event_loss_levels)
             loss = loss + cfg.lambda_event * terms["event"]
             if cfg.tli:
                 terms["tli"] = tli_loss(cp + trans_a, cp + trans_b, model.control.graph)

@@ -193,7 +193,19 @@ def test_event_loss_zero_when_events_explain_the_change():
     target = torch.exp(la + 0.2 * counts) - 1e-3
     b = a * (target / (a @ torch.tensor([0.299, 0.587, 0.114])))[..., None]
     assert event_loss(a, b, counts, 0.2, 1e-3) < 1e-4
+    assert event_loss(a, b, counts, 0.2, 1e-3, levels=3) < 1e-4
     assert event_loss(a, a, counts, 0.2, 1e-3) > 0.1
+
+
+def test_event_loss_pyramid_averages_pooled_levels():
+    gen = torch.Generator().manual_seed(11)
+    a, b = torch.rand(8, 8, 1, generator=gen), torch.rand(8, 8, 1, generator=gen)
+    counts = torch.randint(-2, 3, (8, 8), generator=gen).float()
+    residual = (log_luminance(b, 1e-3) - log_luminance(a, 1e-3) - 0.2 * counts)[None, None]
+    pooled = torch.nn.functional.avg_pool2d(residual, 2)
+    expected = (residual.abs().mean() + pooled.abs().mean()) / 2
+    assert torch.allclose(event_loss(a, b, counts, 0.2, 1e-3, levels=2), expected)
+    assert torch.allclose(event_loss(a, b, counts, 0.2, 1e-3), residual.abs().mean())
 
 
 def test_config_overrides_presets_and_round_trip():
