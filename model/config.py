@@ -248,10 +248,11 @@ def _parse(f: dataclasses.Field, raw: str):
 
 
 def _demo() -> EdmcgsConfig:
-    # Sized for a 2-core CPU: fewer, cheaper iterations at reduced resolution.
+    # Sized for a 2-core CPU and a 173x130 scene: fewer Gaussians and control points, a smaller prior,
+    # 1500 iterations, the event-loss renders at half resolution.
     return EdmcgsConfig(
-        init_points=6000, max_gaussians=30000, num_control_points=256, deform_width=128, deform_depth=4,
-        iterations=3000, train_scale=1.0, eval_every=500, checkpoint_every=500,
+        init_points=3000, max_gaussians=30000, num_control_points=256, deform_width=128, deform_depth=4,
+        iterations=1500, train_scale=1.0, event_render_scale=0.5, eval_every=500, checkpoint_every=500,
         lr_means=4e-4, lr_deform=2e-3, lr_event=2e-3, densify_every=100, opacity_reset_every=0,
         event_warmup=(0.15, 0.3),
     )
