@@ -123,6 +123,7 @@ def _run(args) -> int:
         if changed:
             raise InvalidInputError(f"--resume cannot change {changed}: they shape the saved parameters")
         model.config = cfg
+        model.meta.config = cfg.to_dict()
         train_state = payload.get("train_state")
         print(f"resuming from {out}" + ("" if train_state else " (no optimizer state: a fresh optimizer)"))
     else:
