@@ -33,7 +33,7 @@ FIELDS = ("means", "quats", "scales", "opacities", "colors")
 
 
 def _scene(n: int, width: int, height: int):
-    from tests.raster.scenes import random_scene
+    from bench.scenes import random_scene
 
     scene = random_scene(n, 346, 260, seed=n, sh_degree=3, px_sigma=(0.7, 4.0), margin=0.0)
     scene["intrinsics"] = scene["intrinsics"].scaled(width, height)

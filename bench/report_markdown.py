@@ -126,7 +126,7 @@ def summary(*, settings: ReportSettings, command: str, machine: str, minutes: fl
         f"One held-out frame of the trained full model ({c['scene']}, {c['fps']:g} fps): frame {c['frame']}, "
         f"{c['ms_since_anchor']:.0f} ms after its anchor, {c['events']} events in its window, "
         f"{c['gaussians']} Gaussians, {c['control_points']} control points, {c['width']}x{c['height']}, "
-        f"{c['threads']} thread(s). The float64 reference is `tests/raster/reference.py` (every pixel "
+        f"{c['threads']} thread(s). The float64 reference is `bench/reference_render.py` (every pixel "
         "against every Gaussian) at the same resolution with all Gaussians, all control points and the "
         "default knobs (alpha_min 1/255, t_min 1e-4); the truth is the scene's own Gaussians rendered at "
         f"that resolution (at full size it matches the stored held-out frame to "

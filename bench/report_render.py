@@ -11,7 +11,7 @@ trained model and rendered by ``rasterize_fast`` with one knob changed at a time
   when its transmittance would fall below it).
 
 Each setting is scored against the float64 brute-force reference renderer of the test suite
-(``tests/raster/reference.py``; same resolution, all Gaussians and control points, default knobs: the
+(``bench/reference_render.py``; same resolution, all Gaussians and control points, default knobs: the
 model's exact image) and against the ground truth (the synthetic scene's own Gaussians rendered at
 that resolution). Times are medians over repeats; a frame's time is deform + render.
 """
@@ -34,6 +34,7 @@ from edmcgs.sensor.recording import Recording
 from edmcgs.synth.scene import make_scene
 from tqdm import tqdm
 
+from bench import reference_render
 from edmcgs.train_cli import training_data
 
 OPACITY_THRESHOLDS = (0.0, 0.01, 0.03, 0.1, 0.2, 0.4)
@@ -41,16 +42,6 @@ CONTROL_DIVISORS = (1, 2, 4, 8, 16, 32)
 ALPHA_MINS = (0.0, 1 / 255, 0.01, 0.03, 0.1)
 T_MINS = (0.0, 1e-4, 1e-3, 1e-2, 0.1)
 DEFAULT_KNOBS = {"alpha_min": 1 / 255, "t_min": 1e-4}
-
-
-def reference_renderer():
-    """The test suite's float64 reference renderer (importable from the repository root)."""
-    try:
-        from tests.raster import reference
-    except ImportError as exc:  # an installed package without the source tree
-        raise SystemExit("bench.report needs the repository's tests/raster/reference.py: run it from the "
-                         "repository root") from exc
-    return reference.render
 
 
 def median_ms(fn, repeats: int, warmup: int = 2) -> float:
@@ -93,7 +84,7 @@ def state_arrays(state) -> list[np.ndarray]:
 def render_sweep(model: EdMCGS, rec: Recording, *, scales: tuple[float, ...], repeats: int,
                  progress: bool = True) -> tuple[list[dict], dict]:
     """(rows, context): one row per knob setting; context names the frame and the baselines."""
-    render_ref = reference_renderer()
+    render_ref = reference_render.render
     data = training_data(rec)
     i = pick_frame(model, data)
     t_us = int(data.held_out_t_us[i])

@@ -21,7 +21,8 @@ from edmcgs.sensor.events import Events
 from edmcgs.sensor.recording import Recording
 from edmcgs.synth.scene import make_scene
 
-from bench.report_render import pick_frame, reference_renderer, state_arrays
+from bench import reference_render
+from bench.report_render import pick_frame, state_arrays
 from edmcgs.train_cli import training_data
 
 TEST_CASES = [
@@ -216,7 +217,7 @@ def pose_rows(model: EdMCGS, rec: Recording) -> list[dict]:
 
 def precision_rows(scenes: list[str], size: str, *, t_s: float = 0.5) -> list[dict]:
     """float32 renders (numba, torch) of each scene's own Gaussians against the float64 reference."""
-    render_ref = reference_renderer()
+    render_ref = reference_render.render
     rows = []
     for name in scenes:
         scene = make_scene(name, size)

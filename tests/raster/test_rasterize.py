@@ -7,9 +7,9 @@ from edmcgs.model import composite
 from edmcgs.model.camera import Intrinsics
 from edmcgs.model.rasterize import rasterize
 
+from bench import reference_render as reference
+from bench.scenes import at_camera_depth, random_scene, with_values
 from edmcgs.errors import InvalidInputError, PoseError
-from tests.raster import reference
-from tests.raster.scenes import at_camera_depth, random_scene, with_values
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
 BG = [0.1, 0.2, 0.3]

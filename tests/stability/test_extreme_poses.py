@@ -15,10 +15,10 @@ from edmcgs.model.camera import Intrinsics, pose_from_quat, world_to_camera
 from edmcgs.model.rasterize import rasterize
 from edmcgs.model.rasterize_fast import rasterize_fast
 
+from bench import reference_render as reference
+from bench.scenes import random_scene
 from tests.model import tiny_scene
 from tests.model.test_model import build
-from tests.raster import reference
-from tests.raster.scenes import random_scene
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
 BG = np.array([0.1, 0.2, 0.3])
