@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.results import write_json
+
 SIZES = ((173, 130), (346, 260))
 COUNTS = (2000, 8000, 20000)
 WARMUP = 3
@@ -125,9 +127,7 @@ def main(argv=None) -> int:
     for r in rows:
         print(f"{r['path']:<9} {r['width']:>4}x{r['height']:<3} {r['gaussians']:>9} {r['median_ms']:>10.2f} "
               f"{r['p90_ms']:>8.2f} {r['peak_rss_mb']:>12.1f}")
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(rows, indent=2) + "\n")
+    write_json(args.json, rows)
     return 0
 
 

@@ -12,7 +12,6 @@ of repeats; on a shared machine they are noisy.
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing
 import statistics
 import tempfile
@@ -27,6 +26,8 @@ from edmcgs.sensor.pacing import Pacing
 from edmcgs.sensor.recording import RecordingWriter
 from edmcgs.sensor.ring import BYTES_PER_EVENT, EventRingBuffer
 from tqdm import tqdm
+
+from bench.results import table, write_json
 
 WIDTH, HEIGHT = 346, 260
 TARGETS = {"ring_ingest_mev_s": (">=", 20.0), "accumulate_1m_ms": ("<=", 5.0),
@@ -151,16 +152,9 @@ def main(argv: list[str] | None = None) -> int:
                 results["ring_columns_mb"] = capacity * BYTES_PER_EVENT / 2**20
                 results["ring_overflowed_events"] = overflowed
     results["quick"] = q
-    print(f"\n{'metric':<30}{'value':>12}  target")
-    for key, value in results.items():
-        op, goal = TARGETS.get(key, ("", None))
-        mark = "" if goal is None else f"{op} {goal:g}  " + (
-            "ok" if (value >= goal if op == ">=" else value <= goal) else "MISSED")
-        shown = f"{value:.2f}" if isinstance(value, float) else str(value)
-        print(f"{key:<30}{shown:>12}  {mark}")
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(results, indent=2) + "\n")
+    print()
+    print(table(results, TARGETS))
+    write_json(args.json, results)
     return 0
 
 

@@ -15,7 +15,6 @@ medians of repeats; the machine's load average is recorded because a shared mach
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import time
@@ -27,6 +26,8 @@ from edmcgs.synth.build import BuildConfig, build_recording
 from edmcgs.synth.esim import EventSimulator, SimulatorConfig
 from edmcgs.synth.scene import make_scene, render
 from tqdm import tqdm
+
+from bench.results import table, write_json
 
 TARGETS = {"sim_mpix_s": (">=", 20.0), "sim_frame_ms": ("<=", 5.0), "synth_small_s": ("<=", 60.0)}
 
@@ -92,16 +93,9 @@ def main(argv: list[str] | None = None) -> int:
                 results["synth_small_gaussians"] = rec.metadata["gaussians"]
     results["load_avg_1m_end"] = os.getloadavg()[0]
     results["quick"] = q
-    print(f"\n{'metric':<30}{'value':>12}  target")
-    for key, value in results.items():
-        op, goal = TARGETS.get(key, ("", None))
-        mark = "" if goal is None else f"{op} {goal:g}  " + (
-            "ok" if (value >= goal if op == ">=" else value <= goal) else "MISSED")
-        shown = f"{value:.2f}" if isinstance(value, float) else str(value)
-        print(f"{key:<30}{shown:>12}  {mark}")
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(results, indent=2) + "\n")
+    print()
+    print(table(results, TARGETS))
+    write_json(args.json, results)
     return 0
 
 
