@@ -27,7 +27,7 @@ import numpy as np
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.pacing import Pacing
-from edmcgs.sensor.recording import RecordingFile, is_recording
+from edmcgs.sensor.recording import RecordingFile, is_recording, open_hdf5
 from edmcgs.sensor.replay import Chunk, Replay
 from edmcgs.sensor.source import StreamInfo
 
@@ -184,13 +184,7 @@ class Hdf5Replay(Replay):
         if chunk_events <= 0:
             raise InvalidInputError(f"chunk_events must be positive, got {chunk_events}")
         self.chunk_events = int(chunk_events)
-        if not self.path.is_file():
-            raise ReplayFormatError(f"{self.path}: no such file")
-        try:
-            self._f = h5py.File(self.path, "r")
-        except OSError as exc:
-            raise ReplayFormatError(
-                f"{self.path}: not a readable HDF5 file (truncated or corrupt?): {exc}") from exc
+        self._f = open_hdf5(self.path)
         try:
             self._layout = self._read("detect the layout", lambda: _detect(self.path, self._f, resolution,
                                                                             self.chunk_events))

@@ -355,6 +355,16 @@ def _keys(f: h5py.Group) -> list[str]:
     return names
 
 
+def open_hdf5(path: Path) -> h5py.File:
+    """``path`` opened read-only; ``ReplayFormatError`` when it is missing or not HDF5."""
+    if not path.is_file():
+        raise ReplayFormatError(f"{path}: no such file")
+    try:
+        return h5py.File(path, "r")
+    except OSError as exc:
+        raise ReplayFormatError(f"{path}: not a readable HDF5 file (truncated or corrupt?): {exc}") from exc
+
+
 def is_recording(f: h5py.File) -> bool:
     """Whether an open HDF5 file claims to be our format (complete or newer)."""
     return f.attrs.get("format") == FORMAT_NAME
@@ -365,13 +375,7 @@ class RecordingFile:
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
-        if not self.path.is_file():
-            raise ReplayFormatError(f"{self.path}: no such file")
-        try:
-            self._f = h5py.File(self.path, "r")
-        except OSError as exc:
-            raise ReplayFormatError(
-                f"{self.path}: not a readable HDF5 file (truncated or corrupt?): {exc}") from exc
+        self._f = open_hdf5(self.path)
         try:
             self._validate()
         except BaseException:
