@@ -1,5 +1,5 @@
-"""``edmcgs eval CKPT RECORDING [--csv PATH]``: PSNR / SSIM of a checkpoint at a recording's held-out
-frames (an application edge: the recording is read with ``edmcgs.sensor``)."""
+"""``edmcgs eval CKPT RECORDING [--csv PATH]`` (or ``edmcgs eval --demo``): PSNR / SSIM of a checkpoint at
+a recording's held-out frames (an application edge: the recording is read with ``edmcgs.sensor``)."""
 
 from __future__ import annotations
 
@@ -17,15 +17,23 @@ from edmcgs.train_cli import training_data
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="edmcgs eval",
                                      description="Evaluate a checkpoint on held-out frames.")
-    parser.add_argument("checkpoint", help="EdMCGS checkpoint")
-    parser.add_argument("recording", help="the HDF5 recording it was trained on (with held-out frames)")
+    parser.add_argument("checkpoint", nargs="?", help="EdMCGS checkpoint")
+    parser.add_argument("recording", nargs="?",
+                        help="the HDF5 recording it was trained on (with held-out frames)")
+    parser.add_argument("--demo", action="store_true", help="evaluate the bundled demo scene")
     parser.add_argument("--csv", help="write one row per held-out frame here")
     parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     parser.add_argument("--reference-renderer", action="store_true",
                         help="render with the differentiable PyTorch rasterizer instead of the fast one")
     args = parser.parse_args(argv)
+    if args.demo == bool(args.checkpoint or args.recording) or (args.checkpoint and not args.recording):
+        parser.error("give CHECKPOINT RECORDING, or --demo alone")
     try:
+        if args.demo:
+            from edmcgs.server.demo import files
+
+            args.checkpoint, args.recording = files()
         return _run(args)
     except EdmcgsError as exc:
         print(f"edmcgs eval: {exc}", file=sys.stderr)
