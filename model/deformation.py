@@ -30,12 +30,13 @@ class DeformationField(nn.Module):
 
     def forward(self, x: Tensor, t: float | Tensor) -> tuple[Tensor, Tensor]:
         """x: Tensor  # [M, 3] control points in normalised scene coordinates (about [-1, 1]), no grad
-        t: normalised time in [0, 1]
+        t: normalised time in [0, 1] (a Python float or a float64 scalar: it is encoded in float64)
         returns (translation [M, 3] in scene extents, rotation delta [M, 4] to add to the identity)
         """
-        t_col = torch.as_tensor(t, dtype=x.dtype, device=x.device).reshape(1, 1).expand(x.shape[0], 1)
-        inp = torch.cat([positional_encoding(x, self.pos_freqs),
-                         positional_encoding(t_col, self.time_freqs)], -1)
+        # gamma(t) in float64, then cast: sin(2^k pi t) of a float32 t would lose microseconds of a long span.
+        t64 = torch.as_tensor(t, dtype=torch.float64, device=x.device).reshape(1, 1)
+        t_enc = positional_encoding(t64, self.time_freqs).to(x.dtype).expand(x.shape[0], -1)
+        inp = torch.cat([positional_encoding(x, self.pos_freqs), t_enc], -1)
         h = inp
         for i, layer in enumerate(self.layers):
             if i == self.skip and i > 0:

@@ -86,7 +86,8 @@ class EdMCGS(nn.Module):
         self.prior = DeformationField(width=config.deform_width, depth=config.deform_depth,
                                       pos_freqs=config.pos_freqs, time_freqs=config.time_freqs)
         if config.has_event_branch:
-            self.encoder = EventEncoder()
+            # The largest log-luminance change of a pixel with I in [0, 1]: log(1 + eps) - log(eps).
+            self.encoder = EventEncoder(limit=math.log1p(1.0 / config.log_eps))
             self.transition = EventTransition(pos_freqs=config.event_pos_freqs, hidden=config.event_hidden)
         else:
             self.encoder = None

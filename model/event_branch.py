@@ -16,14 +16,27 @@ FEATURES = 32
 """Channels of Phi's output (the motion code's width)."""
 
 
+def saturate(log_change: Tensor, limit: float) -> Tensor:
+    """Clamp a predicted log-luminance change C * I_E to [-limit, limit].
+
+    A pixel whose intensity stays in [0, 1] cannot change its log(I + eps) by more than
+    log(1 + 1/eps), so counts beyond that are noise or a burst: clamping keeps every motion code, and so
+    the displacement, bounded whatever the event count, and is the identity on physical windows.
+    Zero stays exactly zero.
+    """
+    return log_change.clamp(-limit, limit)
+
+
 class EventEncoder(nn.Module):
     """Phi: Conv(1->16, k7, s2) ReLU Conv(16->32, k5, s2) ReLU Conv(32->32, k3, s1), bias-free.
 
     A 32-channel map at a quarter of the input resolution, receptive field 7 + 4*2 + 2*4 = 23 px.
+    The input is saturated first (``saturate``), so the output is bounded in the event count.
     """
 
-    def __init__(self):
+    def __init__(self, *, limit: float):
         super().__init__()
+        self.limit = float(limit)
         self.conv1 = nn.Conv2d(1, 16, 7, stride=2, padding=3, bias=False)
         self.conv2 = nn.Conv2d(16, 32, 5, stride=2, padding=2, bias=False)
         self.conv3 = nn.Conv2d(32, FEATURES, 3, stride=1, padding=1, bias=False)
@@ -32,7 +45,7 @@ class EventEncoder(nn.Module):
         """event_map: Tensor  # [B, 1, H, W] float32 (C times the signed polarity sum)
         returns Tensor  # [B, 32, ceil(H/4), ceil(W/4)]
         """
-        h = torch.relu(self.conv1(event_map))
+        h = torch.relu(self.conv1(saturate(event_map, self.limit)))
         h = torch.relu(self.conv2(h))
         return self.conv3(h)
 

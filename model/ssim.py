@@ -1,4 +1,8 @@
-"""Structural similarity (Wang et al. 2004): 11x11 Gaussian window, sigma 1.5, as in 3DGS."""
+"""Structural similarity (Wang et al. 2004): 11x11 Gaussian window, sigma 1.5, as in 3DGS.
+
+An image smaller than the window gets the largest odd window that fits, its sigma shrunk in proportion,
+so that tiny renders (a low training scale) still have a defined SSIM.
+"""
 
 import torch
 import torch.nn.functional as F
@@ -20,6 +24,10 @@ def ssim_map(a: Tensor, b: Tensor, *, size: int = 11, sigma: float = 1.5) -> Ten
     a, b: Tensor  # [H, W, C] in [0, 1]
     returns Tensor  # [H - size + 1, W - size + 1, C] ('valid' windows, no padding bias at borders)
     """
+    fit = min(size, a.shape[0], a.shape[1])
+    fit -= 1 - fit % 2
+    if fit < size:
+        size, sigma = fit, sigma * fit / size
     x = torch.stack([a, b]).permute(0, 3, 1, 2)  # [2, C, H, W]
     c = x.shape[1]
     g = _window(size, sigma, x.dtype, x.device)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -82,6 +83,8 @@ class Trainer:
         self.rng = np.random.default_rng(cfg.seed)
         self.generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
         self.history: list[dict] = []
+        self.train_seconds = 0.0
+        """Wall-clock seconds spent in training steps (not in evaluation or checkpointing)."""
 
     # ------------------------------------------------------------------ setup
     def _w2c(self, c2w: np.ndarray) -> Tensor:
@@ -248,14 +251,17 @@ class Trainer:
 
     def fit(self, checkpoint_path: str | os.PathLike | None = None) -> list[dict]:
         """Train to ``config.iterations``; periodic evaluation and resumable checkpoints. Returns the
-        evaluation history ({step, psnr, ssim, frames, seconds})."""
+        evaluation history ({step, psnr, ssim, frames, seconds}); ``seconds`` counts training steps only
+        (evaluations and checkpoints are off the clock)."""
         cfg = self.cfg
         bar = tqdm(total=cfg.iterations, initial=self.step, desc="train", disable=not self.progress,
                    dynamic_ncols=True)
         last: dict[str, float] = {}
         ema: dict[str, float] = {}
         while self.step < cfg.iterations:
+            started = time.perf_counter()
             last = self.train_step()
+            self.train_seconds += time.perf_counter() - started
             for key, value in last.items():
                 if math.isfinite(value):
                     ema[key] = value if key not in ema else 0.9 * ema[key] + 0.1 * value
@@ -265,8 +271,7 @@ class Trainer:
                 post["N"] = len(self.model.gaussians)
                 bar.set_postfix(post, refresh=False)
             if cfg.eval_every and self.step % cfg.eval_every == 0 and self.data.evaluable().size:
-                result = {"step": self.step, **self.evaluate(cfg.eval_frames),
-                          "seconds": bar.format_dict.get("elapsed", 0.0)}
+                result = {"step": self.step, **self.evaluate(cfg.eval_frames), "seconds": self.train_seconds}
                 self.history.append(result)
                 bar.write(f"step {self.step}: held-out PSNR {result['psnr']:.2f} dB, "
                           f"SSIM {result['ssim']:.4f} "
@@ -285,7 +290,7 @@ class Trainer:
         """Everything besides the model needed to continue this run (plain containers and tensors)."""
         return {"step": self.step, "optimizer": self.optimizer.state_dict(), "stats": self.stats.state_dict(),
                 "rng": self.rng.bit_generator.state, "generator": self.generator.get_state(),
-                "history": self.history}
+                "history": self.history, "train_seconds": self.train_seconds}
 
     def load_train_state(self, state: dict) -> None:
         """Continue from ``train_state()`` output (the model must come from the same checkpoint)."""
@@ -295,6 +300,7 @@ class Trainer:
         self.rng.bit_generator.state = state["rng"]
         self.generator.set_state(state["generator"])
         self.history = list(state.get("history", []))
+        self.train_seconds = float(state.get("train_seconds", 0.0))
 
 
 def write_history_csv(history: list[dict], path: str | os.PathLike) -> None:

@@ -8,7 +8,7 @@ from edmcgs.model.config import EdmcgsConfig, preset
 from edmcgs.model.control_points import ControlPoints
 from edmcgs.model.deformation import DeformationField
 from edmcgs.model.encoding import encoded_size, positional_encoding
-from edmcgs.model.event_branch import EventEncoder, EventTransition, sample_global, sample_local
+from edmcgs.model.event_branch import EventEncoder, EventTransition, sample_global, sample_local, saturate
 from edmcgs.model.event_loss import event_loss, log_luminance
 from edmcgs.model.neighbors import farthest_point_sampling, knn
 from edmcgs.model.photometric import photometric_loss
@@ -100,10 +100,57 @@ def test_control_points_sample_and_bind():
 
 
 def test_event_encoder_shapes_and_zero_in_zero_out():
-    enc = EventEncoder()
+    enc = EventEncoder(limit=6.9)
     out = enc(torch.randn(1, 1, 260, 346))
     assert out.shape == (1, 32, 65, 87)
     assert torch.equal(enc(torch.zeros(1, 1, 260, 346)), torch.zeros(1, 32, 65, 87))
+
+
+def test_event_encoder_is_bounded_in_the_event_count():
+    enc = EventEncoder(limit=6.9)
+    burst = torch.zeros(1, 1, 40, 40)
+    burst[0, 0, 10:30, 10:30] = 0.2 * 1e7  # C times a 10^7-event burst per pixel
+    physical = burst.clamp(max=6.9)
+    assert torch.equal(enc(burst), enc(physical))
+    small = torch.zeros(1, 1, 40, 40)
+    small[0, 0, 20, 20] = 0.4  # inside the physical range: untouched by the saturation
+    assert torch.equal(saturate(small, 6.9), small)
+    assert torch.isfinite(enc(torch.full((1, 1, 40, 40), 3e38))).all()
+
+
+def test_time_is_encoded_in_float64():
+    # One microsecond of a 24-hour span, far beyond float32's resolution at t ~ 0.7.
+    span_us = 24 * 3600 * 10**6
+    t0, t1 = 0.7, 0.7 + 1.0 / span_us
+    field = DeformationField(width=8, depth=2, pos_freqs=2, time_freqs=12)
+    x = torch.zeros(2, 3)
+    with torch.no_grad():
+        for p in field.parameters():
+            p.fill_(0.01)
+        enc = {t: positional_encoding(torch.tensor([[t]], dtype=torch.float64), 12) for t in (t0, t1)}
+    # The encoding the field feeds its MLP equals the float64 reference rounded once to float32 ...
+    ref = enc[t0].float()
+    seen = []
+    hook = field.layers[0].register_forward_hook(lambda mod, inp, out: seen.append(inp[0][:, -ref.shape[1]:]))
+    field(x, t0)
+    hook.remove()
+    assert torch.equal(seen[0][0], ref[0])
+    # ... which a float32 encoding misses by far more than one float32 rounding.
+    f32 = positional_encoding(torch.tensor([[t0]], dtype=torch.float32), 12)
+    assert (f32 - ref).abs().max() > 1e-5
+    assert not torch.equal(enc[t0].float(), enc[t1].float())
+
+
+def test_ssim_shrinks_its_window_for_tiny_images():
+    gen = torch.Generator().manual_seed(0)
+    a = torch.rand(8, 9, 3, generator=gen)
+    b = torch.rand(8, 9, 3, generator=gen)
+    assert float(ssim(a, a)) == pytest.approx(1.0, abs=1e-5)
+    assert torch.isfinite(ssim(a, b)) and float(ssim(a, b)) < 0.9
+    assert torch.isfinite(ssim(a[:1, :1], b[:1, :1]))
+    loss = photometric_loss(a.requires_grad_(), b, 0.2)
+    loss.backward()
+    assert torch.isfinite(a.grad).all()
 
 
 def test_event_transition_is_exactly_zero_for_zero_codes_after_training():

@@ -237,3 +237,34 @@ def test_resume_continues_where_it_stopped(tmp_path):
     a, b = trainer.train_step(), resumed.train_step()
     assert a.keys() == b.keys()
     assert all(math.isclose(a[k], b[k], rel_tol=1e-4, abs_tol=1e-6) for k in a)
+
+
+def test_training_below_the_ssim_window_size():
+    # 48x32 at a quarter: 12x8 px renders, smaller than SSIM's 11x11 window.
+    model, data = build(TINY.replace(train_scale=0.25, iterations=4))
+    trainer = Trainer(model, data, progress=False)
+    assert (trainer.intr.width, trainer.intr.height) == (12, 8)
+    for _ in range(4):
+        out = trainer.train_step()
+        assert all(math.isfinite(v) for v in out.values()), out
+
+
+def test_history_seconds_leave_evaluation_off_the_clock():
+    import time
+
+    cfg = TINY.replace(iterations=6, eval_every=2, densify_from=0.9)
+    model, data = build(cfg)
+    trainer = Trainer(model, data, progress=False)
+    pause = 0.25
+
+    def slow_evaluate(frames=None):
+        time.sleep(pause)
+        return {"psnr": 20.0, "ssim": 0.5, "frames": 1}
+
+    trainer.evaluate = slow_evaluate
+    started = time.perf_counter()
+    history = trainer.fit()
+    elapsed = time.perf_counter() - started
+    assert [h["step"] for h in history] == [2, 4, 6]
+    assert 0 < history[0]["seconds"] < history[1]["seconds"] < history[2]["seconds"]
+    assert history[-1]["seconds"] <= elapsed - 3 * pause
