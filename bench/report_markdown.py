@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from edmcgs.model.metrics import LPIPS_SKIPPED
+from edmcgs.model.lpips import SKIPPED as LPIPS_SKIPPED
 
 from bench.report_paper import PAPER_SYNTHETIC, PAPER_TRAINING
 from bench.report_settings import VARIANTS, ReportSettings

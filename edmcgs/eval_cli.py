@@ -10,6 +10,7 @@ import sys
 import numpy as np
 
 from edmcgs.errors import EdmcgsError, InvalidInputError
+from edmcgs.model.lpips import VGG_FILE
 from edmcgs.sensor.recording import read_recording
 from edmcgs.train_cli import training_data
 
@@ -24,6 +25,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--csv", help="write one row per held-out frame here")
     parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    parser.add_argument("--lpips-vgg", metavar="PTH",
+                        help=f"torchvision's VGG-16 weights ({VGG_FILE}; default: torch's hub cache)")
+    parser.add_argument("--lpips-lin", metavar="PTH",
+                        help="LPIPS's weights/v0.1/vgg.pth (default: an installed lpips package's)")
     parser.add_argument("--reference-renderer", action="store_true",
                         help="render with the differentiable PyTorch rasterizer instead of the fast one")
     args = parser.parse_args(argv)
@@ -45,7 +50,7 @@ def _run(args) -> int:
 
     from edmcgs.model.checkpoint import load_checkpoint
     from edmcgs.model.evaluation import evaluate, summarize
-    from edmcgs.model.metrics import LPIPS_SKIPPED
+    from edmcgs.model.lpips import LPIPS, SKIPPED, find_weights
 
     if args.threads < 1:
         raise InvalidInputError(f"--threads must be >= 1, got {args.threads}")
@@ -60,26 +65,30 @@ def _run(args) -> int:
                                 f"{(model.meta.event_width, model.meta.event_height)}")
     if data.held_out_t_us is None:
         raise InvalidInputError("the recording has no held-out frames to evaluate on")
-    rows = evaluate(model, data, fast=not args.reference_renderer)
+    weights = find_weights(args.lpips_vgg, args.lpips_lin)
+    lpips = None if weights is None else LPIPS.load(*weights).to(args.device)
+    rows = evaluate(model, data, fast=not args.reference_renderer, lpips=lpips)
     skipped = data.held_out_t_us.size - len(rows)
     if args.csv:
         with open(args.csv, "w", newline="") as fh:
             writer = csv.writer(fh)
-            writer.writerow(["index", "t_us", "anchor_us", "events", "psnr", "ssim"])
+            writer.writerow(["index", "t_us", "anchor_us", "events", "psnr", "ssim", "lpips"])
             for r in rows:
-                writer.writerow([r.index, r.t_us, r.anchor_us, r.events, f"{r.psnr:.4f}", f"{r.ssim:.5f}"])
+                writer.writerow([r.index, r.t_us, r.anchor_us, r.events, f"{r.psnr:.4f}", f"{r.ssim:.5f}",
+                                 "" if r.lpips is None else f"{r.lpips:.5f}"])
     summary = summarize(rows)
-    print("| frame | t (ms from first anchor) | events | PSNR (dB) | SSIM |")
-    print("|---:|---:|---:|---:|---:|")
+    print("| frame | t (ms from first anchor) | events | PSNR (dB) | SSIM |" + (" LPIPS |" if lpips else ""))
+    print("|---:|---:|---:|---:|---:|" + ("---:|" if lpips else ""))
     t0 = model.meta.t_start_us
     for r in rows:
-        print(f"| {r.index} | {(r.t_us - t0) / 1000:.1f} | {r.events} | {r.psnr:.2f} | {r.ssim:.4f} |")
+        print(f"| {r.index} | {(r.t_us - t0) / 1000:.1f} | {r.events} | {r.psnr:.2f} | {r.ssim:.4f} |"
+              + (f" {r.lpips:.4f} |" if lpips else ""))
     print(f"| **mean** ({summary['frames']} frames) | | | **{summary['psnr']:.2f}** "
-          f"| **{summary['ssim']:.4f}** |")
+          f"| **{summary['ssim']:.4f}** |" + (f" **{summary['lpips']:.4f}** |" if lpips else ""))
     print()
     if skipped:
         print(f"{skipped} held-out frame(s) outside the trained span were skipped")
-    print(LPIPS_SKIPPED)
+    print(SKIPPED if lpips is None else f"LPIPS (VGG) from {weights[0]} and {weights[1]}")
     return 0
 
 

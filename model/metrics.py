@@ -1,13 +1,10 @@
-"""Image-quality metrics on [H, W, C] float images in [0, 1]: PSNR and SSIM (LPIPS is not bundled)."""
+"""Image-quality metrics on [H, W, C] float images in [0, 1]: PSNR and SSIM (LPIPS: ``lpips.py``)."""
 
 import math
 
 import numpy as np
 import torch
 from edmcgs.model.ssim import ssim
-
-LPIPS_SKIPPED = ("LPIPS (VGG) skipped: it needs pretrained VGG-16 and LPIPS linear-layer weights, which "
-                 "edmcgs neither bundles nor downloads")
 
 
 def psnr(image: np.ndarray, target: np.ndarray) -> float:
