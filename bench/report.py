@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numba
 import torch
+from edmcgs.model.lpips import LPIPS, find_weights
 from tqdm import tqdm
 
 from bench.report_data import scene_recordings
@@ -94,11 +95,15 @@ def collect(s: ReportSettings, cache: Path, *, device: str, progress: bool) -> d
         rates = set(s.fps) | (set(s.sparse_fps) if scene == first else set())
         recs[scene] = scene_recordings(scene, sorted(rates), s, cache / "recordings", progress=progress)
 
+    weights = find_weights()  # LPIPS only on weights already on disk (see edmcgs.model.lpips)
+    lpips = None if weights is None else LPIPS.load(*weights).to(device)
+
     def run(scene: str, fps: float, variant: str) -> dict:
         rec, key = recs[scene][fps]
         result = train_run(rec, key, VARIANTS[variant][0], preset=s.preset, iterations=s.iterations,
                            train_scale=s.train_scale, curve_points=s.curve_points, device=device,
-                           cache=cache / "runs", label=f"{scene} {fps:g} fps {variant}", progress=progress)
+                           cache=cache / "runs", label=f"{scene} {fps:g} fps {variant}", progress=progress,
+                           lpips=lpips)
         return {"scene": scene, "fps": fps, "variant": variant, **result}
 
     grid = [(scene, fps, v) for scene in s.scenes for fps in s.fps for v in s.variants]

@@ -19,6 +19,7 @@ import torch
 from edmcgs.model.checkpoint import load_checkpoint, save_checkpoint
 from edmcgs.model.edmcgs import EdMCGS
 from edmcgs.model.evaluation import evaluate, summarize
+from edmcgs.model.lpips import LPIPS
 from edmcgs.model.trainer import Trainer
 from edmcgs.sensor.recording import Recording
 from tqdm import tqdm
@@ -32,17 +33,19 @@ def _overrides(switches: dict, iterations: int, train_scale: float | None) -> li
     return items + [f"{k}={str(v).lower()}" for k, v in switches.items()]
 
 
-def run_key(rec_key: str, overrides: list[str], preset: str, device: str) -> str:
-    blob = json.dumps([rec_key, preset, overrides, device, torch.get_num_threads(), torch.__version__])
+def run_key(rec_key: str, overrides: list[str], preset: str, device: str, lpips: bool) -> str:
+    blob = json.dumps([rec_key, preset, overrides, device, torch.get_num_threads(), torch.__version__]
+                      + (["lpips"] if lpips else []))
     return hashlib.sha1(blob.encode()).hexdigest()[:12]
 
 
 def train_run(rec: Recording, rec_key: str, switches: dict, *, preset: str, iterations: int,
               train_scale: float | None, curve_points: int, device: str, cache: Path, label: str,
-              progress: bool = True) -> dict:
-    """Train one variant; returns {curve, psnr, ssim, frames, train_seconds, ..., checkpoint} (cached)."""
+              progress: bool = True, lpips: LPIPS | None = None) -> dict:
+    """Train one variant; returns {curve, psnr, ssim, lpips, frames, train_seconds, ..., checkpoint}
+    (cached). LPIPS is scored at the end when ``lpips`` is given (else None)."""
     overrides = _overrides(switches, iterations, train_scale)
-    key = run_key(rec_key, overrides, preset, device)
+    key = run_key(rec_key, overrides, preset, device, lpips is not None)
     result_path, ckpt_path = cache / f"{key}.json", cache / f"{key}.ckpt"
     if result_path.exists() and ckpt_path.exists():
         return json.loads(result_path.read_text()) | {"cached": True}
@@ -80,7 +83,7 @@ def train_run(rec: Recording, rec_key: str, switches: dict, *, preset: str, iter
                 bar.set_postfix(psnr=f"{curve[-1]['psnr']:.2f}", refresh=False)
     trainer.fit()  # nothing left to train: the usual end of a run (full event scale, eval mode)
     t0 = time.perf_counter()
-    rows = evaluate(trainer.model, data)
+    rows = evaluate(trainer.model, data, lpips=lpips)
     final_eval_seconds = time.perf_counter() - t0
     summary = summarize(rows)
     save_checkpoint(trainer.model, ckpt_path)
@@ -91,9 +94,10 @@ def train_run(rec: Recording, rec_key: str, switches: dict, *, preset: str, iter
         "final_eval_seconds": final_eval_seconds,
         "nonfinite_steps": nonfinite, "gaussians": len(trainer.model.gaussians),
         "control_points": trainer.model.control.num_points, "psnr": summary["psnr"], "ssim": summary["ssim"],
-        "frames": summary["frames"], "curve": curve, "checkpoint": ckpt_path.name,
+        "lpips": summary.get("lpips"), "frames": summary["frames"], "curve": curve,
+        "checkpoint": ckpt_path.name,
         "per_frame": [{"index": r.index, "t_us": r.t_us, "anchor_us": r.anchor_us, "events": r.events,
-                       "psnr": r.psnr, "ssim": r.ssim} for r in rows],
+                       "psnr": r.psnr, "ssim": r.ssim, "lpips": r.lpips} for r in rows],
     }
     result_path.write_text(json.dumps(result, indent=1))
     return result | {"cached": False}
