@@ -26,6 +26,7 @@ from edmcgs.model.gaussians import Gaussians, GaussianState
 from edmcgs.model.initialization import backproject_anchors, scene_center_and_extent
 from edmcgs.model.quaternion import quat_normalize
 from edmcgs.model.rasterize import rasterize
+from edmcgs.model.skin_plan import SkinPlan, build_plan, plan_key, skin
 from edmcgs.model.skinning import identity_rotations, lbs
 from torch import Tensor, nn
 
@@ -59,6 +60,13 @@ class SceneMeta:
     """The training configuration (``EdmcgsConfig.to_dict()``)."""
     has_event_branch: bool
     """Whether the event-driven transition exists (config events and markov)."""
+    frozen: np.ndarray | None = None
+    """[M] bool control points whose motion over the whole span stays below ``freeze_threshold``
+    (decided when the checkpoint is finalised, ``leanness.frozen_control_points``); None: none."""
+    freeze_threshold: float = 0.0
+    """World units: the most a frozen control point moves any of its Gaussians over the span."""
+    lean: dict | None = None
+    """What was left out of this scene and why (``leanness.decisions``), JSON-able; None: unknown."""
 
     @property
     def event_intrinsics(self) -> Intrinsics:
@@ -95,6 +103,7 @@ class EdMCGS(nn.Module):
         self.register_buffer("center", center.float().reshape(3))
         self.register_buffer("extent", torch.tensor(float(extent)))
         self.register_buffer("event_scale", torch.tensor(1.0))
+        self._plans: dict[bool, SkinPlan] = {}
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -228,13 +237,17 @@ class EdMCGS(nn.Module):
         event_map: [event_height, event_width] float32 signed polarity sum over [tau(t_us), t_us]
                    (None or all-zero: an empty window); ignored when the model has no event branch.
         ev_c2w: [4, 4] event-camera c2w at t_us (default: the checkpoint's trajectory at t_us).
-        At an anchor time with an empty window the result equals the anchor state exactly.
+        At an anchor time the window is empty: the event map is not read and the result is the anchor
+        state. The time-independent work is done once per model (``skin_plan``); the result equals
+        ``state_at`` to float32 rounding, and Gaussians bound only to frozen control points keep their
+        canonical pose (within ``meta.freeze_threshold``).
         """
         t_us = _int_time(t_us, "t_us")
-        self.tau(t_us)
+        # At an anchor the window [tau, t) is empty: the anchor's state, the event branch skipped.
+        at_anchor = t_us == self.tau(t_us)
         device = self.center.device
         emap = None
-        if event_map is not None and self.transition is not None:
+        if event_map is not None and self.transition is not None and not at_anchor:
             emap = torch.as_tensor(event_map).to(device=device, dtype=torch.float32)
             expected = (self.meta.event_height, self.meta.event_width)
             if tuple(emap.shape) != expected:
@@ -252,15 +265,39 @@ class EdMCGS(nn.Module):
             validate_pose(np.asarray(ev_c2w, dtype=np.float64))
             w2c = torch.as_tensor(world_to_camera(np.asarray(ev_c2w, dtype=np.float64)),
                                   dtype=torch.float32, device=device)
-        return self.state_at(self.meta.normalized_time(t_us), emap, w2c).detach()
+        trans, rot, event_disp = self.control_motion(self.meta.normalized_time(t_us), emap, w2c)
+        frozen = self.meta.frozen
+        # A frozen point pushed by the events beyond the threshold is not still at this time: skin all.
+        lean = frozen is not None and (event_disp is None or not bool(
+            (event_disp[torch.as_tensor(frozen, device=device)].norm(dim=-1)
+             > self.meta.freeze_threshold).any()))
+        return skin(self.skin_plan(frozen=lean), self.control.positions, rot, trans)
+
+    def skin_plan(self, *, frozen: bool = True) -> SkinPlan:
+        """The time-independent half of ``deform`` (weights, activated canonical Gaussians), built once
+        and rebuilt only when a parameter it derives from changed. frozen: leave frozen points still."""
+        g, cp = self.gaussians, self.control
+        key = (*plan_key(g.means, g.quats, g.log_scales, g.opacity_logits, g.features, cp.positions,
+                         cp.log_radius, cp.bind), id(self.meta.frozen), cp.positions.device)
+        plan = self._plans.get(frozen)
+        if plan is None or plan.key != key:
+            with torch.no_grad():
+                mask = None
+                if frozen and self.meta.frozen is not None:
+                    mask = torch.as_tensor(self.meta.frozen, dtype=torch.bool, device=cp.positions.device)
+                canonical = GaussianState(g.means, g.quats, g.scales(), g.opacities(), g.colors())
+                plan = self._plans[frozen] = build_plan(canonical, cp.bind, cp.weights(g.means), mask, key)
+        return plan
 
     @torch.no_grad()
     def render(self, state: GaussianState, c2w: np.ndarray, intrinsics: Intrinsics, *, fast: bool = True,
-               background: np.ndarray | float | None = None) -> np.ndarray:
+               background: np.ndarray | float | None = None, threads: int | None = None) -> np.ndarray:
         """Render ``state`` from camera ``c2w`` [4, 4] (OpenCV c2w) -> [H, W, C] float32 in [0, 1].
 
         fast: the numba CPU rasterizer; False: the differentiable PyTorch one (same image to ~1e-5).
         background: grey level or [C] colour behind the Gaussians (default: the config's).
+        threads: the fast rasterizer's threads (default: numba's, all cores); a server running several
+                 renders at once on a few shared cores is faster with 1 each (no parallel-region stalls).
         """
         c2w = np.asarray(c2w, dtype=np.float64)
         validate_pose(c2w)
@@ -274,7 +311,8 @@ class EdMCGS(nn.Module):
                 arrays = [t.detach().cpu().numpy() for t in _fields(state)]
                 threads = torch.get_num_threads()
                 try:
-                    out = rasterize_fast(*arrays, w2c.astype(np.float32), intrinsics, background=bg)
+                    out = rasterize_fast(*arrays, w2c.astype(np.float32), intrinsics, background=bg,
+                                         threads=threads)
                 finally:
                     # numba's OpenMP layer sets the process-wide OpenMP thread count, which is also
                     # torch's; put back what the caller chose.

@@ -59,11 +59,12 @@ class Engine:
     replay, at the first event for a camera).
 
     model: the loaded EdMCGS; ring: the event ring the ingest thread fills; anchors: the source's
-    frames, or None to use the checkpoint's anchor times; cache_size: deformed states kept.
+    frames, or None to use the checkpoint's anchor times; cache_size: deformed states kept;
+    raster_threads: threads of the numba rasterizer per render (None: numba's default, all cores).
     """
 
     def __init__(self, model: EdMCGS, ring: EventRingBuffer, anchors: AnchorStore | None, *,
-                 cache_size: int = 32):
+                 cache_size: int = 32, raster_threads: int | None = None):
         self.model = model
         self.meta = model.meta
         self.ring = ring
@@ -75,6 +76,7 @@ class Engine:
         self.end_us = int(self.meta.t_end_us)
         # The numba rasterizer on a CPU; the torch one where the model lives on a GPU.
         self.fast = model.center.device.type == "cpu"
+        self.raster_threads = raster_threads
 
     # ------------------------------------------------------------------ time
     def t_us_of_seconds(self, t: float) -> int:
@@ -229,7 +231,7 @@ class Engine:
         state, n_events = self.state(instant)
         c2w = self.default_pose(instant.t_us) if pose is None else pose
         intr = self.intrinsics(width, height)
-        image = self.model.render(state, c2w, intr, fast=self.fast)
+        image = self.model.render(state, c2w, intr, fast=self.fast, threads=self.raster_threads)
         return Rendered(to_uint8(image), instant, n_events)
 
     def warm_up(self) -> float:
@@ -240,10 +242,10 @@ class Engine:
         t0 = time.perf_counter()
         state = self.model.deform(self.first_us, None)
         c2w = self.default_pose(self.first_us) if self.meta.trajectory is not None else np.eye(4)
-        self.model.render(state, c2w, self.meta.intrinsics, fast=self.fast)
+        self.model.render(state, c2w, self.meta.intrinsics, fast=self.fast, threads=self.raster_threads)
         one = Events(np.zeros(1, np.int64), np.zeros(1, np.uint16), np.zeros(1, np.uint16),
                      np.ones(1, np.int8))
         emap = accumulate(one, self.meta.event_width, self.meta.event_height)
-        if self.meta.has_event_branch:
-            self.model.deform(self.first_us, emap)
+        if self.meta.has_event_branch and self.end_us > self.first_us:
+            self.model.deform(self.first_us + 1, emap)  # past the anchor: at it the branch is skipped
         return time.perf_counter() - t0

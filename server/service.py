@@ -116,7 +116,8 @@ class Service:
                     f"{meta.event_width}x{meta.event_height}: replay the recording it was trained on")
             ring = EventRingBuffer(settings.ring_events)
             anchors = AnchorStore(ANCHOR_CAPACITY) if info.has_frames else None
-            engine = Engine(model, ring, anchors, cache_size=settings.deform_cache)
+            engine = Engine(model, ring, anchors, cache_size=settings.deform_cache,
+                            raster_threads=settings.raster_threads)
             if info.t_range_us is not None:
                 engine.timeline = replay_timeline(info.t_range_us, meta.t_start_us, meta.t_end_us,
                                                   inputs.loop)

@@ -40,7 +40,12 @@ class Settings(BaseSettings):
                                                     "event count), shared by every client.")
     jpeg_quality: int = Field(90, ge=1, le=100, description="JPEG quality of rendered frames.")
     png_compress_level: int = Field(1, ge=0, le=9, description="zlib level of PNG frames (1: fast).")
-    torch_threads: int | None = Field(None, gt=0, description="torch intra-op threads; none: torch's own.")
+    torch_threads: int | None = Field(1, gt=0, description="torch intra-op threads (the deformation); 1: "
+                                                         "renders run side by side on the pool instead, "
+                                                         "and a parallel region never waits on a core "
+                                                         "another process holds; none: torch's own.")
+    raster_threads: int = Field(1, gt=0, description="Threads of the numba rasterizer per render (1: as "
+                                                     "torch_threads: the pool's workers run side by side).")
 
     @model_validator(mode="after")
     def _one_source(self) -> Settings:

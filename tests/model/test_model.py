@@ -72,8 +72,10 @@ def test_empty_window_at_an_anchor_is_exactly_the_anchor_state():
     assert states_equal(anchor, model.deform(t, None, np.eye(4)))
     events = zeros.copy()
     events[10:20, 10:20] = 3.0
-    moved = model.deform(t, events)
-    assert not torch.equal(moved.means, anchor.means)
+    # At the anchor itself the window [tau, t) is empty whatever map is passed: the branch is skipped.
+    assert states_equal(anchor, model.deform(t, events))
+    moved = model.deform(t + 1, events)
+    assert not torch.equal(moved.means, model.deform(t + 1).means)
     assert torch.isfinite(moved.means).all()
 
 
