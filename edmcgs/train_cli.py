@@ -12,6 +12,7 @@ import numpy as np
 from edmcgs.errors import EdmcgsError, InvalidInputError, TrainingError
 from edmcgs.model.camera import Intrinsics, Trajectory
 from edmcgs.model.config import PRESETS, EdmcgsConfig, preset
+from edmcgs.model.leanness import events_decision
 from edmcgs.model.training_data import TrainingData
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.recording import Recording, read_recording
@@ -68,14 +69,20 @@ def training_data(rec: Recording) -> TrainingData:
 
 def build_config(name: str, overrides: list[str], rec: Recording) -> EdmcgsConfig:
     """Preset, then what the recording states (contrast threshold, a synthetic scene's constant
-    background colour), then ``--set`` overrides."""
+    background colour), then ``--set`` overrides, then what the data leaves out (no events: no event
+    branch, said on stdout)."""
     cfg = preset(name)
     if rec.contrast_threshold is not None:
         cfg = cfg.replace(contrast_threshold=float(rec.contrast_threshold))
     background = rec.metadata.get("background")
     if isinstance(background, list) and len(background) == 3:
         cfg = cfg.replace(background=tuple(float(v) for v in background))
-    return cfg.with_overrides(overrides)
+    cfg = cfg.with_overrides(overrides)
+    events, message = events_decision(len(rec.events), cfg.events)
+    if message is not None:
+        print(f"edmcgs train: {message}")
+        cfg = cfg.replace(events=events)
+    return cfg
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,17 +1,21 @@
 """EdMCGS checkpoints: one torch file of plain containers and tensors, loaded with ``weights_only=True``.
 
-Schema (version 1)::
+Schema (version 2)::
 
-    {"format": "edmcgs-checkpoint", "version": 1,
+    {"format": "edmcgs-checkpoint", "version": 2,
      "meta": {t_start_us, t_end_us, anchors_us [F] int64, intrinsics {fx, fy, cx, cy, width, height},
               event_width, event_height, trajectory {t_us [T] int64, c2w [T,4,4] float64} | None,
-              channels, config {...}, has_event_branch},
+              channels, config {...}, has_event_branch,
+              frozen [M] bool | None, freeze_threshold float, lean {...}},   # version 2
      "sizes": {num_gaussians, num_control_points},
      "state_dict": {name: tensor},
      "train_state": {...} | None}   # optimizer and progress, only in checkpoints written mid-training
 
-A missing, truncated, foreign or newer file raises ``CheckpointError``. Writes are atomic (a temporary
-file in the same folder, fsynced, then renamed over the target).
+Version 2 adds what the scene leaves out (``edmcgs.model.leanness``): the frozen control points (decided
+when a final checkpoint is written, ``train_state`` None) and ``lean``, the record of every decision; a
+static camera's trajectory is stored as one pose. Version 1 files load with nothing frozen and ``lean``
+derived from the weights. A missing, truncated, foreign or newer file raises ``CheckpointError``.
+Writes are atomic (a temporary file in the same folder, fsynced, then renamed over the target).
 """
 
 from __future__ import annotations
@@ -27,17 +31,32 @@ from edmcgs.model.config import EdmcgsConfig
 from edmcgs.model.control_points import ControlPoints
 from edmcgs.model.edmcgs import EdMCGS, SceneMeta
 from edmcgs.model.gaussians import Gaussians
+from edmcgs.model.leanness import decisions, frozen_control_points
 
 from edmcgs.errors import CheckpointError, EdmcgsError
 
 FORMAT = "edmcgs-checkpoint"
-VERSION = 1
+VERSION = 2
 
 
-def save_checkpoint(model: EdMCGS, path: str | os.PathLike, *, train_state: dict | None = None) -> None:
-    """Write ``model`` (and optionally the trainer's resumable state) to ``path`` atomically."""
+def save_checkpoint(model: EdMCGS, path: str | os.PathLike, *, train_state: dict | None = None,
+                    freeze_threshold: float | None = None) -> None:
+    """Write ``model`` (and optionally the trainer's resumable state) to ``path`` atomically.
+
+    A final checkpoint (no ``train_state``) records the frozen control points: those whose prior motion
+    stays below ``freeze_threshold`` (world units; default ``leanness.FREEZE_FRACTION`` of the extent;
+    0 freezes only points that do not move at all). ``model`` itself is left as it was.
+    """
     path = Path(path)
     meta = model.meta
+    if train_state is None:
+        frozen, threshold = frozen_control_points(model, freeze_threshold)
+    else:  # mid-training: the motion is still changing
+        frozen, threshold = None, 0.0
+    trajectory = meta.trajectory
+    static = trajectory is not None and trajectory.is_static
+    if static and len(trajectory.t_us) > 1:
+        trajectory = Trajectory(trajectory.t_us[:1], trajectory.c2w[:1])  # one pose: no interpolation
     payload = {
         "format": FORMAT,
         "version": VERSION,
@@ -50,12 +69,15 @@ def save_checkpoint(model: EdMCGS, path: str | os.PathLike, *, train_state: dict
                            "width": int(meta.intrinsics.width), "height": int(meta.intrinsics.height)},
             "event_width": int(meta.event_width),
             "event_height": int(meta.event_height),
-            "trajectory": None if meta.trajectory is None else {
-                "t_us": torch.from_numpy(np.asarray(meta.trajectory.t_us, dtype=np.int64).copy()),
-                "c2w": torch.from_numpy(np.asarray(meta.trajectory.c2w, dtype=np.float64).copy())},
+            "trajectory": None if trajectory is None else {
+                "t_us": torch.from_numpy(np.asarray(trajectory.t_us, dtype=np.int64).copy()),
+                "c2w": torch.from_numpy(np.asarray(trajectory.c2w, dtype=np.float64).copy())},
             "channels": int(meta.channels),
             "config": model.config.to_dict(),
             "has_event_branch": bool(meta.has_event_branch),
+            "frozen": None if frozen is None else torch.from_numpy(np.asarray(frozen, dtype=bool).copy()),
+            "freeze_threshold": float(threshold),
+            "lean": decisions(model, frozen, threshold, static),
         },
         "sizes": {"num_gaussians": len(model.gaussians), "num_control_points": model.control.num_points},
         "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
@@ -123,6 +145,14 @@ def _build(payload: dict) -> EdMCGS:
         trajectory=None if traj is None else Trajectory(traj["t_us"].numpy().astype(np.int64),
                                                          traj["c2w"].numpy().astype(np.float64)),
         channels=int(m["channels"]), config=config.to_dict(), has_event_branch=bool(m["has_event_branch"]))
+    frozen = m.get("frozen")  # version 1: absent, nothing frozen
+    if frozen is not None:
+        frozen = frozen.numpy().astype(bool)
+        if frozen.shape != (int(payload["sizes"]["num_control_points"]),):
+            raise CheckpointError(f"meta.frozen has shape {frozen.shape}, not [num_control_points]")
+    meta.frozen, meta.freeze_threshold = frozen, float(m.get("freeze_threshold", 0.0))
+    meta.lean = m.get("lean") or {"sh_degree": {"value": config.sh_degree, "why": "from the weights "
+                                                "(a version 1 checkpoint records no decision)"}}
     if meta.has_event_branch != config.has_event_branch:
         raise CheckpointError("has_event_branch disagrees with the config's switches")
     sizes = payload["sizes"]

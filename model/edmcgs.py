@@ -24,6 +24,7 @@ from edmcgs.model.event_branch import EventEncoder, EventTransition, sample_glob
 from edmcgs.model.event_loss import LUMA
 from edmcgs.model.gaussians import Gaussians, GaussianState
 from edmcgs.model.initialization import backproject_anchors, scene_center_and_extent
+from edmcgs.model.leanness import choose_sh_degree
 from edmcgs.model.quaternion import quat_normalize
 from edmcgs.model.rasterize import rasterize
 from edmcgs.model.skin_plan import SkinPlan, build_plan, plan_key, skin
@@ -157,6 +158,10 @@ class EdMCGS(nn.Module):
         torch.manual_seed(config.seed)
         rng = np.random.default_rng(config.seed)
         center, extent = scene_center_and_extent(poses, intrinsics, init_depth)
+        # The SH degree the views can constrain (leanness.py), recorded with the reason.
+        degree, record = choose_sh_degree(np.concatenate([poses, trajectory.c2w]), center, config.sh_degree)
+        config = config.replace(sh_degree=degree)
+        meta.config, meta.lean = config.to_dict(), {"sh_degree": record}
         k = config.init_anchors or len(images)
         points, colors, scales = backproject_anchors(images[:k], poses[:k], intrinsics, center, extent,
                                                      config.init_points, rng,

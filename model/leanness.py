@@ -1,0 +1,122 @@
+"""What a scene does not need, decided from its data and recorded in the checkpoint.
+
+- colour channels: what the anchor frames have (a DAVIS346's APS frames: 1, grey) — ``from_arrays``;
+- SH degree: a camera that never changes its direction to the scene cannot observe view dependence,
+  so its Gaussians get degree 0 whatever the configured maximum (``choose_sh_degree``);
+- a static camera: its trajectory is stored as one pose (no interpolation at inference);
+- a recording without events: no event branch (``events_decision``), and a server without a sensor;
+- frozen control points: those whose prior motion over the whole span moves none of their Gaussians
+  by more than a threshold; Gaussians bound only to frozen points keep their canonical pose at
+  inference (``frozen_control_points``), an error of at most the threshold (world units) per mean.
+
+``decisions`` gathers these as the checkpoint's ``meta["lean"]`` (plain JSON-able values).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+SH_STATIC_DEG = 2.0
+"""Below this spread of viewing directions (degrees) the views cannot tell view-dependent colour from
+noise: degree 0."""
+SH_NARROW_DEG = 20.0
+"""Below this spread, degree 1 at most (a low-order lobe is all a narrow arc constrains)."""
+FREEZE_FRACTION = 1e-3
+"""Default freeze threshold as a fraction of the scene extent: about 0.2 px on a DAVIS346 view of the
+whole scene."""
+FREEZE_SAMPLES = 128
+"""Times sampled over the span to bound each control point's motion."""
+
+
+def view_spread_deg(c2w: np.ndarray, center: np.ndarray) -> float:
+    """Largest angle (degrees) between two of the cameras' directions to the scene centre.
+
+    c2w: np.ndarray     # [T, 4, 4] float64 camera-to-world poses (trajectory samples and anchors)
+    center: np.ndarray  # [3] float64 scene centre
+    """
+    rays = np.asarray(center, dtype=np.float64)[None] - np.asarray(c2w, dtype=np.float64)[:, :3, 3]
+    norm = np.linalg.norm(rays, axis=1, keepdims=True)
+    rays = rays[norm[:, 0] > 1e-12] / norm[norm[:, 0] > 1e-12]
+    if len(rays) < 2:
+        return 0.0
+    rays = rays[np.linspace(0, len(rays) - 1, min(len(rays), 512)).round().astype(int)]  # all pairs
+    return float(np.degrees(np.arccos(np.clip((rays @ rays.T).min(), -1.0, 1.0))))
+
+
+def choose_sh_degree(c2w: np.ndarray, center: np.ndarray, max_degree: int) -> tuple[int, dict]:
+    """(degree, record): the SH degree the cameras can constrain, at most ``max_degree``."""
+    spread = view_spread_deg(c2w, center)
+    if spread < SH_STATIC_DEG:
+        degree, why = 0, f"the views span {spread:.2f} deg (< {SH_STATIC_DEG:g}): no view dependence seen"
+    elif spread < SH_NARROW_DEG:
+        degree = min(1, max_degree)
+        why = f"the views span {spread:.1f} deg (< {SH_NARROW_DEG:g}): degree 1 at most"
+    else:
+        degree, why = max_degree, f"the views span {spread:.1f} deg: the configured maximum"
+    return degree, {"value": int(degree), "max": int(max_degree), "view_spread_deg": round(spread, 3),
+                    "why": why}
+
+
+def events_decision(num_events: int, events: bool) -> tuple[bool, str | None]:
+    """(events switch, message): a recording without events trains no event branch."""
+    if num_events == 0 and events:
+        return False, "the recording has no events: training without the event branch (events=false)"
+    return events, None
+
+
+@torch.no_grad()
+def control_motion_bound(model, samples: int = FREEZE_SAMPLES) -> torch.Tensor:
+    """[M] float32: per control point, the most its prior motion moves any of its Gaussians, sampled
+    at ``samples`` times over the span (world units).
+
+    A Gaussian at distance r from control point k moves by at most |T_k| + theta_k r under k's rigid
+    transform (|(R - I) v| = 2 sin(theta / 2) |v| <= theta |v|), and LBS is a convex blend: a Gaussian
+    whose K points all bound below epsilon moves by less than epsilon.
+    """
+    cp = model.control
+    means = model.gaussians.means.detach()
+    dist = (means[:, None, :] - cp.positions[cp.bind]).norm(dim=-1)          # [N, K]
+    reach = torch.zeros(cp.num_points, device=means.device).scatter_reduce(
+        0, cp.bind.reshape(-1), dist.reshape(-1), reduce="amax")              # [M] farthest Gaussian
+    bound = torch.zeros(cp.num_points, device=means.device)
+    for t in np.linspace(0.0, 1.0, samples):
+        trans, rot, _ = model.control_motion(float(t))
+        theta = 2.0 * torch.acos(rot[:, 0].abs().clamp(max=1.0))
+        bound = torch.maximum(bound, trans.norm(dim=-1) + theta * reach)
+    return bound
+
+
+def frozen_control_points(model, threshold: float | None = None,
+                          samples: int = FREEZE_SAMPLES) -> tuple[np.ndarray, float]:
+    """(mask [M] bool, threshold): control points whose motion bound stays below ``threshold`` (world
+    units; default ``FREEZE_FRACTION`` of the scene extent) over the whole span."""
+    if threshold is None:
+        threshold = FREEZE_FRACTION * float(model.extent)
+    if not math.isfinite(threshold) or threshold < 0:
+        raise ValueError(f"threshold must be a finite number >= 0, got {threshold}")
+    bound = control_motion_bound(model, samples)
+    return (bound <= threshold).cpu().numpy(), float(threshold)
+
+
+def decisions(model, frozen: np.ndarray | None, threshold: float, static_camera: bool) -> dict:
+    """The checkpoint's ``meta["lean"]``: what the scene leaves out, with the numbers behind it."""
+    meta = model.meta
+    lean = dict(meta.lean or {})
+    lean["channels"] = {"value": int(meta.channels),
+                        "why": "grey anchor frames" if meta.channels == 1 else "colour anchor frames"}
+    lean["event_branch"] = {"value": bool(meta.has_event_branch),
+                            "why": "configured" if meta.has_event_branch else
+                            "no events in the recording or the config's switches"}
+    lean["static_camera"] = {"value": bool(static_camera),
+                             "why": "every trajectory pose equal: stored as one" if static_camera
+                             else "the camera moves"}
+    if frozen is not None:
+        bind = model.control.bind.cpu().numpy()
+        still = np.asarray(frozen)[bind].all(-1)
+        lean["frozen"] = {"control_points": int(np.count_nonzero(frozen)), "of": len(frozen),
+                          "gaussians_still": int(np.count_nonzero(still)), "gaussians": len(still),
+                          "threshold": float(threshold), "samples": FREEZE_SAMPLES}
+    return lean
