@@ -24,7 +24,6 @@ machine the throughput bound is about 2000 / that many renders per second.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import signal
@@ -38,6 +37,8 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+
+from bench.results import table, write_json
 
 TARGETS = {"render_p50_ms": ("<=", 25.0), "render_rps_4_clients": (">=", 60.0),
            "render_p99_ms_4_clients": ("<=", 150.0), "stream_fps": (">=", 30.0),
@@ -293,21 +294,6 @@ def measure_stream(client, seconds: float, size: tuple[int, int]) -> dict:
             "stream_frames_dropped": dropped}
 
 
-def _table(results: dict) -> str:
-    rows = [f"{'key':<28} {'value':>10}  target"]
-    for key, value in results.items():
-        if not isinstance(value, float | int) or isinstance(value, bool):
-            continue
-        target = TARGETS.get(key)
-        mark = ""
-        if target is not None:
-            op, bound = target
-            ok = value <= bound if op == "<=" else value >= bound
-            mark = f"{op} {bound:g}  {'ok' if ok else 'MISSED'}"
-        rows.append(f"{key:<28} {value:>10.2f}  {mark}")
-    return "\n".join(rows)
-
-
 def _size(text: str) -> tuple[int, int]:
     w, h = text.lower().split("x")
     return int(w), int(h)
@@ -387,12 +373,10 @@ def main(argv: list[str] | None = None) -> int:
         "seconds_per_measurement": args.seconds, "cpus": os.cpu_count(),
         "load_average_1m": os.getloadavg()[0], "server_exit_code": code,
     }
-    print(_table(results))
+    print(table(results, TARGETS))
     print(f"scene: {scene_name}, {results['num_gaussians']} Gaussians; load average "
           f"{results['load_average_1m']:.1f} on {os.cpu_count()} CPUs (a shared machine: medians are noisy)")
-    if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(results, indent=2) + "\n")
+    write_json(args.json, results)
     return 0
 
 
