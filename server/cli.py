@@ -4,6 +4,8 @@
     edmcgs-serve --replay rec.h5 --checkpoint scene.ckpt --loop
     edmcgs-serve --replay rec.aedat4 --checkpoint scene.ckpt --speed 0.5
     edmcgs-serve --live --checkpoint scene.ckpt              # a DAVIS346 over USB
+    edmcgs-serve --checkpoint scene.ckpt                     # no sensor: a checkpoint without events,
+                                                             # its span played in a loop (--speed)
 
 Every flag is also an ``EDMCGS_<NAME>`` environment variable (flags win); ``EDMCGS_TOKEN`` makes every
 route require ``Authorization: Bearer <token>``.
@@ -28,7 +30,8 @@ def _parser() -> argparse.ArgumentParser:
                                        "... (see edmcgs.server.settings).")
     p.add_argument("--replay", metavar="FILE", help="recording to replay: .aedat4, or .h5/.hdf5")
     p.add_argument("--checkpoint", metavar="CKPT", help="EdMCGS checkpoint of the scene")
-    p.add_argument("--speed", type=float, help="replay speed, a real-time factor (default 1)")
+    p.add_argument("--speed", type=float, help="replay speed, a real-time factor (default 1); without a "
+                                               "sensor, the speed the span plays at")
     p.add_argument("--loop", action="store_true", default=None, help="replay in a loop")
     p.add_argument("--live", action="store_true", default=None, help="read a DAVIS346 over USB")
     p.add_argument("--host", help="interface to bind (default 127.0.0.1)")

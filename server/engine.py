@@ -20,6 +20,7 @@ from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.ring import EventRingBuffer
 from edmcgs.server.encode import to_uint8
+from edmcgs.server.playback import Playback
 from edmcgs.server.state_cache import StateCache
 from edmcgs.server.timeline import Timeline
 
@@ -58,18 +59,20 @@ class Engine:
     opens and closes them). ``timeline`` is set once the stream's clock is known (at once for a
     replay, at the first event for a camera).
 
-    model: the loaded EdMCGS; ring: the event ring the ingest thread fills; anchors: the source's
-    frames, or None to use the checkpoint's anchor times; cache_size: deformed states kept;
-    raster_threads: threads of the numba rasterizer per render (None: numba's default, all cores).
+    model: the loaded EdMCGS; ring: the event ring the ingest thread fills (without a sensor: an empty
+    one); anchors: the source's frames, or None to use the checkpoint's anchor times; cache_size:
+    deformed states kept; raster_threads: threads of the numba rasterizer per render (None: numba's
+    default, all cores); playback: without a sensor, the clock that moves the head (playback.py).
     """
 
     def __init__(self, model: EdMCGS, ring: EventRingBuffer, anchors: AnchorStore | None, *,
-                 cache_size: int = 32, raster_threads: int | None = None):
+                 cache_size: int = 32, raster_threads: int | None = None, playback: Playback | None = None):
         self.model = model
         self.meta = model.meta
         self.ring = ring
         self.anchors = anchors
-        self.timeline: Timeline | None = None
+        self.playback = playback
+        self.timeline: Timeline | None = None if playback is None else playback.timeline
         self.cache = StateCache(cache_size)
         self.scene_anchors = np.asarray(self.meta.anchors_us, dtype=np.int64)
         self.first_us = int(self.scene_anchors[0])  # the Markov chain has no state before it
@@ -91,7 +94,10 @@ class Engine:
 
         The ring's watermark W says every event with t < W is in; a source delivers the frames of
         [.., W) with those events, so an anchor exactly at W may still be coming: the head is W - 1.
+        Without a sensor the playback clock completes the (empty) stream up to now.
         """
+        if self.playback is not None:
+            self.ring.mark_complete(self.playback.watermark_us())
         wm, tl = self.ring.watermark_us, self.timeline
         if wm is None or tl is None:
             return None
@@ -136,16 +142,18 @@ class Engine:
     def renderable(self) -> list[tuple[int, int]]:
         """Scene-time intervals [lo, hi] (µs, inclusive) that can be rendered now, oldest first."""
         head = self.head()
-        oldest = self.ring.oldest_us
-        if head is None or oldest is None:
+        if head is None:
             return []
         wm, s_wm = head
         tl = self.timeline
         stats = self.ring.stats()
+        oldest = stats.oldest_us
         if stats.overflowed or stats.expired:
+            if oldest is None:
+                return []  # everything received was dropped
             floor = oldest + 1  # a window starting at the oldest retained time may miss events dropped there
-        else:
-            floor = min(oldest, tl.stream_origin_us)  # nothing dropped: all since the stream's start
+        else:  # nothing dropped: all since the stream's start (an empty window is complete too)
+            floor = tl.stream_origin_us if oldest is None else min(oldest, tl.stream_origin_us)
         s_floor = tl.scene_of(floor)
         anchors = self._scene_anchor_times()
 

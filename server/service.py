@@ -1,5 +1,11 @@
 """One running service: the model, the event source and its ingest thread, the ring, the engine, the
 render pool and the metrics. Opened and closed by the app's lifespan (``app.py``).
+
+A checkpoint without an event branch may be served alone (no --replay, no --live): no source, no
+ingest thread, an empty one-slot ring, tau(t) from the checkpoint's anchors, the whole span renderable
+at once, and a playback clock looping over the span at ``speed`` as the head that GET /render without
+t and the websocket's live mode follow (playback.py). A checkpoint with an event branch needs its
+events: alone it is refused, naming the fix.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from edmcgs.server.encode import encode
 from edmcgs.server.engine import Engine
 from edmcgs.server.live import Arrivals, HeadSignal
 from edmcgs.server.metrics import CallbackCounter, Counter, Gauge, Histogram, Registry
+from edmcgs.server.playback import Playback
 from edmcgs.server.render_pool import RenderPool
 from edmcgs.server.settings import Settings
 from edmcgs.server.timeline import Timeline
@@ -52,6 +59,10 @@ class Inputs:
     replay: Path | None
     live: bool
     loop: bool
+
+    @property
+    def sensorless(self) -> bool:
+        return self.replay is None and not self.live
 
 
 def resolve_inputs(settings: Settings) -> Inputs:
@@ -84,8 +95,8 @@ class Metrics:
 class Service:
     """Built by ``open`` (blocking: loads, opens, warms up, starts ingesting); ``close`` undoes it."""
 
-    def __init__(self, settings: Settings, inputs: Inputs, model, source: EventSource, ring: EventRingBuffer,
-                 anchors: AnchorStore | None, engine: Engine):
+    def __init__(self, settings: Settings, inputs: Inputs, model, source: EventSource | None,
+                 ring: EventRingBuffer, anchors: AnchorStore | None, engine: Engine):
         self.settings, self.inputs = settings, inputs
         self.model, self.source, self.ring, self.anchors, self.engine = model, source, ring, anchors, engine
         self.metrics = Metrics()
@@ -105,6 +116,8 @@ class Service:
 
             torch.set_num_threads(settings.torch_threads)
         model = load_checkpoint(inputs.checkpoint, settings.device)
+        if inputs.sensorless:
+            return cls._open_sensorless(settings, inputs, model)
         meta = model.meta
         pacing = Pacing(factor=settings.speed, loop=inputs.loop, batch_us=settings.replay_batch_us)
         source = open_source(inputs.replay, live=inputs.live, pacing=pacing)
@@ -132,10 +145,32 @@ class Service:
             source.close()
             raise
 
+    @classmethod
+    def _open_sensorless(cls, settings: Settings, inputs: Inputs, model) -> Service:
+        """A checkpoint without an event branch, served alone (see the module docstring)."""
+        meta = model.meta
+        if meta.has_event_branch:
+            raise InvalidInputError(
+                f"the checkpoint {str(inputs.checkpoint)!r} has an event branch: it renders from the events "
+                "since each anchor, so it needs an event source. Give --replay REC (the recording it was "
+                "trained on) or --live; only a checkpoint trained without events (events=false, or a "
+                "recording without events) is served without a sensor")
+        ring = EventRingBuffer(1)  # never written: there are no events
+        playback = Playback(int(meta.anchors_us[0]), meta.t_end_us, settings.speed)
+        engine = Engine(model, ring, None, cache_size=settings.deform_cache,
+                        raster_threads=settings.raster_threads, playback=playback)
+        service = cls(settings, inputs, model, None, ring, None, engine)
+        seconds = engine.warm_up()
+        log.info("model %s on %s: %d Gaussians, warm-up %.1f s; no sensor (no event branch): the span "
+                 "plays in a loop at %gx", inputs.checkpoint, settings.device, len(model.gaussians), seconds,
+                 settings.speed)
+        return service
+
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
         """Start ingesting (the replay's real-time clock starts here) and waking live streams on ``loop``."""
         self.signal = HeadSignal(loop)
-        self.ingest = Ingest(self.source, self.ring, self.anchors, on_batch=self._on_batch).start()
+        if self.source is not None:
+            self.ingest = Ingest(self.source, self.ring, self.anchors, on_batch=self._on_batch).start()
 
     def close(self) -> None:
         """Stop the ingest thread (joined), close the source, finish running renders."""
@@ -143,7 +178,8 @@ class Service:
             self.ingest.stop(timeout=5.0)
             if self.ingest.running:
                 log.warning("the ingest thread did not stop within 5 s")
-        self.source.close()
+        if self.source is not None:
+            self.source.close()
         self.pool.close()
 
     def _on_batch(self, batch: SensorBatch) -> None:
@@ -162,12 +198,16 @@ class Service:
 
     # ------------------------------------------------------------------ health
     def health(self) -> tuple[bool, dict]:
-        """(ready, details): ready when the model is loaded and the source delivers (or delivered)."""
+        """(ready, details): ready when the model is loaded and the source delivers (or delivered); without
+        a sensor, once the model is loaded."""
         ingest = self.ingest
         head = self.engine.head()
-        source_state = ("error" if ingest is None or ingest.error is not None else
-                        "ended" if ingest.finished else "streaming" if ingest.running else "stopped")
-        ready = source_state in ("streaming", "ended") and head is not None
+        if self.source is None:
+            source_state = "none"
+        else:
+            source_state = ("error" if ingest is None or ingest.error is not None else
+                            "ended" if ingest.finished else "streaming" if ingest.running else "stopped")
+        ready = source_state in ("streaming", "ended", "none") and head is not None
         details = {
             "ready": ready,
             "model": "loaded",
@@ -224,7 +264,7 @@ class Service:
         traj = meta.trajectory
         head = engine.head()
         ranges = engine.renderable()
-        info = self.source.info
+        info = self.source.info if self.source is not None else None
         return {
             "t_start_us": meta.t_start_us,
             "t_end_us": meta.t_end_us,
@@ -243,10 +283,13 @@ class Service:
             "stream_head_us": None if head is None else head[0],
             "renderable": engine.range_dict(ranges[-1]) if ranges else None,
             "renderable_ranges": [engine.range_dict(r) for r in ranges],
-            "source": {"sensor": info.sensor, "live": info.live, "width": info.width, "height": info.height,
-                       "has_frames": info.has_frames, "loop": self.inputs.loop,
-                       "speed": self.settings.speed if not info.live else None,
-                       "period_us": None if engine.timeline is None else engine.timeline.period_us},
+            "source": None if info is None else {
+                "sensor": info.sensor, "live": info.live, "width": info.width, "height": info.height,
+                "has_frames": info.has_frames, "loop": self.inputs.loop,
+                "speed": self.settings.speed if not info.live else None,
+                "period_us": None if engine.timeline is None else engine.timeline.period_us},
+            "playback": None if engine.playback is None else {   # no sensor: the clock of the head
+                "speed": engine.playback.speed, "period_us": engine.playback.period_us, "loop": True},
             "limits": {"max_width": self.settings.max_width, "max_height": self.settings.max_height,
                        "stream_max_fps": self.settings.stream_max_fps},
             "formats": list(protocol.RENDER_FORMATS),
@@ -260,7 +303,7 @@ class Service:
         def dropped() -> dict[str, float]:
             s = ring.stats()
             return {"overflow": s.overflowed, "expired": s.expired, "late": s.late,
-                    "invalid": self.source.stats.dropped}
+                    "invalid": 0 if self.source is None else self.source.stats.dropped}
 
         add(Gauge("edmcgs_up", "1 when the service is ready (model loaded, source delivering).",
                   lambda: float(self.health()[0])))

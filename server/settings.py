@@ -18,9 +18,11 @@ class Settings(BaseSettings):
 
     checkpoint: Path | None = Field(None, description="EdMCGS checkpoint to serve; none: the bundled demo's.")
     replay: Path | None = Field(None, description="AEDAT4 or HDF5 recording to replay; none with no "
-                                                  "--live: the bundled demo's recording.")
+                                                  "--live: the bundled demo's recording, or, with a "
+                                                  "checkpoint without an event branch, no sensor at all.")
     live: bool = Field(False, description="Read a DAVIS346 over USB instead of replaying a file.")
-    speed: float = Field(1.0, gt=0, description="Replay speed, a real-time factor.")
+    speed: float = Field(1.0, gt=0, description="Replay speed, a real-time factor (without a sensor: the "
+                                                 "speed of the clock playing the span).")
     loop: bool = Field(False, description="Start the replay over at its end (the demo always loops).")
     host: str = Field("127.0.0.1", description="Interface to bind; loopback unless told otherwise.")
     port: int = Field(8000, ge=0, le=65535, description="TCP port (0: any free port).")
@@ -53,11 +55,14 @@ class Settings(BaseSettings):
             raise ValueError("replay and live are exclusive: give one event source")
         if (self.live or self.replay is not None) and self.checkpoint is None:
             raise ValueError("a checkpoint is required with replay or live (the model of that scene)")
-        if self.checkpoint is not None and self.replay is None and not self.live:
-            raise ValueError("a checkpoint needs an event source: give replay (a recording) or live")
-        return self
+        return self  # a checkpoint alone: Service.open checks that it has no event branch
 
     @property
     def uses_demo(self) -> bool:
         """True when neither a checkpoint nor a source is given: serve the bundled demo scene."""
         return self.checkpoint is None and self.replay is None and not self.live
+
+    @property
+    def sensorless(self) -> bool:
+        """True when a checkpoint is given without a source: a scene without events, served alone."""
+        return self.checkpoint is not None and self.replay is None and not self.live

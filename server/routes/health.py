@@ -9,7 +9,8 @@ from fastapi.responses import JSONResponse, PlainTextResponse
 router = APIRouter()
 
 
-@router.get("/healthz", summary="200 when the model is loaded and the event source delivers; else 503")
+@router.get("/healthz", summary="200 when the model is loaded and the event source delivers (no "
+                               "sensor: once loaded); else 503")
 async def healthz(request: Request) -> JSONResponse:
     ready, details = request.app.state.service.health()
     return JSONResponse(details, status_code=200 if ready else 503,

@@ -5,7 +5,8 @@ Three tasks per connection:
 - the *receiver* reads subscriptions (msgpack or JSON), validates them and answers ``subscribed`` or
   ``error`` (the previous subscription stays in force after an error);
 - the *producer* renders frames at the subscription's rate (live: whenever new events arrived, at
-  most ``fps`` per second; sweep: t0, t0 + speed/fps, ... up to t1) and puts each in a slot of size one;
+  most ``fps`` per second, and without a sensor at ``fps``, following the playback clock; sweep: t0,
+  t0 + speed/fps, ... up to t1) and puts each in a slot of size one;
 - the *sender* sends what is in the slot. A client slower than the producer finds the newest frame
   there: the older one was dropped and counted (``dropped`` in every frame, and the metrics). Nothing
   queues without bound however slow the client, and a client that stops reading costs one frame.
