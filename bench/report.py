@@ -7,9 +7,10 @@ The default is small (one scene, 1 s, 200 steps per run: about 10 minutes on a s
 ``--full`` is the paper's grid (four scenes at 5 and 10 fps, every ablation, 3000 steps per run: hours
 on a CPU). Built recordings and trained runs are cached under ``OUT/cache``, so a second run only
 redoes what changed. Sections: the ablation table (with the paper's averages beside it), held-out
-error against training time, render error against time per frame over the fast path's knobs, and the
-stability cases too slow for the test suite. Run it from the repository root: the render sweep uses
-the test suite's float64 reference renderer.
+error against training time, render error against time per frame over the fast path's knobs, the
+stability cases too slow for the test suite, and what each checkpoint leaves out (measured against its
+full twin, with a grey variant of the first scene: one more training run). Run it from the repository
+root: the render sweep uses the float64 reference renderer in bench/.
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ from edmcgs.model.lpips import LPIPS, find_weights
 from tqdm import tqdm
 
 from bench.report_data import scene_recordings
+from bench.report_lean import event_branch_ms, grey_recording, lean_rows, median_threshold, refrozen
+from bench.report_lean import section as lean_section
 from bench.report_markdown import summary
 from bench.report_plots import ablation_bars, error_vs_time, render_knobs
 from bench.report_render import render_sweep
@@ -40,6 +43,7 @@ from bench.report_stability import (
     sparse_anchor_rows,
 )
 from bench.report_training import load_run_model, train_run
+from edmcgs.train_cli import training_data
 
 DAY_US = 86_400_000_000
 
@@ -98,8 +102,8 @@ def collect(s: ReportSettings, cache: Path, *, device: str, progress: bool) -> d
     weights = find_weights()  # LPIPS only on weights already on disk (see edmcgs.model.lpips)
     lpips = None if weights is None else LPIPS.load(*weights).to(device)
 
-    def run(scene: str, fps: float, variant: str) -> dict:
-        rec, key = recs[scene][fps]
+    def run(scene: str, fps: float, variant: str, source: tuple | None = None) -> dict:
+        rec, key = recs[scene][fps] if source is None else source  # (recording, cache key)
         result = train_run(rec, key, VARIANTS[variant][0], preset=s.preset, iterations=s.iterations,
                            train_scale=s.train_scale, curve_points=s.curve_points, device=device,
                            cache=cache / "runs", label=f"{scene} {fps:g} fps {variant}", progress=progress,
@@ -126,8 +130,38 @@ def collect(s: ReportSettings, cache: Path, *, device: str, progress: bool) -> d
     span_us = model.meta.t_end_us - model.meta.t_start_us
     resolution = {"recording_s": span_us / 1e6, "recording_us": span_us * 2.0**-24,
                   "day_ms": DAY_US * 2.0**-24 / 1000}
+    lean, lean_context = collect_lean(s, recs, run, cache, fps, progress=progress)
     return {"runs": runs, "knobs": knobs, "context": context, "stability": stability,
-            "time_resolution": resolution}
+            "time_resolution": resolution, "lean": lean, "lean_context": lean_context}
+
+
+def collect_lean(s: ReportSettings, recs: dict, run, cache: Path, fps: float, *,
+                 progress: bool) -> tuple[list[dict], dict]:
+    """What each scene's full run leaves out (report_lean.py), with the first scene's run without events,
+    its weights frozen at a looser stated threshold, and a grey variant of it (one more training run)."""
+    first, runs = s.scenes[0], cache / "runs"
+    entries = [(f"{scene} {fps:g} fps", runs / run(scene, fps, "full")["checkpoint"],
+                training_data(recs[scene][fps][0])) for scene in s.scenes]
+    label, full_path, data = entries[0]
+    context = {"full_label": label, "threads": torch.get_num_threads(), "repeats": s.render_repeats}
+    if "no_events" in s.variants:
+        context["no_events_label"] = f"{label} without events"
+        without = runs / run(first, fps, "no_events")["checkpoint"]
+        entries.append((context["no_events_label"], without, data))
+        context["event_branch"] = event_branch_ms(full_path, without, data, repeats=s.render_repeats)
+    context["refrozen_label"] = f"{label} frozen at the median motion"
+    median = cache / "lean" / f"{full_path.stem}_median.ckpt"
+    if not median.exists():
+        median.parent.mkdir(parents=True, exist_ok=True)
+        refrozen(full_path, median_threshold(full_path), median)
+    entries.append((context["refrozen_label"], median, data))
+    context["grey_label"] = f"{label} grey"
+    rec, key = recs[first][fps]
+    grey = grey_recording(rec)  # a DAVIS346's APS frames: one channel
+    path = runs / run(first, fps, "full", source=(grey, f"{key}_grey"))["checkpoint"]
+    entries.append((context["grey_label"], path, training_data(grey)))
+    rows = lean_rows(entries, repeats=s.render_repeats, threads=torch.get_num_threads(), progress=progress)
+    return rows, context
 
 
 def write_outputs(out: Path, s: ReportSettings, r: dict, *, command: str, minutes: float,
@@ -146,6 +180,7 @@ def write_outputs(out: Path, s: ReportSettings, r: dict, *, command: str, minute
     write_csv(out / "held_out_frames.csv", frames)
     write_csv(out / "render_knobs.csv", r["knobs"])
     write_csv(out / "stability.csv", r["stability"])
+    write_csv(out / "lean.csv", r["lean"])
     ablation_bars(table, out / "ablation.png")
     error_vs_time(runs, out / "error_vs_time.png", threads)
     render_knobs(r["knobs"], out / "render_knobs.png")
@@ -153,11 +188,12 @@ def write_outputs(out: Path, s: ReportSettings, r: dict, *, command: str, minute
                f"the end), torch {torch.__version__}")
     text = summary(settings=s, command=command, machine=machine, minutes=minutes, runs=runs, knobs=r["knobs"],
                    knob_context=r["context"], stability=r["stability"], tests=TEST_CASES,
-                   time_resolution=r["time_resolution"])
+                   time_resolution=r["time_resolution"], lean=lean_section(r["lean"], r["lean_context"]))
     (out / "summary.md").write_text(text)
     payload = {"settings": s.__dict__, "command": command, "minutes": minutes, "ablation": table,
                "curves": curves, "render_knobs": r["knobs"], "render_context": r["context"],
-               "stability": r["stability"], "time_resolution": r["time_resolution"]}
+               "stability": r["stability"], "time_resolution": r["time_resolution"], "lean": r["lean"],
+               "lean_context": r["lean_context"]}
     (out / "report.json").write_text(json.dumps(payload, indent=1, default=str))
     return text
 

@@ -64,6 +64,7 @@ def with_fewer_control_points(model: EdMCGS, m: int) -> EdMCGS:
     graph = knn(positions, positions, min(cp.graph.shape[1], m - 1), exclude_self=True)[1]
     bind = knn(model.gaussians.means.detach(), positions, min(cp.bind.shape[1], m))[1]
     reduced.control = ControlPoints(positions, cp.log_radius.detach()[idx].clone(), graph, bind)
+    reduced.meta.frozen = None  # the checkpoint's mask is of the original points; these are not bounded
     return reduced
 
 
