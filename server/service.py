@@ -255,7 +255,7 @@ class Service:
         return {"type": "frame", "t_us": inst.t_us, "t": self.engine.seconds_of(inst.t_us),
                 "anchor_us": inst.anchor_us, "events": rendered.events, "render_ms": round(ms, 3),
                 "width": width, "height": height, "channels": int(rendered.pixels.shape[2]), "format": fmt,
-                "data": data, "window_end_us": inst.window[1]}
+                "data": data, "window_start_us": inst.window[0], "window_end_us": inst.window[1]}
 
     def scene(self) -> dict:
         """The body of GET /scene."""

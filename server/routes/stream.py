@@ -190,9 +190,12 @@ class StreamSession:
                 self._control(body_of(exc))
                 continue
             self.service.metrics.render.observe(frame["render_ms"] / 1e3, "stream")
-            window_end = frame.pop("window_end_us")
+            window_start, window_end = frame.pop("window_start_us"), frame.pop("window_end_us")
             if sub.mode == "live":
-                frame["arrived_unix_us"] = self.service.arrivals.first_after(last_window_end)
+                # Events new to this frame: those past the previous frame's window, or for the first
+                # frame its whole window (not every batch the ring still remembers).
+                since = window_start if last_window_end is None else last_window_end
+                frame["arrived_unix_us"] = self.service.arrivals.first_after(since)
                 last_window_end = window_end
             self._push(frame)
 
