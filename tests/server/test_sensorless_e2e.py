@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 from edmcgs.clients.client import Client, TimeUnavailable
-from edmcgs.model.checkpoint import load_checkpoint
+from edmcgs.model.checkpoint import load_checkpoint, read_checkpoint
 from edmcgs.server.encode import to_uint8
 
 from bench.serve import ServerProcess, build_scene
@@ -22,9 +22,18 @@ SPEED = 2.0  # the playback clock runs at twice real time
 
 @pytest.fixture(scope="module")
 def sensorless_ckpt(tmp_path_factory):
-    """A 2 s scene at 64x48 recorded without events, its model built without the event branch."""
-    _rec, ckpt = build_scene(tmp_path_factory.mktemp("sensorless"), width=WIDTH, height=HEIGHT, event_rate=0,
-                             init_points=2000, control_points=64, config_overrides={"events": False})
+    """A 2 s scene at 64x48 recorded without events, trained (a few steps) by ``edmcgs train``, which
+    leaves the event branch out."""
+    folder = tmp_path_factory.mktemp("sensorless")
+    rec, _ = build_scene(folder, width=WIDTH, height=HEIGHT, event_rate=0, init_points=500, control_points=32)
+    ckpt = folder / "trained.ckpt"
+    done = subprocess.run([sys.executable, "-m", "edmcgs.cli", "train", str(rec), "-o", str(ckpt), "--quiet",
+                           "--set", "iterations=3", "--set", "init_points=1000", "--set",
+                           "num_control_points=32"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "the recording has no events: training without the event branch" in done.stdout + done.stderr
+    lean = read_checkpoint(ckpt)["meta"]["lean"]
+    assert lean["event_branch"]["value"] is False
     return ckpt
 
 
