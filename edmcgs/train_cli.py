@@ -145,10 +145,12 @@ def _run(args) -> int:
     history = trainer.fit(out)
     if args.history:
         write_history_csv(history, args.history)
-    rows = evaluate(trainer.model, data)
-    summary = summarize(rows)
-    print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB, {len(trainer.model.gaussians)} Gaussians); "
-          f"held-out PSNR {summary['psnr']:.2f} dB, SSIM {summary['ssim']:.4f} "
+    written = f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB, {len(trainer.model.gaussians)} Gaussians)"
+    if not data.evaluable().size:
+        print(f"{written}; the recording has no held-out frames to score it on")
+        return 0
+    summary = summarize(evaluate(trainer.model, data))
+    print(f"{written}; held-out PSNR {summary['psnr']:.2f} dB, SSIM {summary['ssim']:.4f} "
           f"over {summary['frames']} frames")
     return 0
 

@@ -289,6 +289,9 @@ class EdMCGS(nn.Module):
             with torch.no_grad():
                 mask = None
                 if frozen and self.meta.frozen is not None:
+                    if len(self.meta.frozen) != cp.num_points:
+                        raise InvalidInputError(f"meta.frozen marks {len(self.meta.frozen)} control points, "
+                                                f"the model has {cp.num_points}")
                     mask = torch.as_tensor(self.meta.frozen, dtype=torch.bool, device=cp.positions.device)
                 canonical = GaussianState(g.means, g.quats, g.scales(), g.opacities(), g.colors())
                 plan = self._plans[frozen] = build_plan(canonical, cp.bind, cp.weights(g.means), mask, key)
@@ -314,14 +317,14 @@ class EdMCGS(nn.Module):
                 from edmcgs.model.rasterize_fast import rasterize_fast
 
                 arrays = [t.detach().cpu().numpy() for t in _fields(state)]
-                threads = torch.get_num_threads()
+                torch_threads = torch.get_num_threads()
                 try:
                     out = rasterize_fast(*arrays, w2c.astype(np.float32), intrinsics, background=bg,
                                          threads=threads)
                 finally:
                     # numba's OpenMP layer sets the process-wide OpenMP thread count, which is also
                     # torch's; put back what the caller chose.
-                    torch.set_num_threads(threads)
+                    torch.set_num_threads(torch_threads)
                 image = np.asarray(out.image, dtype=np.float32)
             else:
                 dev = state.means.device

@@ -4,12 +4,14 @@ grey, no event branch), decided from the data, recorded, and bounded in the erro
 import math
 
 import numpy as np
+import pytest
 import torch
 from edmcgs.model import leanness
 from edmcgs.model.camera import world_to_camera
 from edmcgs.model.checkpoint import VERSION, load_checkpoint, read_checkpoint, save_checkpoint
 from edmcgs.synth.orbit import look_at
 
+from edmcgs.errors import InvalidInputError
 from tests.model import tiny_scene
 from tests.model.test_model import TINY, build, randomize_event_branch
 from tests.model.test_skin_plan import perturb_prior
@@ -33,6 +35,10 @@ def test_a_final_checkpoint_records_frozen_points_and_one_static_pose(tmp_path):
     # mid-training checkpoints freeze nothing (the motion is still being learned)
     save_checkpoint(model, tmp_path / "mid.ckpt", train_state={"step": 1})
     assert load_checkpoint(tmp_path / "mid.ckpt").meta.frozen is None
+    # a mask for another set of control points is refused, not applied to the wrong points
+    loaded.meta.frozen = loaded.meta.frozen[:-1]
+    with pytest.raises(InvalidInputError, match="frozen marks"):
+        loaded.deform(t)
 
 
 def test_version_1_files_load_with_nothing_frozen(tmp_path):

@@ -123,6 +123,11 @@ def test_render_shapes_and_range():
         assert img.shape == (tiny_scene.H, tiny_scene.W, 3) and img.dtype == np.float32
         assert np.isfinite(img).all() and img.min() >= 0 and img.max() <= 1
     assert torch.get_num_threads() == 1  # numba's OpenMP must not leave torch's thread count changed
+    # the caller's thread count reaches the rasterizer (a count it cannot run is refused there)
+    assert np.array_equal(model.render(state, np.eye(4), model.meta.intrinsics, threads=1), img)
+    with pytest.raises(InvalidInputError, match="threads"):
+        model.render(state, np.eye(4), model.meta.intrinsics, threads=10_000)
+    assert torch.get_num_threads() == 1
     small = model.meta.intrinsics.scaled(24, 16)
     assert model.render(state, np.eye(4), small, background=1.0).shape == (16, 24, 3)
     # the untrained model already looks like its first anchor (pixels lifted at their colours)
