@@ -1,5 +1,5 @@
 """What one run of ``python -m bench.report`` covers: the small default (minutes on a 2-core CPU) and
-``--full`` (the paper's grid: four scenes at 5 and 10 fps, every ablation, the demo preset's length)."""
+``--full`` (the paper's grid: four scenes at 5 and 10 fps, every ablation, 3000 steps per run)."""
 
 from __future__ import annotations
 
@@ -72,4 +72,5 @@ FULL = ReportSettings(
     size="small", duration_s=None, held_out_per_interval=4, dt_min_us=250, dt_max_us=4000, preset="demo",
     iterations=3000, train_scale=None, curve_points=10, render_scales=(0.25, 0.5, 1.0, 2.0),
     render_repeats=9, sparse_fps=(1.0, 2.0), precision_scenes=4)
-"""The paper's grid (4 scenes x 2 rates x 5 variants) at the demo preset's 3000 steps: hours on a CPU."""
+"""The paper's grid (4 scenes x 2 rates x 5 variants), the demo preset at 3000 steps (twice its own): hours
+on a CPU."""

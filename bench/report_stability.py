@@ -36,7 +36,7 @@ TEST_CASES = [
      "tests/stability/test_event_windows.py::test_empty_window_between_anchors_adds_exactly_nothing"),
     ("10^7-event burst", "I_E equals the int64 bincount per pixel; deform finite; renders in [0, 1]",
      "tests/stability/test_event_windows.py::test_a_burst_of_ten_million_events_sums_exactly_and_deforms_finite"),
-    ("hot pixels only", "finite; only control points within Phi's 23-px field of a hot pixel move; "
+    ("hot pixels only", "finite; only control points within Phi's receptive field of a hot pixel move; "
      "training on noise-only windows stays finite", "tests/stability/test_event_windows.py"),
     ("saturated frames", "simulator: black <-> white frames give finite events",
      "tests/synth/test_esim.py::test_saturated_black_and_white_frames_stay_finite"),

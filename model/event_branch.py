@@ -3,8 +3,8 @@
 Exact zero for an empty window is structural, not learned: Phi has no biases (Phi(0) = 0, so every
 motion code of an all-zero map is 0) and the transition is g(gamma(mu), m) - g(gamma(mu), 0), which
 vanishes whenever m = 0 however g was trained. ``EdMCGS`` also skips the branch for an all-zero map.
-With local sampling, a control point whose neighbourhood (Phi's 23-px receptive field) saw no event
-gets an exactly zero displacement too.
+With local sampling, a control point whose neighbourhood (Phi's receptive field, ``FIELD`` x ``pool``
+event-camera pixels) saw no event gets an exactly zero displacement too.
 """
 
 import torch
@@ -14,6 +14,8 @@ from torch import Tensor, nn
 
 FEATURES = 32
 """Channels of Phi's output (the motion code's width)."""
+FIELD = 7 + 4 * 2 + 2 * 4
+"""Phi's receptive field in pixels of the map it reads (23)."""
 
 
 def saturate(log_change: Tensor, limit: float) -> Tensor:
@@ -31,12 +33,14 @@ class EventEncoder(nn.Module):
     """Phi: Conv(1->16, k7, s2) ReLU Conv(16->32, k5, s2) ReLU Conv(32->32, k3, s1), bias-free.
 
     A 32-channel map at a quarter of the input resolution, receptive field 7 + 4*2 + 2*4 = 23 px.
-    The input is saturated first (``saturate``), so the output is bounded in the event count.
+    The input is saturated first (``saturate``), so the output is bounded in the event count; with
+    ``pool`` > 1 it is then averaged over pool x pool blocks (a field of 23 x pool pixels, no new weights).
     """
 
-    def __init__(self, *, limit: float):
+    def __init__(self, *, limit: float, pool: int = 1):
         super().__init__()
         self.limit = float(limit)
+        self.pool = int(pool)
         self.conv1 = nn.Conv2d(1, 16, 7, stride=2, padding=3, bias=False)
         self.conv2 = nn.Conv2d(16, 32, 5, stride=2, padding=2, bias=False)
         self.conv3 = nn.Conv2d(32, FEATURES, 3, stride=1, padding=1, bias=False)
@@ -45,7 +49,10 @@ class EventEncoder(nn.Module):
         """event_map: Tensor  # [B, 1, H, W] float32 (C times the signed polarity sum)
         returns Tensor  # [B, 32, ceil(H/4), ceil(W/4)]
         """
-        h = torch.relu(self.conv1(saturate(event_map, self.limit)))
+        x = saturate(event_map, self.limit)
+        if self.pool > 1:  # a pool-times wider receptive field; the mean keeps zero and the bound
+            x = F.avg_pool2d(x, self.pool, ceil_mode=True)
+        h = torch.relu(self.conv1(x))
         h = torch.relu(self.conv2(h))
         return self.conv3(h)
 

@@ -106,6 +106,22 @@ def test_event_encoder_shapes_and_zero_in_zero_out():
     assert torch.equal(enc(torch.zeros(1, 1, 260, 346)), torch.zeros(1, 32, 65, 87))
 
 
+def test_pooled_event_encoder_widens_its_field_and_keeps_zero_exact():
+    torch.manual_seed(0)
+    full, pooled = EventEncoder(limit=6.9), EventEncoder(limit=6.9, pool=4)
+    pooled.load_state_dict(full.state_dict())  # pooling adds no parameter
+    assert pooled(torch.randn(1, 1, 130, 173)).shape == (1, 32, 9, 11)  # ceil(ceil(130 / 4) / 4) ...
+    assert torch.equal(pooled(torch.zeros(1, 1, 130, 173)), torch.zeros(1, 32, 9, 11))
+    one = torch.zeros(1, 1, 128, 128)
+    one[0, 0, 64, 64] = 0.2  # a single event
+    # event-camera pixels whose output cell sees it: Phi's 23-px field is 4x wider once pooled
+    reach = {enc.pool: int(enc(one)[0].abs().sum(0).gt(0).sum()) * (4 * enc.pool) ** 2
+             for enc in (full, pooled)}
+    assert reach[4] > 4 * reach[1]
+    burst = torch.full((1, 1, 64, 64), 0.2 * 1e7)
+    assert torch.equal(pooled(burst), pooled(burst.clamp(max=6.9)))  # bounded in the event count
+
+
 def test_event_encoder_is_bounded_in_the_event_count():
     enc = EventEncoder(limit=6.9)
     burst = torch.zeros(1, 1, 40, 40)

@@ -8,6 +8,7 @@ import torch
 from edmcgs.model.checkpoint import FORMAT, VERSION, load_checkpoint, read_checkpoint, save_checkpoint
 from edmcgs.model.config import preset
 from edmcgs.model.edmcgs import EdMCGS
+from edmcgs.model.event_branch import FIELD
 from edmcgs.model.trainer import Trainer
 
 from edmcgs.errors import CheckpointError, InvalidInputError
@@ -80,7 +81,7 @@ def test_empty_window_at_an_anchor_is_exactly_the_anchor_state():
 
 
 def test_event_branch_is_local():
-    model, _ = build()
+    model, _ = build(TINY.replace(event_pool=1))  # a 23-px field: local within this 48x32 image
     randomize_event_branch(model)
     t = tiny_scene.T0 + 50_000
     cp = model.control.positions
@@ -89,7 +90,7 @@ def test_event_branch_is_local():
     trans_ev, _, disp = model.control_motion(0.25, emap, torch.eye(4))
     from edmcgs.model.camera import project
     uv, _ = project(cp, torch.eye(4), model.meta.intrinsics)
-    far = (uv[:, 0] > 6 + 24) | (uv[:, 1] > 6 + 24)  # beyond Phi's 23-px receptive field
+    far = (uv[:, 0] > 6 + FIELD + 1) | (uv[:, 1] > 6 + FIELD + 1)  # beyond Phi's receptive field
     assert far.any() and (~far).any()
     assert torch.equal(disp[far], torch.zeros_like(disp[far]))
     assert (disp[~far].abs().sum(1) > 0).any()
