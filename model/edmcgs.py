@@ -96,7 +96,7 @@ class EdMCGS(nn.Module):
                                       pos_freqs=config.pos_freqs, time_freqs=config.time_freqs)
         if config.has_event_branch:
             # The largest log-luminance change of a pixel with I in [0, 1]: log(1 + eps) - log(eps).
-            self.encoder = EventEncoder(limit=math.log1p(1.0 / config.log_eps))
+            self.encoder = EventEncoder(limit=math.log1p(1.0 / config.log_eps), pool=config.event_pool)
             self.transition = EventTransition(pos_freqs=config.event_pos_freqs, hidden=config.event_hidden)
         else:
             self.encoder = None
@@ -334,7 +334,10 @@ class EdMCGS(nn.Module):
             raise
         except (RuntimeError, ValueError) as exc:
             raise RenderError(f"rendering failed: {exc}") from exc
-        return np.clip(np.nan_to_num(image, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0).astype(np.float32)
+        image = image.astype(np.float32, copy=False)
+        if not np.isfinite(image).all():  # checked first: nan_to_num costs 10x the check
+            image = np.nan_to_num(image, nan=0.0, posinf=1.0, neginf=0.0)
+        return np.clip(image, 0.0, 1.0, out=image)
 
     def _background(self, background) -> np.ndarray:
         c = self.meta.channels

@@ -9,8 +9,10 @@ from PIL import Image
 
 
 def to_uint8(image: np.ndarray) -> np.ndarray:
-    """float [H, W, C] in [0, 1] (C = 1 or 3) -> uint8 [H, W, C], rounded; NaN -> 0."""
-    return np.clip(np.nan_to_num(image, nan=0.0) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    """float [H, W, C] in [0, 1] (C = 1 or 3) -> uint8 [H, W, C], rounded; NaN -> 0, +-Inf -> 255 / 0."""
+    if not np.isfinite(image).all():
+        image = np.nan_to_num(image, nan=0.0, posinf=1.0, neginf=0.0)
+    return np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 
 def encode(pixels: np.ndarray, fmt: str, *, jpeg_quality: int = 90, png_compress_level: int = 1) -> bytes:

@@ -5,8 +5,10 @@ from __future__ import annotations
 import threading
 import time
 
+import numpy as np
 import pytest
 from edmcgs.clients import protocol
+from edmcgs.server.encode import to_uint8
 from edmcgs.server.metrics import CallbackCounter, Counter, Gauge, Histogram, Registry
 from edmcgs.server.state_cache import StateCache
 from edmcgs.server.timeline import Timeline
@@ -152,3 +154,11 @@ def test_head_signal_wakes_waiters_from_another_thread():
 
     woke, timed_out = asyncio.run(scenario())
     assert woke < 2.0 and 0.04 < timed_out < 2.0
+
+
+def test_to_uint8_rounds_clips_and_zeroes_non_finite_pixels():
+    img = np.array([[[0.0, 0.5, 1.0], [np.nan, np.inf, -np.inf]], [[-0.2, 1.7, 0.999], [2e-3, 0.1, 0.9]]],
+                   np.float32)
+    out = to_uint8(img)
+    assert out.dtype == np.uint8
+    assert out.tolist() == [[[0, 128, 255], [0, 255, 0]], [[0, 255, 255], [1, 26, 230]]]
