@@ -33,8 +33,9 @@ def _overrides(switches: dict, iterations: int, train_scale: float | None) -> li
     return items + [f"{k}={str(v).lower()}" for k, v in switches.items()]
 
 
-def run_key(rec_key: str, overrides: list[str], preset: str, device: str, lpips: bool) -> str:
-    blob = json.dumps([rec_key, preset, overrides, device, torch.get_num_threads(), torch.__version__]
+def run_key(rec_key: str, config: dict, device: str, lpips: bool) -> str:
+    # The resolved config, not the preset's name: a retuned preset must not reuse an older run.
+    blob = json.dumps([rec_key, config, device, torch.get_num_threads(), torch.__version__]
                       + (["lpips"] if lpips else []))
     return hashlib.sha1(blob.encode()).hexdigest()[:12]
 
@@ -45,13 +46,13 @@ def train_run(rec: Recording, rec_key: str, switches: dict, *, preset: str, iter
     """Train one variant; returns {curve, psnr, ssim, lpips, frames, train_seconds, ..., checkpoint}
     (cached). LPIPS is scored at the end when ``lpips`` is given (else None)."""
     overrides = _overrides(switches, iterations, train_scale)
-    key = run_key(rec_key, overrides, preset, device, lpips is not None)
+    cfg = build_config(preset, overrides, rec)
+    key = run_key(rec_key, cfg.to_dict(), device, lpips is not None)
     result_path, ckpt_path = cache / f"{key}.json", cache / f"{key}.ckpt"
     if result_path.exists() and ckpt_path.exists():
         return json.loads(result_path.read_text()) | {"cached": True}
     cache.mkdir(parents=True, exist_ok=True)
     data = training_data(rec)
-    cfg = build_config(preset, overrides, rec)
     model = EdMCGS.from_arrays(anchors_t_us=data.anchors_t_us, anchor_images=data.anchor_images,
                                intrinsics=data.intrinsics, anchor_poses=data.anchor_poses,
                                t_end_us=data.t_end_us, trajectory=data.trajectory, event_size=data.event_size,
