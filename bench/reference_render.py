@@ -112,3 +112,10 @@ def render(means, quats, scales, opacities, colors, w2c, fx, fy, cx, cy, width, 
     alpha_img = 1 - T
     depth = np.where(alpha_img > 0, dep / np.where(alpha_img > 0, alpha_img, 1), 0.0)
     return acc + T[..., None] * bg, alpha_img, depth
+
+
+def render_camera(arrays, w2c, intrinsics, **kwargs):
+    """``render`` of the five Gaussian arrays (means, quats, scales, opacities, colors) seen by a camera
+    with ``intrinsics`` (anything with fx, fy, cx, cy, width, height)."""
+    k = intrinsics
+    return render(*arrays, w2c, k.fx, k.fy, k.cx, k.cy, k.width, k.height, **kwargs)

@@ -85,7 +85,6 @@ def state_arrays(state) -> list[np.ndarray]:
 def render_sweep(model: EdMCGS, rec: Recording, *, scales: tuple[float, ...], repeats: int,
                  progress: bool = True) -> tuple[list[dict], dict]:
     """(rows, context): one row per knob setting; context names the frame and the baselines."""
-    render_ref = reference_render.render
     data = training_data(rec)
     i = pick_frame(model, data)
     t_us = int(data.held_out_t_us[i])
@@ -120,8 +119,7 @@ def render_sweep(model: EdMCGS, rec: Recording, *, scales: tuple[float, ...], re
 
     def truth(k):
         if k.width not in refs:
-            refs[k.width] = render_ref(*arrays, w2c64, k.fx, k.fy, k.cx, k.cy, k.width, k.height,
-                                       background=bg)[0]
+            refs[k.width] = reference_render.render_camera(arrays, w2c64, k, background=bg)[0]
             gt = rasterize_fast(gt_cloud.means, gt_cloud.quats, gt_cloud.scales, gt_cloud.opacities,
                                 gt_cloud.colors, w2c, k, background=np.asarray(scene.background, np.float32))
             gts[k.width] = np.clip(gt.image, 0.0, 1.0)

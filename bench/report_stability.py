@@ -206,8 +206,7 @@ def pose_rows(model: EdMCGS, rec: Recording) -> list[dict]:
                       ("orbited 89 degrees about the scene's centre (grazing)", orbit)):
         w2c = world_to_camera(c2w)
         fast, slow = (_raw_render(state, w2c, k, bg, fast=f) for f in (True, False))
-        ref = reference_render.render(*state_arrays(state), w2c, k.fx, k.fy, k.cx, k.cy, k.width, k.height,
-                                      background=bg)[0]
+        ref = reference_render.render_camera(state_arrays(state), w2c, k, background=bg)[0]
         ok = all(np.isfinite(img).all() and img.min() >= -1e-6 and img.max() <= 1 + 1e-6
                  for img in (fast, slow))
         errs = [float(np.abs(img - ref).max()) for img in (fast, slow)]
@@ -220,7 +219,6 @@ def pose_rows(model: EdMCGS, rec: Recording) -> list[dict]:
 
 def precision_rows(scenes: list[str], size: str, *, t_s: float = 0.5) -> list[dict]:
     """float32 renders (numba, torch) of each scene's own Gaussians against the float64 reference."""
-    render_ref = reference_render.render
     rows = []
     for name in scenes:
         scene = make_scene(name, size)
@@ -228,8 +226,8 @@ def precision_rows(scenes: list[str], size: str, *, t_s: float = 0.5) -> list[di
         arrays = [np.asarray(a) for a in (g.means, g.quats, g.scales, g.opacities, g.colors)]
         w2c, k = world_to_camera(scene.camera_at(t_s)), scene.intrinsics
         bg = np.asarray(scene.background)
-        refs = {t_min: render_ref(*arrays, w2c, k.fx, k.fy, k.cx, k.cy, k.width, k.height, background=bg,
-                                  t_min=t_min)[0] for t_min in (1e-4, 0.0)}
+        refs = {t_min: reference_render.render_camera(arrays, w2c, k, background=bg, t_min=t_min)[0]
+                for t_min in (1e-4, 0.0)}
         cells = []
         ok = True
         for t_min, ref in refs.items():

@@ -256,7 +256,7 @@ def _demo() -> EdmcgsConfig:
     # (0.05) through 25.7 (0.2) and 26.1 (0.5) to 26.7 dB (1.0), then flattens (26.8 at 2.0) while
     # the anchors lose 2.5 dB. Phi reads I_E pooled 4x4: its 23-px receptive field then spans 92 px of the
     # event camera, the scale of a limb's path between anchors (held-out PSNR 26.66 -> 27.37 at 2x2 ->
-    # 27.53 dB at 4x4; its convolutions cost 16x less).
+    # 27.53 dB at 4x4), and Phi runs in 0.38 instead of 1.23 ms on a 173x130 map (one thread).
     return EdmcgsConfig(
         init_points=3000, max_gaussians=30000, num_control_points=256, deform_width=128, deform_depth=4,
         iterations=1500, train_scale=1.0, event_render_scale=0.5, eval_every=500, checkpoint_every=500,

@@ -325,7 +325,7 @@ class EdMCGS(nn.Module):
                     # numba's OpenMP layer sets the process-wide OpenMP thread count, which is also
                     # torch's; put back what the caller chose.
                     torch.set_num_threads(torch_threads)
-                image = np.asarray(out.image, dtype=np.float32)
+                image = out.image
             else:
                 dev = state.means.device
                 image = render_image(state, torch.as_tensor(w2c, dtype=torch.float32, device=dev), intrinsics,

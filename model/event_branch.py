@@ -32,7 +32,7 @@ def saturate(log_change: Tensor, limit: float) -> Tensor:
 class EventEncoder(nn.Module):
     """Phi: Conv(1->16, k7, s2) ReLU Conv(16->32, k5, s2) ReLU Conv(32->32, k3, s1), bias-free.
 
-    A 32-channel map at a quarter of the input resolution, receptive field 7 + 4*2 + 2*4 = 23 px.
+    A 32-channel map at a quarter of the input resolution, receptive field ``FIELD`` = 23 px.
     The input is saturated first (``saturate``), so the output is bounded in the event count; with
     ``pool`` > 1 it is then averaged over pool x pool blocks (a field of 23 x pool pixels, no new weights).
     """
