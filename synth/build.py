@@ -171,7 +171,8 @@ def build_recording(config: BuildConfig, *, progress: bool = True) -> Recording:
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="edmcgs synth", description=(
         "Build a synthetic dynamic scene with simulated events, sparse RGB anchors and held-out "
-        "ground-truth frames, as an HDF5 recording."))
+        "ground-truth frames, as an HDF5 recording. `edmcgs synth traffic|traffic-pan --help`: the "
+        "composited street scene, a DAVIS346-like recording."))
     p.add_argument("scene", choices=SCENES)
     p.add_argument("--fps", type=float, default=5.0, help="anchor frame rate (the paper: 5 or 10; default 5)")
     p.add_argument("-o", "--output", type=Path, help="output file (default: SCENE_FPSfps_SIZE.h5)")
@@ -197,6 +198,11 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in ("traffic", "traffic-pan"):  # composited, not Gaussians: its own builder
+        from edmcgs.synth.traffic_build import main as traffic_main
+
+        return traffic_main(argv)
     args = _parser().parse_args(argv)
     try:
         simulator = SimulatorConfig(contrast_threshold=args.contrast_threshold,

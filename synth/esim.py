@@ -50,6 +50,12 @@ class SimulatorConfig:
     noise_rate_hz: float = 0.0
     """Background activity per pixel, events per second: Poisson in time, uniform over pixels, random
     polarity, independent of the signal (it does not move the reference)."""
+    hot_pixel_fraction: float = 0.0
+    """Fraction of the pixels that are hot: ``round(fraction * H * W)`` distinct pixels, drawn once at
+    the first reset, each firing at ``hot_pixel_rate_hz`` on top of everything else."""
+    hot_pixel_rate_hz: float = 0.0
+    """Events per second of each hot pixel: Poisson in time, random polarity, independent of the signal
+    and of the refractory period (like the background activity, a leak that never moves the reference)."""
     eps: float = 1e-3
     """L = log(I + eps) with I the luminance in [0, 1]; keeps black pixels finite."""
     seed: int = 0
@@ -62,6 +68,9 @@ class SimulatorConfig:
             "min_threshold": math.isfinite(self.min_threshold) and self.min_threshold > 0,
             "refractory_us": int(self.refractory_us) == self.refractory_us and self.refractory_us >= 0,
             "noise_rate_hz": math.isfinite(self.noise_rate_hz) and self.noise_rate_hz >= 0,
+            "hot_pixel_fraction": (math.isfinite(self.hot_pixel_fraction)
+                                   and 0 <= self.hot_pixel_fraction <= 1),
+            "hot_pixel_rate_hz": math.isfinite(self.hot_pixel_rate_hz) and self.hot_pixel_rate_hz >= 0,
             "eps": math.isfinite(self.eps) and self.eps > 0,
             "seed": int(self.seed) == self.seed and self.seed >= 0,
         }
@@ -302,9 +311,12 @@ class EventSimulator:
         self.config = config or SimulatorConfig()
         self._log_pass, self._count_pass, self._emit_pass = _PASSES[bool(parallel)]
         self.parallel = bool(parallel)
-        seeds = np.random.SeedSequence(self.config.seed).spawn(2)
+        # a third stream for the hot pixels: spawn(3)[:2] == spawn(2), so the other draws do not change
+        seeds = np.random.SeedSequence(self.config.seed).spawn(3)
         self._mismatch_rng = np.random.default_rng(seeds[0])
         self._noise_rng = np.random.default_rng(seeds[1])
+        self._hot_rng = np.random.default_rng(seeds[2])
+        self._hot = np.zeros(0, np.int64)
         self._t_us: int | None = None
         self._l: np.ndarray | None = None
 
@@ -334,6 +346,14 @@ class EventSimulator:
             raise InvalidInputError("the simulator has no frame yet: call reset(t_us, image) first")
         return self._cp, self._cn
 
+    @property
+    def hot_pixels(self) -> tuple[np.ndarray, np.ndarray]:
+        """(y, x) of the hot pixels, int64 [K] each, sorted by y * W + x."""
+        if self._l is None:
+            raise InvalidInputError("the simulator has no frame yet: call reset(t_us, image) first")
+        w = self._l.shape[1]
+        return self._hot // w, self._hot % w
+
     def reset(self, t_us: int, image: np.ndarray) -> None:
         """Start at ``t_us`` with every reference set to this frame's L (the first frame fires nothing).
 
@@ -354,6 +374,9 @@ class EventSimulator:
             else:
                 draw = np.full((2, h, w), c)
             self._cp, self._cn = np.ascontiguousarray(draw[0]), np.ascontiguousarray(draw[1])
+            n_hot = round(self.config.hot_pixel_fraction * h * w)
+            self._hot = np.sort(self._hot_rng.choice(h * w, size=n_hot, replace=False)) if n_hot else \
+                np.zeros(0, np.int64)
         self._l = log_lum.copy()
         self._ref = log_lum.copy()
         self._last = np.full((h, w), _NEVER, np.int64)
@@ -385,9 +408,21 @@ class EventSimulator:
         self._t_us = t_us
         if self.config.noise_rate_hz > 0:
             t, x, y, p = self._add_noise(t0, dt, t, x, y, p)
+        if len(self._hot) and self.config.hot_pixel_rate_hz > 0:
+            t, x, y, p = self._add_hot(t0, dt, t, x, y, p)
         # rows come out one after the other: merge them by time (stable, so ties keep (y, x) order)
         order = _time_order(t, t0, dt) if dt <= 8 * n + 4096 else np.argsort(t, kind="stable")
         return Events(t=t[order], x=x[order], y=y[order], p=p[order])
+
+    def _add_hot(self, t0, dt, t, x, y, p):
+        rng, w = self._hot_rng, self._l.shape[1]
+        counts = rng.poisson(self.config.hot_pixel_rate_hz * dt * 1e-6, size=len(self._hot))
+        idx = np.repeat(self._hot, counts)
+        n = len(idx)
+        th = t0 + rng.integers(1, dt + 1, size=n, dtype=np.int64)
+        ph = np.where(rng.random(n) < 0.5, 1, -1).astype(np.int8)
+        return (np.concatenate([t, th]), np.concatenate([x, (idx % w).astype(np.uint16)]),
+                np.concatenate([y, (idx // w).astype(np.uint16)]), np.concatenate([p, ph]))
 
     def _add_noise(self, t0, dt, t, x, y, p):
         h, w = self._l.shape

@@ -1,7 +1,10 @@
 """The event simulator against the event generation model, and its options."""
 
+import math
+
 import numpy as np
 import pytest
+from edmcgs.sensor.events import Events
 from edmcgs.synth.esim import (
     AdaptiveSampling,
     EventSimulator,
@@ -202,3 +205,56 @@ def test_parallel_passes_give_the_same_events():
     for t1, frame in zip(t[1:], frames[1:], strict=True):
         assert serial.step(int(t1), frame) == parallel.step(int(t1), frame)
     np.testing.assert_array_equal(log_luminance(frames[3], EPS), log_luminance(frames[3], EPS, parallel=True))
+
+
+def _flat_run(config, h=40, w=50, seconds=1.0, step_us=10_000):
+    """Events of a constant grey scene (no signal: only noise and hot pixels fire)."""
+    sim = EventSimulator(config)
+    frame = np.full((h, w), 0.4)
+    sim.reset(0, frame)
+    ev = [sim.step(t, frame) for t in range(step_us, round(seconds * 1e6) + 1, step_us)]
+    return sim, Events.concat(ev)
+
+
+def test_hot_pixels_fire_at_their_rate_and_only_there():
+    config = SimulatorConfig(hot_pixel_fraction=0.01, hot_pixel_rate_hz=200.0, seed=4)
+    sim, ev = _flat_run(config, seconds=2.0)
+    ys, xs = sim.hot_pixels
+    assert len(ys) == 20 and len(set(zip(ys.tolist(), xs.tolist(), strict=True))) == 20
+    counts = np.zeros((40, 50), int)
+    np.add.at(counts, (ev.y, ev.x), 1)
+    hot = np.zeros((40, 50), bool)
+    hot[ys, xs] = True
+    assert counts[~hot].sum() == 0
+    rate = counts[hot] / 2.0  # per pixel per second; each ~ Poisson(400) over 2 s
+    assert abs(rate.mean() - 200.0) < 5 * math.sqrt(400 / 20) / 2.0 and rate.min() > 120
+    assert np.all(np.diff(ev.t) >= 0) and set(np.unique(ev.p).tolist()) == {-1, 1}
+    assert abs(np.mean(ev.p == 1) - 0.5) < 0.05
+    # the same seed picks the same pixels; the default has none
+    again, _ = _flat_run(config, seconds=0.02)
+    np.testing.assert_array_equal(again.hot_pixels[0], ys)
+    assert len(_flat_run(SimulatorConfig(), seconds=0.02)[0].hot_pixels[0]) == 0
+
+
+def test_background_noise_has_its_rate_uniformly():
+    sim, ev = _flat_run(SimulatorConfig(noise_rate_hz=5.0, seed=1), seconds=1.0)
+    expected = 5.0 * 40 * 50  # 10k
+    assert abs(len(ev) - expected) < 5 * math.sqrt(expected)
+    per_row = np.bincount(ev.y, minlength=40)
+    assert per_row.min() > 0.6 * expected / 40 and per_row.max() < 1.4 * expected / 40
+    assert len(sim.hot_pixels[0]) == 0
+
+
+def test_hot_pixels_do_not_change_the_signal_events():
+    t, frames = _random_walk_frames(n=10, h=8, w=9, seed=2)
+    base = SimulatorConfig(threshold_sigma=0.03, noise_rate_hz=3.0, seed=5)
+    plain = simulate_frames(t, frames, base)
+    hot = simulate_frames(t, frames, SimulatorConfig(**(base.to_metadata() | {
+        "hot_pixel_fraction": 0.05, "hot_pixel_rate_hz": 500.0})))
+    sim = EventSimulator(SimulatorConfig(hot_pixel_fraction=0.05, seed=5))
+    sim.reset(0, frames[0])
+    ys, xs = sim.hot_pixels
+    keep = ~np.isin(hot.y.astype(int) * 9 + hot.x, ys * 9 + xs)
+    keep_plain = ~np.isin(plain.y.astype(int) * 9 + plain.x, ys * 9 + xs)
+    np.testing.assert_array_equal(np.sort(hot.t[keep]), np.sort(plain.t[keep_plain]))
+    assert len(hot) > len(plain)
