@@ -35,7 +35,7 @@ FIELDS = ("means", "quats", "scales", "opacities", "colors")
 
 
 def _scene(n: int, width: int, height: int):
-    from bench.scenes import random_scene
+    from tests.support.scenes import random_scene
 
     scene = random_scene(n, 346, 260, seed=n, sh_degree=3, px_sigma=(0.7, 4.0), margin=0.0)
     scene["intrinsics"] = scene["intrinsics"].scaled(width, height)
@@ -63,14 +63,14 @@ def measure(path: str, width: int, height: int, n: int, runs: int, threads: int 
         numba.set_num_threads(threads)
     scene = _scene(n, width, height)
     if path == "fast":
-        from edmcgs.model.rasterize_fast import rasterize_fast
+        from edmcgs.model.render.rasterize_fast import rasterize_fast
 
         arrays = [scene[k].astype(np.float32) for k in FIELDS]
 
         def step():
             rasterize_fast(*arrays, scene["w2c"], scene["intrinsics"])
     else:
-        from edmcgs.model.rasterize import rasterize
+        from edmcgs.model.render.rasterize import rasterize
 
         params = [torch.tensor(scene[k], dtype=torch.float32, requires_grad=True) for k in FIELDS]
 

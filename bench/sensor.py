@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.events import Events
-from edmcgs.sensor.hdf5_replay import Hdf5Replay
-from edmcgs.sensor.pacing import Pacing
-from edmcgs.sensor.recording import RecordingWriter
-from edmcgs.sensor.ring import BYTES_PER_EVENT, EventRingBuffer
+from edmcgs.sensor.sources.hdf5 import Hdf5Replay
+from edmcgs.sensor.sources.pacing import Pacing
+from edmcgs.sensor.files.recording import RecordingWriter
+from edmcgs.sensor.buffer.ring import BYTES_PER_EVENT, EventRingBuffer
 from tqdm import tqdm
 
 from bench.results import table, write_json

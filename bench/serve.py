@@ -61,13 +61,13 @@ def build_scene(folder: str | os.PathLike, *, width: int = 346, height: int = 26
     along x, events are uniform in space and time at ``event_rate`` per second with random polarity;
     times are Unix-like µs from ``t0_us`` (exercising the int64 clock). Returns (recording, checkpoint).
     """
-    from edmcgs.model.camera import Intrinsics, Trajectory
+    from edmcgs.geometry import Intrinsics, Trajectory
     from edmcgs.model.checkpoint import save_checkpoint
     from edmcgs.model.config import preset
-    from edmcgs.model.edmcgs import EdMCGS
+    from edmcgs.model.dynamic import EdMCGS
     from edmcgs.sensor.events import Events
     from edmcgs.sensor.frames import Frames
-    from edmcgs.sensor.recording import Recording, write_recording
+    from edmcgs.sensor.files.recording import Recording, write_recording
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,6 @@
 """Python client of the edmcgs service: ``Client(base_url, token).render(...)``, ``.stream(...)``.
 
-Imports nothing of the project but the wire schema (``edmcgs.clients.protocol``)::
+Imports nothing of the project but the wire schema (``edmcgs.protocol``)::
 
     with Client("http://127.0.0.1:8000") as c:
         scene = c.scene()
@@ -24,7 +24,7 @@ from urllib.parse import urlsplit, urlunsplit
 
 import httpx
 import numpy as np
-from edmcgs.clients import protocol
+from edmcgs import protocol
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import ClientConnection, connect
 

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
-from edmcgs.clients import protocol
+from edmcgs import protocol
 from edmcgs.clients.client import Client, ServiceError
 from PIL import Image
 from tqdm import tqdm

@@ -10,9 +10,9 @@ import sys
 import numpy as np
 
 from edmcgs.errors import EdmcgsError, InvalidInputError
-from edmcgs.model.lpips import VGG_FILE
-from edmcgs.sensor.recording import read_recording
-from edmcgs.train_cli import training_data
+from edmcgs.model.eval.lpips import VGG_FILE
+from edmcgs.sensor.files.recording import read_recording
+from edmcgs.pipeline import training_data
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -49,8 +49,8 @@ def _run(args) -> int:
     import torch
 
     from edmcgs.model.checkpoint import load_checkpoint
-    from edmcgs.model.evaluation import evaluate, summarize
-    from edmcgs.model.lpips import LPIPS, SKIPPED, find_weights
+    from edmcgs.model.eval.evaluation import evaluate, summarize
+    from edmcgs.model.eval.lpips import LPIPS, SKIPPED, find_weights
 
     if args.threads < 1:
         raise InvalidInputError(f"--threads must be >= 1, got {args.threads}")

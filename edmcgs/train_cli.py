@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 
 from edmcgs.errors import EdmcgsError, InvalidInputError, TrainingError
-from edmcgs.model.camera import Intrinsics, Trajectory
+from edmcgs.geometry import Intrinsics, Trajectory
 from edmcgs.model.config import PRESETS, EdmcgsConfig, preset
-from edmcgs.model.leanness import events_decision
-from edmcgs.model.training_data import TrainingData
+from edmcgs.model.motion.leanness import events_decision
+from edmcgs.model.train.data import TrainingData
 from edmcgs.sensor.event_map import accumulate
-from edmcgs.sensor.recording import Recording, read_recording
+from edmcgs.sensor.files.recording import Recording, read_recording
 
 STRUCTURAL = ("events", "markov", "sh_degree", "num_control_points", "skin_k", "graph_k", "deform_width",
               "deform_depth", "pos_freqs", "time_freqs", "event_pos_freqs", "event_hidden")
@@ -111,9 +111,9 @@ def _run(args) -> int:
     import torch
 
     from edmcgs.model.checkpoint import load_checkpoint, read_checkpoint
-    from edmcgs.model.edmcgs import EdMCGS
-    from edmcgs.model.evaluation import evaluate, summarize
-    from edmcgs.model.trainer import Trainer, write_history_csv
+    from edmcgs.model.dynamic import EdMCGS
+    from edmcgs.model.eval.evaluation import evaluate, summarize
+    from edmcgs.model.train.trainer import Trainer, write_history_csv
 
     if args.threads < 1:
         raise InvalidInputError(f"--threads must be >= 1, got {args.threads}")

@@ -24,7 +24,7 @@ DESCRIPTION = """Renders an EdMCGS dynamic scene at any time and pose while its 
 
 Time: `t` is seconds from the scene's start (`t_start_us` of `GET /scene`), `t_us` absolute microseconds
 on the checkpoint's clock. Poses are camera-to-world, OpenCV convention. The wire schema (headers,
-websocket messages, error bodies) is `edmcgs.clients.protocol`. With `EDMCGS_TOKEN` set, every route
+websocket messages, error bodies) is `edmcgs.protocol`. With `EDMCGS_TOKEN` set, every route
 wants `Authorization: Bearer <token>` (or `?token=`).
 """
 

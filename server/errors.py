@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 
-from edmcgs.clients.protocol import ProtocolError, error_body
+from edmcgs.protocol import ProtocolError, error_body
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse

@@ -17,14 +17,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from edmcgs.clients import protocol
+from edmcgs import protocol
 from edmcgs.model.checkpoint import load_checkpoint
-from edmcgs.sensor.anchors import AnchorStore
-from edmcgs.sensor.ingest import Ingest
-from edmcgs.sensor.open_source import open_source
-from edmcgs.sensor.pacing import Pacing
-from edmcgs.sensor.ring import EventRingBuffer
-from edmcgs.sensor.source import EventSource, SensorBatch
+from edmcgs.sensor.buffer.anchors import AnchorStore
+from edmcgs.sensor.buffer.ingest import Ingest
+from edmcgs.sensor.sources.open import open_source
+from edmcgs.sensor.sources.pacing import Pacing
+from edmcgs.sensor.buffer.ring import EventRingBuffer
+from edmcgs.sensor.sources.base import EventSource, SensorBatch
 from edmcgs.server import demo
 from edmcgs.server.encode import encode
 from edmcgs.server.engine import Engine

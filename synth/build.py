@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.recording import Recording, write_recording
+from edmcgs.sensor.files.recording import Recording, write_recording
 from edmcgs.synth.esim import LUMA_WEIGHTS, AdaptiveSampling, SimulatorConfig, simulate_render
 from edmcgs.synth.scene import SCENES, SIZES, Scene, make_scene, render
 from tqdm import tqdm

@@ -23,10 +23,10 @@ import os
 from pathlib import Path
 
 import numpy as np
-from edmcgs.model.camera import validate_pose
+from edmcgs.geometry import validate_pose
 from edmcgs.sensor.events import Events, EventStats
 from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.recording import Recording
+from edmcgs.sensor.files.recording import Recording
 from PIL import Image
 
 from edmcgs.errors import EdmcgsError, ReplayFormatError

@@ -6,7 +6,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from edmcgs.model.camera import Intrinsics
+from edmcgs.geometry import Intrinsics
 
 from edmcgs.errors import InvalidInputError
 

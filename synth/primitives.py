@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from edmcgs.model.camera import rotmat_to_quat
+from edmcgs.geometry import rotmat_to_quat
 from edmcgs.synth.cloud import Cloud
 
 Texture = Callable[[np.ndarray], np.ndarray]

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
-from edmcgs.model.camera import Intrinsics, world_to_camera
-from edmcgs.model.rasterize_fast import rasterize_fast
+from edmcgs.geometry import Intrinsics, world_to_camera
+from edmcgs.model.render.rasterize_fast import rasterize_fast
 from edmcgs.synth.cloud import Cloud
 from edmcgs.synth.orbit import DAVIS346, Orbit
 

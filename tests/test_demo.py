@@ -3,7 +3,7 @@
 import numpy as np
 from edmcgs.model.checkpoint import load_checkpoint
 from edmcgs.sensor.event_map import accumulate
-from edmcgs.sensor.recording import read_recording
+from edmcgs.sensor.files.recording import read_recording
 from edmcgs.server import demo
 
 

@@ -2,7 +2,7 @@
 
 from edmcgs.model.config import preset
 
-from bench.report_training import run_key
+from bench.report.training import run_key
 
 
 def test_a_run_is_cached_under_its_resolved_config():

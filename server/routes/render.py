@@ -6,8 +6,8 @@ import math
 from functools import partial
 from typing import Literal
 
-from edmcgs.clients import protocol
-from edmcgs.model.camera import parse_pose
+from edmcgs import protocol
+from edmcgs.geometry import parse_pose
 from edmcgs.server.service import Service, invalid
 from fastapi import APIRouter, Header, Query, Request
 from fastapi.responses import Response

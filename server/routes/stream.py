@@ -22,8 +22,8 @@ from collections import deque
 from functools import partial
 
 import numpy as np
-from edmcgs.clients import protocol
-from edmcgs.model.camera import parse_pose
+from edmcgs import protocol
+from edmcgs.geometry import parse_pose
 from edmcgs.server.errors import body_of
 from edmcgs.server.service import Service, invalid
 from fastapi import APIRouter, WebSocket
@@ -234,7 +234,7 @@ class StreamSession:
 
 @router.websocket("/stream")
 async def stream(ws: WebSocket) -> None:
-    """See the module docstring and ``clients/protocol.py`` for the messages."""
+    """See the module docstring and ``edmcgs/protocol.py`` for the messages."""
     service: Service = ws.app.state.service
     await ws.accept()
     service.metrics.stream_clients += 1

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 import torch
-from edmcgs.model.camera import (
+from edmcgs.geometry import (
     Intrinsics,
     Trajectory,
     parse_pose,

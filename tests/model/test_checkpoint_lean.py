@@ -6,13 +6,13 @@ import math
 import numpy as np
 import pytest
 import torch
-from edmcgs.model import leanness
-from edmcgs.model.camera import world_to_camera
+from edmcgs.model.motion import leanness
+from edmcgs.geometry import world_to_camera
 from edmcgs.model.checkpoint import VERSION, load_checkpoint, read_checkpoint, save_checkpoint
 from edmcgs.synth.orbit import look_at
 
 from edmcgs.errors import InvalidInputError
-from tests.model import tiny_scene
+from tests.support import tiny_scene
 from tests.model.test_model import TINY, build, randomize_event_branch
 from tests.model.test_skin_plan import perturb_prior
 

@@ -5,17 +5,17 @@ import math
 import pytest
 import torch
 from edmcgs.model.config import EdmcgsConfig, preset
-from edmcgs.model.control_points import ControlPoints
-from edmcgs.model.deformation import DeformationField
-from edmcgs.model.encoding import encoded_size, positional_encoding
-from edmcgs.model.event_branch import EventEncoder, EventTransition, sample_global, sample_local, saturate
-from edmcgs.model.event_loss import event_loss, log_luminance
-from edmcgs.model.neighbors import farthest_point_sampling, knn
-from edmcgs.model.photometric import photometric_loss
-from edmcgs.model.quaternion import quat_multiply, quat_normalize, quat_to_rotmat
-from edmcgs.model.regularizers import laplacian_smoothness, tli_loss
-from edmcgs.model.skinning import identity_rotations, lbs, skinning_weights
-from edmcgs.model.ssim import ssim
+from edmcgs.model.motion.control_points import ControlPoints
+from edmcgs.model.motion.deformation import DeformationField
+from edmcgs.model.motion.encoding import encoded_size, positional_encoding
+from edmcgs.model.motion.event_branch import EventEncoder, EventTransition, sample_global, sample_local, saturate
+from edmcgs.model.train.losses import event_loss, log_luminance
+from edmcgs.model.motion.neighbors import farthest_point_sampling, knn
+from edmcgs.model.train.losses import photometric_loss
+from edmcgs.geometry import quat_multiply, quat_normalize, quat_to_rotmat
+from edmcgs.model.train.losses import laplacian_smoothness, tli_loss
+from edmcgs.model.motion.skinning import identity_rotations, lbs, skinning_weights
+from edmcgs.model.eval.ssim import ssim
 
 from edmcgs.errors import InvalidInputError
 

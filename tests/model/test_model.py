@@ -7,13 +7,12 @@ import pytest
 import torch
 from edmcgs.model.checkpoint import FORMAT, VERSION, load_checkpoint, read_checkpoint, save_checkpoint
 from edmcgs.model.config import preset
-from edmcgs.model.edmcgs import EdMCGS
-from edmcgs.model.event_branch import FIELD
-from edmcgs.model.trainer import Trainer
+from edmcgs.model.dynamic import EdMCGS
+from edmcgs.model.motion.event_branch import FIELD
+from edmcgs.model.train.trainer import Trainer
 
 from edmcgs.errors import CheckpointError, InvalidInputError
-from tests.model import tiny_scene
-
+from tests.support import tiny_scene
 TINY = preset("demo").replace(init_points=600, num_control_points=32, deform_width=32, deform_depth=2,
                               iterations=40, substeps=4, max_pair_steps=4, eval_every=0, checkpoint_every=0,
                               densify_from=0.2, densify_every=10, densify_until=0.8, train_scale=1.0,
@@ -88,7 +87,7 @@ def test_event_branch_is_local():
     emap = torch.zeros(tiny_scene.H, tiny_scene.W)
     emap[:6, :6] = 2.0  # events in the top-left corner only
     trans_ev, _, disp = model.control_motion(0.25, emap, torch.eye(4))
-    from edmcgs.model.camera import project
+    from edmcgs.geometry import project
     uv, _ = project(cp, torch.eye(4), model.meta.intrinsics)
     far = (uv[:, 0] > 6 + FIELD + 1) | (uv[:, 1] > 6 + FIELD + 1)  # beyond Phi's receptive field
     assert far.any() and (~far).any()

@@ -1,18 +1,18 @@
-"""bench.report_lean on a tiny model: the full twin renders the lean checkpoint's image, and a row states
+"""bench.report.lean on a tiny model: the full twin renders the lean checkpoint's image, and a row states
 what was left out and what that saved, with the error inside the stated bound."""
 
 import math
 
 import numpy as np
 import torch
-from edmcgs.model import leanness
+from edmcgs.model.motion import leanness
 from edmcgs.model.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.recording import Recording
+from edmcgs.sensor.files.recording import Recording
 
-from bench import report_lean
-from tests.model import tiny_scene
+from bench.report import lean as report_lean
+from tests.support import tiny_scene
 from tests.model.test_model import TINY, build, randomize_event_branch
 from tests.model.test_skin_plan import perturb_prior
 

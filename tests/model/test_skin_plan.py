@@ -2,13 +2,13 @@
 
 import numpy as np
 import torch
-from edmcgs.model.camera import world_to_camera
-from edmcgs.model.gaussians import GaussianState
-from edmcgs.model.quaternion import quat_to_rotmat
-from edmcgs.model.skin_plan import _skin_torch, build_plan, skin
-from edmcgs.model.skinning import lbs
+from edmcgs.geometry import world_to_camera
+from edmcgs.model.motion.gaussians import GaussianState
+from edmcgs.geometry import quat_to_rotmat
+from edmcgs.model.motion.skin_plan import _skin_torch, build_plan, skin
+from edmcgs.model.motion.skinning import lbs
 
-from tests.model import tiny_scene
+from tests.support import tiny_scene
 from tests.model.test_model import build, randomize_event_branch
 
 

@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 import torch
-from edmcgs.model import composite
-from edmcgs.model.camera import Intrinsics
-from edmcgs.model.rasterize import rasterize
+from edmcgs.model.render import composite
+from edmcgs.geometry import Intrinsics
+from edmcgs.model.render.rasterize import rasterize
 
-from bench import reference_render as reference
-from bench.scenes import at_camera_depth, random_scene, with_values
+from edmcgs.model.render import reference
+from tests.support.scenes import at_camera_depth, random_scene, with_values
 from edmcgs.errors import InvalidInputError, PoseError
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")

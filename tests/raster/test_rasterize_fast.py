@@ -10,12 +10,12 @@ import numba
 import numpy as np
 import pytest
 import torch
-from edmcgs.model.camera import Intrinsics
-from edmcgs.model.rasterize import rasterize
-from edmcgs.model.rasterize_fast import rasterize_fast
+from edmcgs.geometry import Intrinsics
+from edmcgs.model.render.rasterize import rasterize
+from edmcgs.model.render.rasterize_fast import rasterize_fast
 
-from bench import reference_render as reference
-from bench.scenes import at_camera_depth, random_scene, with_values
+from edmcgs.model.render import reference
+from tests.support.scenes import at_camera_depth, random_scene, with_values
 from edmcgs.errors import InvalidInputError, PoseError
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
@@ -184,7 +184,7 @@ def test_a_new_process_loads_the_kernels_from_the_jit_cache():
     script = (
         "import json, numpy as np\n"
         "from edmcgs.model import rasterize_fast as rf\n"
-        "from edmcgs.model.camera import Intrinsics\n"
+        "from edmcgs.geometry import Intrinsics\n"
         "rf.rasterize_fast(np.zeros((1, 3)) + [0, 0, 2], [[1, 0, 0, 0]], np.full((1, 3), .1), [.5],"
         " np.zeros((1, 9, 3)), np.eye(4), Intrinsics(10., 10., 4., 4., 9, 9))\n"
         "print(json.dumps({k: [sum(f.stats.cache_hits.values()), sum(f.stats.cache_misses.values())]"

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.recording import Recording
+from edmcgs.sensor.files.recording import Recording
 
 DVXPLORER = Path(__file__).resolve().parents[3] / "shared" / "data" / "dvxplorer_person.aedat4"
 

@@ -1,12 +1,12 @@
 import dv_processing as dv
 import numpy as np
 import pytest
-from edmcgs.sensor.aedat import AedatReplay
+from edmcgs.sensor.sources.aedat import AedatReplay
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.open_source import open_source
-from edmcgs.sensor.pacing import Pacer, Pacing
-from edmcgs.sensor.source import EventSource
+from edmcgs.sensor.sources.open import open_source
+from edmcgs.sensor.sources.pacing import Pacer, Pacing
+from edmcgs.sensor.sources.base import EventSource
 
 from edmcgs.errors import InvalidInputError, ReplayFormatError
 

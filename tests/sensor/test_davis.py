@@ -6,13 +6,13 @@ import dv_processing as dv
 import numpy as np
 import pytest
 import usb.core
-from edmcgs.sensor.anchors import AnchorStore
-from edmcgs.sensor.davis import DavisSource
+from edmcgs.sensor.buffer.anchors import AnchorStore
+from edmcgs.sensor.sources.davis import DavisSource
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.ingest import Ingest
-from edmcgs.sensor.open_source import open_source
-from edmcgs.sensor.ring import EventRingBuffer
+from edmcgs.sensor.buffer.ingest import Ingest
+from edmcgs.sensor.sources.open import open_source
+from edmcgs.sensor.buffer.ring import EventRingBuffer
 
 from edmcgs.errors import BackendMissing, DeviceDisconnected, DeviceNotFound, SensorError
 
@@ -156,7 +156,7 @@ def test_ingest_thread_reconnects_and_gives_up_cleanly(monkeypatch, camera_file)
 def test_ingest_replay_to_the_end(camera_file):
     path, ev, frames = camera_file
     ring, anchors = EventRingBuffer(len(ev)), AnchorStore()
-    from edmcgs.sensor.pacing import Pacing
+    from edmcgs.sensor.sources.pacing import Pacing
 
     ingest = Ingest(open_source(path, pacing=Pacing(factor=0)), ring, anchors)
     ingest.run()

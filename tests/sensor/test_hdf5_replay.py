@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.hdf5_replay import Hdf5Replay
-from edmcgs.sensor.open_source import open_source
-from edmcgs.sensor.pacing import Pacing
-from edmcgs.sensor.recording import write_recording
+from edmcgs.sensor.sources.hdf5 import Hdf5Replay
+from edmcgs.sensor.sources.open import open_source
+from edmcgs.sensor.sources.pacing import Pacing
+from edmcgs.sensor.files.recording import write_recording
 
 from edmcgs.errors import InvalidInputError, ReplayFormatError
 

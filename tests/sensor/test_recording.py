@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.recording import (
+from edmcgs.sensor.files.recording import (
     FORMAT_VERSION,
     Recording,
     RecordingFile,
@@ -90,7 +90,7 @@ def test_exception_inside_the_block_leaves_nothing(tmp_path):
 def test_killed_writer_leaves_no_file_that_looks_complete(tmp_path):
     code = f"""
 import os, numpy as np
-from edmcgs.sensor.recording import RecordingWriter
+from edmcgs.sensor.files.recording import RecordingWriter
 from edmcgs.sensor.events import Events
 w = RecordingWriter({str(tmp_path / 'k.h5')!r}, width=8, height=8)
 n = 300_000

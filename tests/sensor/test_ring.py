@@ -3,9 +3,9 @@ import time
 
 import numpy as np
 import pytest
-from edmcgs.sensor.anchors import AnchorStore
+from edmcgs.sensor.buffer.anchors import AnchorStore
 from edmcgs.sensor.events import Events
-from edmcgs.sensor.ring import EventRingBuffer
+from edmcgs.sensor.buffer.ring import EventRingBuffer
 
 from edmcgs.errors import InvalidInputError, WindowUnavailable
 

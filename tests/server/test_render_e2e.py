@@ -7,9 +7,9 @@ import io
 import httpx
 import numpy as np
 import pytest
-from edmcgs.clients import protocol
+from edmcgs import protocol
 from edmcgs.clients.client import Client, InvalidRequest, TimeUnavailable, Unauthorized
-from edmcgs.sensor.recording import read_recording
+from edmcgs.sensor.files.recording import read_recording
 from PIL import Image
 
 from tests.server.conftest import HEIGHT, TOKEN, WIDTH

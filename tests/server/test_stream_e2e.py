@@ -9,9 +9,9 @@ import time
 
 import numpy as np
 import pytest
-from edmcgs.clients import protocol
+from edmcgs import protocol
 from edmcgs.clients.client import InvalidRequest
-from edmcgs.sensor.recording import read_recording
+from edmcgs.sensor.files.recording import read_recording
 from websockets.sync.client import connect
 
 from tests.server.conftest import HEIGHT, TOKEN, WIDTH

@@ -12,13 +12,13 @@ import itertools
 
 import numpy as np
 import torch
-from edmcgs.model.camera import Trajectory, pose_from_quat
-from edmcgs.model.edmcgs import EdMCGS
-from edmcgs.model.training_data import EventGrid, TrainingData
+from edmcgs.geometry import Trajectory, pose_from_quat
+from edmcgs.model.dynamic import EdMCGS
+from edmcgs.model.train.data import EventGrid, TrainingData
 from edmcgs.sensor.events import Events
-from edmcgs.sensor.ring import EventRingBuffer
+from edmcgs.sensor.buffer.ring import EventRingBuffer
 
-from tests.model import tiny_scene
+from tests.support import tiny_scene
 from tests.model.test_model import TINY, randomize_event_branch
 
 T0 = 1_700_000_000_000_000

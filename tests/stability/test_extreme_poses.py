@@ -11,13 +11,13 @@ background in both files).
 import numpy as np
 import pytest
 import torch
-from edmcgs.model.camera import Intrinsics, pose_from_quat, world_to_camera
-from edmcgs.model.rasterize import rasterize
-from edmcgs.model.rasterize_fast import rasterize_fast
+from edmcgs.geometry import Intrinsics, pose_from_quat, world_to_camera
+from edmcgs.model.render.rasterize import rasterize
+from edmcgs.model.render.rasterize_fast import rasterize_fast
 
-from bench import reference_render as reference
-from bench.scenes import random_scene
-from tests.model import tiny_scene
+from edmcgs.model.render import reference
+from tests.support.scenes import random_scene
+from tests.support import tiny_scene
 from tests.model.test_model import build
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")

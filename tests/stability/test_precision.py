@@ -15,9 +15,9 @@ against the torch one) and, over the pixels the object covers, a mean <= 1e-6.
 import numpy as np
 import pytest
 import torch
-from edmcgs.model.camera import world_to_camera
-from edmcgs.model.rasterize import rasterize
-from edmcgs.model.rasterize_fast import rasterize_fast
+from edmcgs.geometry import world_to_camera
+from edmcgs.model.render.rasterize import rasterize
+from edmcgs.model.render.rasterize_fast import rasterize_fast
 from edmcgs.synth.scene import make_scene
 
 MAX_ABS, MEAN_ABS = 1e-3, 1e-6

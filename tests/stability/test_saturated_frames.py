@@ -8,14 +8,14 @@ import math
 
 import numpy as np
 import torch
-from edmcgs.model.camera import Trajectory
-from edmcgs.model.edmcgs import EdMCGS
-from edmcgs.model.event_loss import event_loss, log_luminance
-from edmcgs.model.photometric import photometric_loss
-from edmcgs.model.trainer import Trainer
-from edmcgs.model.training_data import TrainingData
+from edmcgs.geometry import Trajectory
+from edmcgs.model.dynamic import EdMCGS
+from edmcgs.model.train.losses import event_loss, log_luminance
+from edmcgs.model.train.losses import photometric_loss
+from edmcgs.model.train.trainer import Trainer
+from edmcgs.model.train.data import TrainingData
 
-from tests.model import tiny_scene
+from tests.support import tiny_scene
 from tests.model.test_model import TINY
 
 C, EPS = 0.2, 1e-3

@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 import torch
-from edmcgs.model.trainer import Trainer
+from edmcgs.model.train.trainer import Trainer
 
-from tests.model import tiny_scene
+from tests.support import tiny_scene
 from tests.model.test_model import TINY, build
 
 

@@ -2,8 +2,8 @@
 
 import numpy as np
 import pytest
-from edmcgs.model.camera import Intrinsics, Trajectory
-from edmcgs.sensor.recording import read_recording
+from edmcgs.geometry import Intrinsics, Trajectory
+from edmcgs.sensor.files.recording import read_recording
 from edmcgs.synth.build import BuildConfig, build_recording, frame_times, main
 from edmcgs.synth.esim import AdaptiveSampling, SimulatorConfig
 from edmcgs.synth.scene import make_scene, render
@@ -74,7 +74,7 @@ def test_events_match_the_anchor_frames_by_the_event_generation_model(recording)
 
 
 def test_round_trip_through_the_file(recording, tmp_path):
-    from edmcgs.sensor.recording import write_recording
+    from edmcgs.sensor.files.recording import write_recording
 
     path = write_recording(tmp_path / "rec.h5", recording)
     back = read_recording(path)

@@ -5,8 +5,8 @@ import math
 
 import numpy as np
 import pytest
-from edmcgs.model.camera import Intrinsics, project, world_to_camera
-from edmcgs.sensor.recording import read_recording, write_recording
+from edmcgs.geometry import Intrinsics, project, world_to_camera
+from edmcgs.sensor.files.recording import read_recording, write_recording
 from edmcgs.synth.loaders import load_dnerf, load_ed3dgs
 from PIL import Image
 

@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from edmcgs.model.camera import project, validate_pose, world_to_camera
+from edmcgs.geometry import project, validate_pose, world_to_camera
 from edmcgs.synth.esim import SimulatorConfig, simulate_frames
 from edmcgs.synth.orbit import DAVIS346, look_at
 from edmcgs.synth.scene import SCENES, make_scene, render

@@ -1,0 +1,383 @@
+"""EdMCGS: canonical Gaussians moved by control points whose state is an event-driven Markov chain.
+
+At a query time t, control point j moves by
+
+    delta_mu_j(t) = f_theta(gamma(sg(mu_j)), gamma(t))  +  s * g_phi(gamma(mu_j), m_j(t))
+                    (RGB prior)                            (event transition, from I_E over [tau(t), t])
+
+and linear blend skinning carries the Gaussians along. ``s`` is the warm-in scale (1 after training).
+This module holds the state and the inference API; training lives in ``edmcgs.model.train.trainer``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from edmcgs.geometry import Intrinsics, Trajectory, project, validate_pose, world_to_camera
+from edmcgs.model.config import EdmcgsConfig
+from edmcgs.model.motion.control_points import ControlPoints
+from edmcgs.model.motion.deformation import DeformationField
+from edmcgs.model.motion.event_branch import EventEncoder, EventTransition, sample_global, sample_local
+from edmcgs.model.train.losses import LUMA
+from edmcgs.model.motion.gaussians import Gaussians, GaussianState
+from edmcgs.model.motion.initialization import backproject_anchors, scene_center_and_extent
+from edmcgs.model.motion.leanness import choose_sh_degree
+from edmcgs.geometry import quat_normalize
+from edmcgs.model.render.rasterize import rasterize
+from edmcgs.model.motion.skin_plan import SkinPlan, build_plan, plan_key, skin
+from edmcgs.model.motion.skinning import identity_rotations, lbs
+from torch import Tensor, nn
+
+from edmcgs.errors import InvalidInputError, RenderError
+
+NEAR = 0.01
+"""Control points closer than this to the event camera (or behind it) read a zero motion code."""
+
+
+@dataclass
+class SceneMeta:
+    """What a checkpoint knows about its scene (everything a server needs besides the weights)."""
+
+    t_start_us: int
+    """Start of the trained span (the first anchor), absolute microseconds."""
+    t_end_us: int
+    """End of the trained span, absolute microseconds (> t_start_us)."""
+    anchors_us: np.ndarray
+    """[F] int64 strictly increasing anchor (RGB frame) times, microseconds."""
+    intrinsics: Intrinsics
+    """The camera of the anchor frames (pixels)."""
+    event_width: int
+    """Width of the event maps the model takes (the event camera's resolution)."""
+    event_height: int
+    """Height of the event maps."""
+    trajectory: Trajectory | None
+    """Event-camera camera-to-world over time (the recording's trajectory, or the anchors' poses)."""
+    channels: int
+    """Colour channels of renders: 1 (grey) or 3 (RGB)."""
+    config: dict
+    """The training configuration (``EdmcgsConfig.to_dict()``)."""
+    has_event_branch: bool
+    """Whether the event-driven transition exists (config events and markov)."""
+    frozen: np.ndarray | None = None
+    """[M] bool control points whose motion over the whole span stays below ``freeze_threshold``
+    (decided when the checkpoint is finalised, ``leanness.frozen_control_points``); None: none."""
+    freeze_threshold: float = 0.0
+    """World units: the most a frozen control point moves any of its Gaussians over the span."""
+    lean: dict | None = None
+    """What was left out of this scene and why (``leanness.decisions``), JSON-able; None: unknown."""
+
+    @property
+    def event_intrinsics(self) -> Intrinsics:
+        """The same camera at the event map's resolution."""
+        if (self.event_width, self.event_height) == (self.intrinsics.width, self.intrinsics.height):
+            return self.intrinsics
+        return self.intrinsics.scaled(self.event_width, self.event_height)
+
+    def normalized_time(self, t_us: int) -> float:
+        """t in [0, 1] over the trained span (exact integer arithmetic, then one rounding), clamped."""
+        frac = (int(t_us) - self.t_start_us) / (self.t_end_us - self.t_start_us)
+        return float(min(max(frac, 0.0), 1.0))
+
+
+class EdMCGS(nn.Module):
+    """The dynamic scene. Build with ``from_arrays`` (untrained) or ``checkpoint.load_checkpoint``."""
+
+    def __init__(self, meta: SceneMeta, config: EdmcgsConfig, gaussians: Gaussians, control: ControlPoints,
+                 center: Tensor, extent: float):
+        super().__init__()
+        self.meta = meta
+        self.config = config
+        self.gaussians = gaussians
+        self.control = control
+        self.prior = DeformationField(width=config.deform_width, depth=config.deform_depth,
+                                      pos_freqs=config.pos_freqs, time_freqs=config.time_freqs)
+        if config.has_event_branch:
+            # The largest log-luminance change of a pixel with I in [0, 1]: log(1 + eps) - log(eps).
+            self.encoder = EventEncoder(limit=math.log1p(1.0 / config.log_eps), pool=config.event_pool)
+            self.transition = EventTransition(pos_freqs=config.event_pos_freqs, hidden=config.event_hidden)
+        else:
+            self.encoder = None
+            self.transition = None
+        self.register_buffer("center", center.float().reshape(3))
+        self.register_buffer("extent", torch.tensor(float(extent)))
+        self.register_buffer("event_scale", torch.tensor(1.0))
+        self._plans: dict[bool, SkinPlan] = {}
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_arrays(cls, *, anchors_t_us: np.ndarray, anchor_images: np.ndarray, intrinsics: Intrinsics,
+                    anchor_poses: np.ndarray | None = None, t_end_us: int | None = None,
+                    trajectory: Trajectory | None = None, event_size: tuple[int, int] | None = None,
+                    config: EdmcgsConfig | None = None, init_depth: float = 1.0) -> EdMCGS:
+        """An untrained model initialised from a recording's anchor frames (on the CPU).
+
+        anchors_t_us: np.ndarray   # [F] int64, strictly increasing, microseconds
+        anchor_images: np.ndarray  # [F, H, W, C] uint8, C = 1 or 3, H, W = intrinsics' size
+        anchor_poses: np.ndarray   # [F, 4, 4] float64 c2w; None: a static camera at the origin
+        t_end_us: end of the span (default: the last anchor; must be > the first anchor)
+        trajectory: event-camera c2w over time (default: the anchors' poses)
+        event_size: (width, height) of the event maps (default: the image size)
+        init_depth: scene depth when the anchors' optical axes do not meet (world units)
+        """
+        config = config or EdmcgsConfig()
+        config.validate()
+        t = _int64_times(anchors_t_us, "anchors_t_us")
+        images = np.asarray(anchor_images)
+        if (images.dtype != np.uint8 or images.ndim != 4 or images.shape[0] != t.shape[0]
+                or images.shape[3] not in (1, 3)):
+            raise InvalidInputError(f"anchor_images must be uint8 [F={t.shape[0]}, H, W, 1|3], got "
+                                    f"{images.dtype} {images.shape}")
+        if (images.shape[2], images.shape[1]) != (intrinsics.width, intrinsics.height):
+            raise InvalidInputError(f"anchor_images are {images.shape[2]}x{images.shape[1]} but the "
+                                    f"intrinsics say {intrinsics.width}x{intrinsics.height}")
+        if anchor_poses is None:
+            poses = np.repeat(np.eye(4)[None], t.shape[0], axis=0)
+        else:
+            poses = np.asarray(anchor_poses, dtype=np.float64)
+            if poses.shape != (t.shape[0], 4, 4):
+                raise InvalidInputError(f"anchor_poses must be [{t.shape[0]}, 4, 4], got {poses.shape}")
+            for pose in poses:
+                validate_pose(pose)
+        t_end = int(t[-1]) if t_end_us is None else int(t_end_us)
+        if t_end <= int(t[0]):
+            raise InvalidInputError(f"t_end_us={t_end} must be after the first anchor {int(t[0])} "
+                                    "(a span needs at least two anchors or a later end time)")
+        if not math.isfinite(init_depth) or init_depth <= 0:
+            raise InvalidInputError(f"init_depth must be a positive number, got {init_depth}")
+        ew, eh = event_size or (intrinsics.width, intrinsics.height)
+        if trajectory is None:
+            trajectory = Trajectory(t.copy(), poses.copy())
+        meta = SceneMeta(t_start_us=int(t[0]), t_end_us=t_end, anchors_us=t, intrinsics=intrinsics,
+                         event_width=int(ew), event_height=int(eh), trajectory=trajectory,
+                         channels=int(images.shape[3]), config=config.to_dict(),
+                         has_event_branch=config.has_event_branch)
+
+        torch.manual_seed(config.seed)
+        rng = np.random.default_rng(config.seed)
+        center, extent = scene_center_and_extent(poses, intrinsics, init_depth)
+        # The SH degree the views can constrain (leanness.py), recorded with the reason.
+        degree, record = choose_sh_degree(np.concatenate([poses, trajectory.c2w]), center, config.sh_degree)
+        config = config.replace(sh_degree=degree)
+        meta.config, meta.lean = config.to_dict(), {"sh_degree": record}
+        k = config.init_anchors or len(images)
+        points, colors, scales = backproject_anchors(images[:k], poses[:k], intrinsics, center, extent,
+                                                     config.init_points, rng,
+                                                     background_color(config, images.shape[3]).numpy())
+        gaussians = Gaussians.from_points(points, colors, scales, sh_degree=config.sh_degree)
+        m = min(config.num_control_points, len(gaussians))
+        control = ControlPoints.sample(gaussians.means.detach(), m, skin_k=config.skin_k,
+                                       graph_k=config.graph_k, radius=config.radius_init * extent)
+        model = cls(meta, config, gaussians, control, torch.from_numpy(center), extent)
+        model.event_scale.fill_(0.0 if config.has_event_branch else 1.0)
+        return model.eval()
+
+    # ------------------------------------------------------------------ time
+    def tau(self, t_us: int) -> int:
+        """The last anchor time <= t_us (microseconds); ``InvalidInputError`` before the first anchor."""
+        t_us = _int_time(t_us, "t_us")
+        anchors = self.meta.anchors_us
+        if t_us < int(anchors[0]):
+            raise InvalidInputError(f"t_us={t_us} is before the first anchor ({int(anchors[0])}): "
+                                    "the Markov chain has no state there")
+        return int(anchors[np.searchsorted(anchors, t_us, side="right") - 1])
+
+    # ------------------------------------------------------------------ differentiable core
+    def normalize_points(self, points: Tensor) -> Tensor:
+        """World points -> scene coordinates (centre 0, extent 1), the networks' input frame."""
+        return (points - self.center) / self.extent
+
+    def control_motion(self, t: float, event_map: Tensor | None = None, ev_w2c: Tensor | None = None, *,
+                       static: bool = False) -> tuple[Tensor, Tensor, Tensor | None]:
+        """Control-point transforms at normalised time ``t``.
+
+        event_map: Tensor  # [He, We] float32 signed polarity sum over [tau(t), t], or None (empty)
+        ev_w2c: Tensor     # [4, 4] event camera world-to-camera at t (needed by local sampling)
+        static: the identity motion (warm-up of the canonical set)
+        returns (translations [M, 3], rotations [M, 4] unit, event displacement [M, 3] or None)
+        """
+        cp = self.control.positions
+        if static:
+            return torch.zeros_like(cp), identity_rotations(cp.shape[0], device=cp.device), None
+        x = self.normalize_points(cp)
+        d_mu, d_q = self.prior(x, t)
+        trans = d_mu * self.extent
+        rot = quat_normalize(identity_rotations(cp.shape[0], device=cp.device) + d_q)
+        event_disp = None
+        if self.transition is not None and event_map is not None and bool(torch.any(event_map != 0)):
+            feats = self.encoder(self.config.contrast_threshold * event_map[None, None])[0]
+            if self.config.local_sampling:
+                if ev_w2c is None:
+                    raise InvalidInputError("ev_w2c is needed to project control points on the event camera")
+                intr = self.meta.event_intrinsics
+                uv, depth = project((cp + trans).detach(), ev_w2c, intr)
+                codes = sample_local(feats, uv, depth > NEAR, intr.width, intr.height)
+            else:
+                codes = sample_global(feats, cp.shape[0])
+            event_disp = self.transition(x, codes) * (self.extent * self.event_scale)
+            trans = trans + event_disp
+        return trans, rot, event_disp
+
+    def state_from_motion(self, trans: Tensor, rot: Tensor) -> GaussianState:
+        """Skin the canonical Gaussians by control-point transforms [M, 3], [M, 4]."""
+        g = self.gaussians
+        weights = self.control.weights(g.means)
+        means, quats = lbs(g.means, g.quats, self.control.positions, rot, trans, self.control.bind, weights)
+        return GaussianState(means, quats, g.scales(), g.opacities(), g.colors())
+
+    def state_at(self, t: float, event_map: Tensor | None = None, ev_w2c: Tensor | None = None, *,
+                 static: bool = False) -> GaussianState:
+        """The (differentiable) Gaussians at normalised time ``t``; see ``control_motion``."""
+        trans, rot, _ = self.control_motion(t, event_map, ev_w2c, static=static)
+        return self.state_from_motion(trans, rot)
+
+    # ------------------------------------------------------------------ inference API
+    @torch.no_grad()
+    def deform(self, t_us: int, event_map: np.ndarray | Tensor | None = None,
+               ev_c2w: np.ndarray | None = None) -> GaussianState:
+        """The Gaussians at absolute time ``t_us`` driven by the events since the last anchor.
+
+        event_map: [event_height, event_width] float32 signed polarity sum over [tau(t_us), t_us]
+                   (None or all-zero: an empty window); ignored when the model has no event branch.
+        ev_c2w: [4, 4] event-camera c2w at t_us (default: the checkpoint's trajectory at t_us).
+        At an anchor time the window is empty: the event map is not read and the result is the anchor
+        state. The time-independent work is done once per model (``skin_plan``); the result equals
+        ``state_at`` to float32 rounding, and Gaussians bound only to frozen control points keep their
+        canonical pose (within ``meta.freeze_threshold``).
+        """
+        t_us = _int_time(t_us, "t_us")
+        # At an anchor the window [tau, t) is empty: the anchor's state, the event branch skipped.
+        at_anchor = t_us == self.tau(t_us)
+        device = self.center.device
+        emap = None
+        if event_map is not None and self.transition is not None and not at_anchor:
+            emap = torch.as_tensor(event_map).to(device=device, dtype=torch.float32)
+            expected = (self.meta.event_height, self.meta.event_width)
+            if tuple(emap.shape) != expected:
+                raise InvalidInputError(f"event_map must be {list(expected)}, got {list(emap.shape)}")
+            if not bool(torch.isfinite(emap).all()):
+                raise InvalidInputError("event_map contains NaN or Inf")
+            if not bool(torch.any(emap != 0)):
+                emap = None
+        w2c = None
+        if emap is not None and self.config.local_sampling:
+            if ev_c2w is None:
+                if self.meta.trajectory is None:
+                    raise InvalidInputError("ev_c2w is required: this checkpoint has no camera trajectory")
+                ev_c2w = self.meta.trajectory.at(t_us)
+            validate_pose(np.asarray(ev_c2w, dtype=np.float64))
+            w2c = torch.as_tensor(world_to_camera(np.asarray(ev_c2w, dtype=np.float64)),
+                                  dtype=torch.float32, device=device)
+        trans, rot, event_disp = self.control_motion(self.meta.normalized_time(t_us), emap, w2c)
+        frozen = self.meta.frozen
+        # A frozen point pushed by the events beyond the threshold is not still at this time: skin all.
+        lean = frozen is not None and (event_disp is None or not bool(
+            (event_disp[torch.as_tensor(frozen, device=device)].norm(dim=-1)
+             > self.meta.freeze_threshold).any()))
+        return skin(self.skin_plan(frozen=lean), self.control.positions, rot, trans)
+
+    def skin_plan(self, *, frozen: bool = True) -> SkinPlan:
+        """The time-independent half of ``deform`` (weights, activated canonical Gaussians), built once
+        and rebuilt only when a parameter it derives from changed. frozen: leave frozen points still."""
+        g, cp = self.gaussians, self.control
+        key = (*plan_key(g.means, g.quats, g.log_scales, g.opacity_logits, g.features, cp.positions,
+                         cp.log_radius, cp.bind), id(self.meta.frozen), cp.positions.device)
+        plan = self._plans.get(frozen)
+        if plan is None or plan.key != key:
+            with torch.no_grad():
+                mask = None
+                if frozen and self.meta.frozen is not None:
+                    if len(self.meta.frozen) != cp.num_points:
+                        raise InvalidInputError(f"meta.frozen marks {len(self.meta.frozen)} control points, "
+                                                f"the model has {cp.num_points}")
+                    mask = torch.as_tensor(self.meta.frozen, dtype=torch.bool, device=cp.positions.device)
+                canonical = GaussianState(g.means, g.quats, g.scales(), g.opacities(), g.colors())
+                plan = self._plans[frozen] = build_plan(canonical, cp.bind, cp.weights(g.means), mask, key)
+        return plan
+
+    @torch.no_grad()
+    def render(self, state: GaussianState, c2w: np.ndarray, intrinsics: Intrinsics, *, fast: bool = True,
+               background: np.ndarray | float | None = None, threads: int | None = None) -> np.ndarray:
+        """Render ``state`` from camera ``c2w`` [4, 4] (OpenCV c2w) -> [H, W, C] float32 in [0, 1].
+
+        fast: the numba CPU rasterizer; False: the differentiable PyTorch one (same image to ~1e-5).
+        background: grey level or [C] colour behind the Gaussians (default: the config's).
+        threads: the fast rasterizer's threads (default: numba's, all cores); a server running several
+                 renders at once on a few shared cores is faster with 1 each (no parallel-region stalls).
+        """
+        c2w = np.asarray(c2w, dtype=np.float64)
+        validate_pose(c2w)
+        w2c = world_to_camera(c2w)
+        bg = self._background(background)
+        try:
+            if fast:
+                # Imported here: the numba rasterizer is for inference only; training never loads it.
+                from edmcgs.model.render.rasterize_fast import rasterize_fast
+
+                arrays = [t.detach().cpu().numpy() for t in _fields(state)]
+                torch_threads = torch.get_num_threads()
+                try:
+                    out = rasterize_fast(*arrays, w2c.astype(np.float32), intrinsics, background=bg,
+                                         threads=threads)
+                finally:
+                    # numba's OpenMP layer sets the process-wide OpenMP thread count, which is also
+                    # torch's; put back what the caller chose.
+                    torch.set_num_threads(torch_threads)
+                image = out.image
+            else:
+                dev = state.means.device
+                image = render_image(state, torch.as_tensor(w2c, dtype=torch.float32, device=dev), intrinsics,
+                                     torch.as_tensor(bg, device=dev)).cpu().numpy()
+        except InvalidInputError:
+            raise
+        except (RuntimeError, ValueError) as exc:
+            raise RenderError(f"rendering failed: {exc}") from exc
+        image = image.astype(np.float32, copy=False)
+        if not np.isfinite(image).all():  # checked first: nan_to_num costs 10x the check
+            image = np.nan_to_num(image, nan=0.0, posinf=1.0, neginf=0.0)
+        return np.clip(image, 0.0, 1.0, out=image)
+
+    def _background(self, background) -> np.ndarray:
+        c = self.meta.channels
+        if background is None:
+            return background_color(self.config, c).numpy()
+        bg = np.asarray(background, dtype=np.float32).reshape(-1)
+        if bg.size == 1:
+            bg = np.repeat(bg, c)
+        if bg.size != c or not np.all(np.isfinite(bg)):
+            raise InvalidInputError(f"background must be a number or {c} finite numbers, got {background!r}")
+        return bg
+
+
+def background_color(config: EdmcgsConfig, channels: int) -> Tensor:
+    """[C] float32 background of renders: the config's RGB, or its Rec. 601 luma for grey."""
+    rgb = torch.tensor(config.background, dtype=torch.float32)
+    return rgb if channels == 3 else (rgb @ torch.tensor(LUMA)).reshape(1)
+
+
+def render_image(state: GaussianState, w2c: Tensor, intrinsics: Intrinsics, background: Tensor) -> Tensor:
+    """Differentiable render of ``state`` -> [H, W, C] (the training path)."""
+    return rasterize(*_fields(state), w2c, intrinsics, background=background).image
+
+
+def _fields(state: GaussianState) -> tuple[Tensor, ...]:
+    return state.means, state.quats, state.scales, state.opacities, state.colors
+
+
+def _int_time(t_us, name: str) -> int:
+    if isinstance(t_us, bool) or not isinstance(t_us, (int, np.integer)):
+        raise InvalidInputError(f"{name} must be integer microseconds, got {type(t_us).__name__}")
+    return int(t_us)
+
+
+def _int64_times(values, name: str) -> np.ndarray:
+    arr = np.asarray(values)
+    if arr.ndim != 1 or arr.shape[0] == 0 or not np.issubdtype(arr.dtype, np.integer):
+        raise InvalidInputError(f"{name} must be a non-empty 1-D integer array (microseconds), got "
+                                f"{arr.dtype} {arr.shape}")
+    arr = arr.astype(np.int64)
+    if np.any(np.diff(arr) <= 0):
+        raise InvalidInputError(f"{name} must be strictly increasing")
+    return arr

@@ -1,0 +1,1 @@
+"""Evaluation: image metrics (PSNR, SSIM, LPIPS) and held-out evaluation through the inference API."""

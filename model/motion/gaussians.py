@@ -1,0 +1,110 @@
+"""The canonical 3D Gaussians (learnable state) and a deformed snapshot of them (``GaussianState``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from edmcgs.model.render.sh import SH_C0
+from torch import Tensor, nn
+
+
+@dataclass
+class GaussianState:
+    """The Gaussians at one time, ready to rasterize (activated, world frame).
+
+    means: Tensor      # [N, 3] float32
+    quats: Tensor      # [N, 4] float32 (w, x, y, z), unit
+    scales: Tensor     # [N, 3] float32, linear, > 0
+    opacities: Tensor  # [N] float32 in (0, 1)
+    colors: Tensor     # [N, C] float32 in (0, 1), or SH coefficients [N, K, C] with K = (deg + 1)^2
+    """
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+    colors: Tensor
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    def detach(self) -> GaussianState:
+        return GaussianState(*(t.detach() for t in (self.means, self.quats, self.scales, self.opacities,
+                                                     self.colors)))
+
+
+PER_GAUSSIAN = ("means", "quats", "log_scales", "opacity_logits", "features")
+"""Names of the per-Gaussian parameters (first dimension N), in optimizer-group order."""
+
+
+class Gaussians(nn.Module):
+    """Canonical Gaussians: means, quaternions, log-scales, opacity logits and colour features.
+
+    ``features`` is [N, K, C]: with K = 1 (sh_degree 0) it holds colour logits (colour = sigmoid),
+    otherwise SH coefficients for the rasterizer.
+    """
+
+    def __init__(self, means: Tensor, quats: Tensor, log_scales: Tensor, opacity_logits: Tensor,
+                 features: Tensor):
+        super().__init__()
+        self.means = nn.Parameter(means)
+        self.quats = nn.Parameter(quats)
+        self.log_scales = nn.Parameter(log_scales)
+        self.opacity_logits = nn.Parameter(opacity_logits)
+        self.features = nn.Parameter(features)
+
+    @classmethod
+    def empty(cls, n: int, sh_degree: int, channels: int) -> Gaussians:
+        """Zero-filled placeholders of the right shapes (a checkpoint's tensors are loaded into them)."""
+        k = (sh_degree + 1) ** 2
+        return cls(torch.zeros(n, 3), torch.zeros(n, 4), torch.zeros(n, 3), torch.zeros(n),
+                   torch.zeros(n, k, channels))
+
+    @classmethod
+    def from_points(cls, points: Tensor, colors: Tensor, scales: Tensor, *, sh_degree: int,
+                    opacity: float = 0.1) -> Gaussians:
+        """Isotropic Gaussians at ``points``.
+
+        points: Tensor  # [N, 3]
+        colors: Tensor  # [N, C] in [0, 1]
+        scales: Tensor  # [N] initial isotropic scale, > 0
+        """
+        n, c = colors.shape
+        k = (sh_degree + 1) ** 2
+        features = torch.zeros(n, k, c)
+        col = colors.clamp(0.02, 0.98)
+        features[:, 0] = torch.logit(col) if k == 1 else (col - 0.5) / SH_C0
+        quats = torch.zeros(n, 4)
+        quats[:, 0] = 1.0
+        log_scales = torch.log(scales.clamp_min(1e-7))[:, None].repeat(1, 3)
+        opacity_logits = torch.full((n,), float(torch.logit(torch.tensor(opacity))))
+        return cls(points.float().clone(), quats, log_scales, opacity_logits, features)
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def sh_degree(self) -> int:
+        return round(self.features.shape[1] ** 0.5) - 1
+
+    @property
+    def channels(self) -> int:
+        return int(self.features.shape[2])
+
+    def scales(self) -> Tensor:
+        return torch.exp(self.log_scales)
+
+    def opacities(self) -> Tensor:
+        return torch.sigmoid(self.opacity_logits)
+
+    def colors(self) -> Tensor:
+        """[N, C] colours in (0, 1) for degree 0, else the SH coefficients [N, K, C]."""
+        if self.features.shape[1] == 1:
+            return torch.sigmoid(self.features[:, 0])
+        return self.features
+
+    def replace(self, tensors: dict[str, Tensor]) -> None:
+        """Swap in new per-Gaussian parameters (after densification); N may change."""
+        for name in PER_GAUSSIAN:
+            setattr(self, name, nn.Parameter(tensors[name]))

@@ -1,0 +1,119 @@
+"""Inference skinning: what a deformed state shares across times, computed once per loaded model.
+
+At inference the canonical Gaussians and their binding are fixed, so the skinning weights, the unit
+canonical rotations and the activated scales, opacities and colours are the same at every time. A
+``SkinPlan`` holds them; ``skin`` then only blends the control points' transforms. It folds each
+control point's rigid motion into one affine map first,
+
+    mu_i^t = sum_k w_ik (R_k (mu_i - p_k) + p_k + T_k) = sum_k w_ik (R_k mu_i + b_k),
+    b_k = p_k + T_k - R_k p_k
+
+(the same sum as ``skinning.lbs``, regrouped: equal to float32 rounding, tested), so the per-Gaussian
+work is one gather of K 3x4 maps instead of K rotations, anchors and translations.
+
+A Gaussian whose K control points are all *frozen* (their motion over the whole span stays below the
+checkpoint's threshold, see ``leanness.frozen_control_points``) keeps its canonical pose: the plan
+skins only the others (``moving``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from edmcgs.model.motion.gaussians import GaussianState
+from edmcgs.geometry import quat_multiply, quat_normalize, quat_to_rotmat
+from torch import Tensor
+
+
+@dataclass
+class SkinPlan:
+    """The time-independent half of a deformed state.
+
+    canonical: GaussianState  # the canonical Gaussians, activated (unit quats, linear scales ...)
+    bind: Tensor              # [Nm, K] int64 control points of the moving Gaussians
+    weights: Tensor           # [Nm, K] float32 their skinning weights (rows sum to 1)
+    moving: Tensor | None     # [Nm] int64 indices of the Gaussians that are skinned; None: all N
+    key: tuple                # identity and version of every tensor the plan was derived from
+    """
+
+    canonical: GaussianState
+    bind: Tensor
+    weights: Tensor
+    moving: Tensor | None
+    key: tuple
+
+    @property
+    def num_moving(self) -> int:
+        return int(self.bind.shape[0])
+
+
+def plan_key(*tensors: Tensor) -> tuple:
+    """Identity and in-place version of each tensor: a plan built from them is stale when this changes
+    (an optimizer step bumps ``_version``; densification swaps the Parameters)."""
+    return tuple((id(t), t._version, tuple(t.shape)) for t in tensors)
+
+
+@torch.no_grad()
+def build_plan(canonical: GaussianState, bind: Tensor, weights: Tensor, frozen: Tensor | None,
+               key: tuple) -> SkinPlan:
+    """A plan from the activated canonical Gaussians and their binding.
+
+    bind, weights: Tensor  # [N, K] int64, [N, K] float32 (all Gaussians)
+    frozen: Tensor | None  # [M] bool, control points that do not move; None: none frozen
+    """
+    canonical = GaussianState(canonical.means, quat_normalize(canonical.quats), canonical.scales,
+                              canonical.opacities, canonical.colors).detach()
+    moving = None
+    if frozen is not None and bool(frozen.any()):
+        still = frozen[bind].all(-1)
+        moving = torch.nonzero(~still)[:, 0]
+        bind, weights = bind[moving], weights[moving]
+    return SkinPlan(canonical, bind.contiguous(), weights.detach().contiguous(), moving, key)
+
+
+@torch.no_grad()
+def skin(plan: SkinPlan, control: Tensor, rotations: Tensor, translations: Tensor) -> GaussianState:
+    """The Gaussians moved by control-point transforms (the inference twin of ``skinning.lbs``).
+
+    control: Tensor       # [M, 3] canonical control points p_k
+    rotations: Tensor     # [M, 4] unit quaternions r_k^t
+    translations: Tensor  # [M, 3] T_k^t
+    """
+    c = plan.canonical
+    rot = quat_to_rotmat(rotations)                                                   # [M, 3, 3]
+    offset = control + translations - (rot @ control[..., None])[..., 0]              # [M, 3]
+    affine = torch.cat([rot, offset[..., None]], -1).reshape(-1, 12)                  # [M, 12]
+    if c.means.device.type == "cpu":
+        return _skin_cpu(plan, affine, rotations)
+    return _skin_torch(plan, affine, rotations)
+
+
+def _skin_torch(plan: SkinPlan, affine: Tensor, rotations: Tensor) -> GaussianState:
+    """The blend in torch ops (any device)."""
+    c = plan.canonical
+    w = plan.weights[..., None]                                                       # [Nm, K, 1]
+    blended = (w * affine[plan.bind]).sum(1).reshape(-1, 3, 4)                        # [Nm, 3, 4]
+    q_blend = quat_normalize((w * rotations[plan.bind]).sum(1))                       # [Nm, 4]
+    if plan.moving is None:
+        means, quats = c.means, c.quats
+    else:
+        means, quats = c.means[plan.moving], c.quats[plan.moving]
+    moved = (blended[..., :3] @ means[..., None])[..., 0] + blended[..., 3]
+    turned = quat_multiply(q_blend, quats)
+    if plan.moving is not None:
+        moved = c.means.index_copy(0, plan.moving, moved)
+        turned = c.quats.index_copy(0, plan.moving, turned)
+    return GaussianState(moved, turned, c.scales, c.opacities, c.colors)
+
+
+def _skin_cpu(plan: SkinPlan, affine: Tensor, rotations: Tensor) -> GaussianState:
+    """The same blend as one numba loop (imported here: training never loads numba)."""
+    from edmcgs.model.motion.skin_fast import blend
+
+    c = plan.canonical
+    means, quats = c.means.clone(), c.quats.clone()  # the frozen Gaussians keep these
+    moving = plan.moving if plan.moving is not None else torch.zeros(0, dtype=torch.long)
+    blend(c.means.numpy(), c.quats.numpy(), plan.bind.numpy(), plan.weights.numpy(),
+          affine.double().numpy(), rotations.double().numpy(), moving.numpy(), means.numpy(), quats.numpy())
+    return GaussianState(means, quats, c.scales, c.opacities, c.colors)

@@ -1,0 +1,338 @@
+"""Fast CPU inference rasterizer (numba): the same math as ``rasterize``, numpy in and out.
+
+Three kernels: per-Gaussian preprocessing (EWA projection, SH colour, screen rectangle — the math
+of ``projection`` and ``sh``, in float64, parallel over Gaussians), binning into 16x16 tiles in
+depth order, and per-tile front-to-back blending, parallel over tiles. Blending visits each splat's
+``screen_rect`` (the pixels where its alpha can reach ``alpha_min``; this changes no pixel value)
+in runs of 8 pixels with a branch-free float32 body and ``simd_exp``, which LLVM turns
+into AVX2 code; a pixel that has stopped is marked by a negative transmittance.
+
+JIT cache: kernels are compiled with ``cache=True``. numba keeps the cache beside this file
+(``__pycache__``) when that is writable and otherwise in the user cache directory
+(``~/.cache/numba``), so a read-only install still compiles once per machine, not once per
+process; numba's own ``NUMBA_CACHE_DIR`` overrides both (e.g. a container with a read-only home).
+Where no location is writable the kernels compile once per process instead of failing.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from edmcgs.geometry import Intrinsics
+from edmcgs.model.render.projection import ALPHA_MAX, ALPHA_MIN, FRUSTUM_SLACK, LOWPASS, SIGMAS, T_MIN, TILE
+from edmcgs.model.render.io import RenderOutput, as_float32_arrays, check_inputs
+from edmcgs.model.render.sh import SH_C0, SH_C1, SH_C2, SH_C3
+from edmcgs.model.render.simd_exp import exp_nonpositive
+
+from edmcgs.errors import InvalidInputError
+
+__all__ = ["RenderOutput", "rasterize_fast"]
+
+
+def _jit(**options):
+    """numba.njit with an on-disk cache where numba finds a writable place for one."""
+    def wrap(fn):
+        try:
+            return numba.njit(cache=True, **options)(fn)
+        except RuntimeError:  # numba: "cannot cache function ...: no locator available"
+            return numba.njit(cache=False, **options)(fn)
+    return wrap
+
+
+@_jit()
+def _preprocess(means, quats, scales, opac, coeffs, use_sh, w2c, fx, fy, cx, cy, width, height, near,
+                alpha_min, splat, depth, rect, color):
+    """Per Gaussian, in float64: splat[i] = (mean x, mean y, -A/2, -B, -C/2, opacity) with
+    (A, B, C) the conic, depth[i] = camera z, rect[i] = pixel rectangle (x0, y0, x1, y1), all 0
+    when culled; color[i] = its colour."""
+    n = means.shape[0]
+    ncoef = coeffs.shape[1]
+    nch = coeffs.shape[2]
+    r00, r01, r02 = w2c[0, 0], w2c[0, 1], w2c[0, 2]
+    r10, r11, r12 = w2c[1, 0], w2c[1, 1], w2c[1, 2]
+    r20, r21, r22 = w2c[2, 0], w2c[2, 1], w2c[2, 2]
+    t0, t1, t2 = w2c[0, 3], w2c[1, 3], w2c[2, 3]
+    cam_x = -(r00 * t0 + r10 * t1 + r20 * t2)
+    cam_y = -(r01 * t0 + r11 * t1 + r21 * t2)
+    cam_z = -(r02 * t0 + r12 * t1 + r22 * t2)
+    slack_x = FRUSTUM_SLACK * 0.5 * width / fx
+    slack_y = FRUSTUM_SLACK * 0.5 * height / fy
+    lim_xn, lim_xp = cx / fx + slack_x, (width - cx) / fx + slack_x
+    lim_yn, lim_yp = cy / fy + slack_y, (height - cy) / fy + slack_y
+    grid_x = (width + TILE - 1) // TILE
+    grid_y = (height + TILE - 1) // TILE
+    for i in range(n):
+        rect[i, 0] = 0
+        rect[i, 1] = 0
+        rect[i, 2] = 0
+        rect[i, 3] = 0
+        o = np.float64(opac[i])
+        px, py, pz = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
+        x = r00 * px + r01 * py + r02 * pz + t0
+        y = r10 * px + r11 * py + r12 * pz + t1
+        z = r20 * px + r21 * py + r22 * pz + t2
+        if not (z > near) or o < alpha_min:
+            continue
+        inv_z = 1.0 / z
+        u = fx * x * inv_z + cx
+        v = fy * y * inv_z + cy
+        xz = min(max(x * inv_z, -lim_xn), lim_xp)
+        yz = min(max(y * inv_z, -lim_yn), lim_yp)
+        j00, j02 = fx * inv_z, -fx * xz * inv_z
+        j11, j12 = fy * inv_z, -fy * yz * inv_z
+        # rows of J @ R_w2c
+        a0x, a0y, a0z = j00 * r00 + j02 * r20, j00 * r01 + j02 * r21, j00 * r02 + j02 * r22
+        a1x, a1y, a1z = j11 * r10 + j12 * r20, j11 * r11 + j12 * r21, j11 * r12 + j12 * r22
+        qw, qx, qy, qz = (np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]),
+                          np.float64(quats[i, 3]))
+        qn = 1.0 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        qw, qx, qy, qz = qw * qn, qx * qn, qy * qn, qz * qn
+        g00, g01, g02 = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)
+        g10, g11, g12 = 2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)
+        g20, g21, g22 = 2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)
+        s0, s1, s2 = np.float64(scales[i, 0]), np.float64(scales[i, 1]), np.float64(scales[i, 2])
+        # M = (J R_w2c) R_g diag(s); cov2d = M M^T
+        m00 = (a0x * g00 + a0y * g10 + a0z * g20) * s0
+        m01 = (a0x * g01 + a0y * g11 + a0z * g21) * s1
+        m02 = (a0x * g02 + a0y * g12 + a0z * g22) * s2
+        m10 = (a1x * g00 + a1y * g10 + a1z * g20) * s0
+        m11 = (a1x * g01 + a1y * g11 + a1z * g21) * s1
+        m12 = (a1x * g02 + a1y * g12 + a1z * g22) * s2
+        ca0 = m00 * m00 + m01 * m01 + m02 * m02
+        cb = m00 * m10 + m01 * m11 + m02 * m12
+        cc0 = m10 * m10 + m11 * m11 + m12 * m12
+        k01, k02, k12 = m00 * m11 - m01 * m10, m00 * m12 - m02 * m10, m01 * m12 - m02 * m11
+        det = k01 * k01 + k02 * k02 + k12 * k12 + LOWPASS * (ca0 + cc0) + LOWPASS * LOWPASS
+        ca, cc = ca0 + LOWPASS, cc0 + LOWPASS
+        con_a, con_b, con_c = cc / det, -cb / det, ca / det
+        if not (math.isfinite(det) and math.isfinite(ca) and math.isfinite(cc) and math.isfinite(con_a)
+                and math.isfinite(con_b) and math.isfinite(con_c) and math.isfinite(u) and math.isfinite(v)):
+            continue
+        lam = 0.5 * (ca + cc) + math.sqrt(max(0.1, 0.25 * (ca - cc) ** 2 + cb * cb))
+        radius = np.ceil(SIGMAS * math.sqrt(lam))
+        tx0 = min(max(np.floor((u - radius) / TILE), 0.0), grid_x)
+        tx1 = min(max(np.floor((u + radius + TILE - 1) / TILE), 0.0), grid_x)
+        ty0 = min(max(np.floor((v - radius) / TILE), 0.0), grid_y)
+        ty1 = min(max(np.floor((v + radius + TILE - 1) / TILE), 0.0), grid_y)
+        # the ellipse (pixel - mean)^T conic (pixel - mean) <= tau holds every pixel whose alpha can
+        # reach alpha_min; 0.1% + 1e-3 of slack in tau covers float32 rounding in the blending
+        tau = max(2.0 * math.log(o / alpha_min) * 1.001 + 1e-3, 0.0) if alpha_min > 0 else math.inf
+        ex, ey = math.sqrt(tau * ca), math.sqrt(tau * cc)
+        x0 = min(max(max(tx0 * TILE, np.ceil(u - ex)), 0.0), width)
+        x1 = min(max(min(min(tx1 * TILE, width), np.floor(u + ex) + 1), 0.0), width)
+        y0 = min(max(max(ty0 * TILE, np.ceil(v - ey)), 0.0), height)
+        y1 = min(max(min(min(ty1 * TILE, height), np.floor(v + ey) + 1), 0.0), height)
+        if not (x0 < x1 and y0 < y1):
+            continue
+        rect[i, 0], rect[i, 1], rect[i, 2], rect[i, 3] = int(x0), int(y0), int(x1), int(y1)
+        splat[i, 0], splat[i, 1] = u, v
+        splat[i, 2], splat[i, 3], splat[i, 4] = -0.5 * con_a, -con_b, -0.5 * con_c
+        splat[i, 5] = o
+        depth[i] = z
+        if not use_sh:
+            for ch in range(nch):
+                color[i, ch] = coeffs[i, 0, ch]
+            continue
+        dx, dy, dz = px - cam_x, py - cam_y, pz - cam_z
+        dn = 1.0 / max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
+        dx, dy, dz = dx * dn, dy * dn, dz * dn
+        xx, yy, zz, xy, yz, xz2 = dx * dx, dy * dy, dz * dz, dx * dy, dy * dz, dx * dz
+        for ch in range(nch):
+            acc = SH_C0 * coeffs[i, 0, ch]
+            if ncoef > 1:
+                acc += SH_C1 * (-dy * coeffs[i, 1, ch] + dz * coeffs[i, 2, ch] - dx * coeffs[i, 3, ch])
+            if ncoef > 4:
+                acc += (SH_C2[0] * xy * coeffs[i, 4, ch] + SH_C2[1] * yz * coeffs[i, 5, ch]
+                        + SH_C2[2] * (2 * zz - xx - yy) * coeffs[i, 6, ch] + SH_C2[3] * xz2 * coeffs[i, 7, ch]
+                        + SH_C2[4] * (xx - yy) * coeffs[i, 8, ch])
+            if ncoef > 9:
+                acc += (SH_C3[0] * dy * (3 * xx - yy) * coeffs[i, 9, ch]
+                        + SH_C3[1] * xy * dz * coeffs[i, 10, ch]
+                        + SH_C3[2] * dy * (4 * zz - xx - yy) * coeffs[i, 11, ch]
+                        + SH_C3[3] * dz * (2 * zz - 3 * xx - 3 * yy) * coeffs[i, 12, ch]
+                        + SH_C3[4] * dx * (4 * zz - xx - yy) * coeffs[i, 13, ch]
+                        + SH_C3[5] * dz * (xx - yy) * coeffs[i, 14, ch]
+                        + SH_C3[6] * dx * (xx - 3 * yy) * coeffs[i, 15, ch])
+            color[i, ch] = max(acc + 0.5, 0.0)
+
+
+@_jit()
+def _depth_order(rect, depth_bits):
+    """The splats with a non-empty rectangle, sorted by depth, ties by index: an LSD radix sort
+    (stable) of the float32 depths' bit patterns, which order like the depths as these are > 0."""
+    order = np.nonzero((rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1]))[0]
+    spare = np.empty_like(order)
+    for shift in (0, 11, 22):
+        count = np.zeros(2049, np.int64)
+        for g in order:
+            count[((depth_bits[g] >> shift) & 2047) + 1] += 1
+        for d in range(2048):
+            count[d + 1] += count[d]
+        for g in order:
+            d = (depth_bits[g] >> shift) & 2047
+            spare[count[d]] = g
+            count[d] += 1
+        order, spare = spare, order
+    return order
+
+
+@_jit()
+def _bin(rect, depth_bits, grid_x, grid_y):
+    """Tile lists: ids[start[t]:start[t + 1]] are the splats of tile t, front to back."""
+    order = _depth_order(rect, depth_bits)
+    start = np.zeros(grid_x * grid_y + 1, np.int64)
+    for g in order:
+        for ty in range(rect[g, 1] // TILE, (rect[g, 3] - 1) // TILE + 1):
+            for tx in range(rect[g, 0] // TILE, (rect[g, 2] - 1) // TILE + 1):
+                start[ty * grid_x + tx + 1] += 1
+    for t in range(grid_x * grid_y):
+        start[t + 1] += start[t]
+    fill = start[:-1].copy()
+    ids = np.empty(start[-1], np.int32)
+    for g in order:
+        for ty in range(rect[g, 1] // TILE, (rect[g, 3] - 1) // TILE + 1):
+            for tx in range(rect[g, 0] // TILE, (rect[g, 2] - 1) // TILE + 1):
+                t = ty * grid_x + tx
+                ids[fill[t]] = g
+                fill[t] += 1
+    return start, ids
+
+
+_STATE = 5 * TILE * TILE
+"""Per-tile state: transmittance (negative once the pixel stopped), 3 colour sums, depth sum."""
+_WORK_ITEMS = 128
+"""Tiles are dealt round-robin to this many parallel work items, handed to threads one at a time:
+busy image regions are shared, and a thread the OS preempts (a loaded machine) holds up only the
+item it is on, not a fixed half of the image."""
+
+
+@_jit(fastmath={"contract"}, inline="always")
+def _blend_run(st, p0, dx0, ca, rowb, rowc, o, c0, c1, c2, z, alpha_min, t_min):
+    """Blend one splat into the 8 pixels st[p0:p0 + 8] of a tile row; dx0 = x - mean x of the
+    first. Branch-free so that LLVM vectorises it; the indices are unsigned to spare it the
+    negative-index wraparound that would otherwise block vectorisation."""
+    for j in range(8):
+        p = p0 + np.uint64(j)
+        dx = dx0 + np.float32(j)
+        alpha = min(o * exp_nonpositive(dx * (ca * dx + rowb) + rowc), np.float32(ALPHA_MAX))
+        t = st[p]
+        t_next = t * (np.float32(1.0) - alpha)
+        live = (alpha >= alpha_min) & (t > np.float32(0.0))
+        take = live & (t_next >= t_min)
+        stop = live & (t_next < t_min)
+        w = alpha * t if take else np.float32(0.0)
+        st[np.uint64(TILE * TILE) + p] += w * c0
+        st[np.uint64(2 * TILE * TILE) + p] += w * c1
+        st[np.uint64(3 * TILE * TILE) + p] += w * c2
+        st[np.uint64(4 * TILE * TILE) + p] += w * z
+        st[p] = t_next if take else (-t if stop else t)
+
+
+@_jit(parallel=True, fastmath={"contract"})
+def _blend(start, ids, splat, depth, rect, color, background, width, height, grid_x, alpha_min, t_min,
+           image, alpha_out, depth_out):
+    """Front-to-back blending of every tile's list; writes image, alpha and expected depth."""
+    nch = color.shape[1]
+    n_tiles = grid_x * ((height + TILE - 1) // TILE)
+    for item in numba.prange(_WORK_ITEMS):
+        st = np.empty(_STATE, np.float32)
+        for t in range(item, n_tiles, _WORK_ITEMS):
+            ox = (t % grid_x) * TILE
+            oy = (t // grid_x) * TILE
+            tw = min(TILE, width - ox)
+            th = min(TILE, height - oy)
+            st[:] = 0.0
+            for p in range(TILE * TILE):  # pixels outside the image start stopped
+                st[p] = 1.0 if (p % TILE < tw and p // TILE < th) else -1.0
+            for k in range(start[t], start[t + 1]):
+                g = ids[k]
+                x0 = max(rect[g, 0] - ox, 0)
+                x1 = min(rect[g, 2] - ox, tw)
+                y0 = max(rect[g, 1] - oy, 0)
+                y1 = min(rect[g, 3] - oy, th)
+                mx = np.float32(splat[g, 0] - ox)
+                my = np.float32(splat[g, 1] - oy)
+                ca, cb, cc = np.float32(splat[g, 2]), np.float32(splat[g, 3]), np.float32(splat[g, 4])
+                o, z = np.float32(splat[g, 5]), np.float32(depth[g])
+                c0 = color[g, 0]
+                c1 = color[g, 1] if nch == 3 else np.float32(0.0)
+                c2 = color[g, 2] if nch == 3 else np.float32(0.0)
+                # runs of 8 pixels covering [x0, x1): one run anywhere in the tile row when the
+                # span fits in it, else the two halves (pixels outside the span are skipped anyway)
+                first = min(x0, TILE - 8) if x1 - x0 <= 8 else 0
+                for ly in range(y0, y1):
+                    dy = np.float32(ly) - my
+                    for hx in range(first, x1, 8):
+                        _blend_run(st, np.uint64(ly * TILE + hx), np.float32(hx) - mx, ca, cb * dy,
+                                   cc * dy * dy, o, c0, c1, c2, z, alpha_min, t_min)
+                if (k - start[t]) % 16 == 15:  # every 16 splats: has every pixel stopped?
+                    most = np.float32(-1.0)
+                    for p in range(TILE * TILE):
+                        most = max(most, st[p])
+                    if most <= 0:
+                        break
+            for ly in range(th):
+                for lx in range(tw):
+                    p = ly * TILE + lx
+                    trans = abs(st[p])
+                    for ch in range(nch):
+                        image[oy + ly, ox + lx, ch] = st[(ch + 1) * TILE * TILE + p] + trans * background[ch]
+                    a = np.float32(1.0) - trans
+                    alpha_out[oy + ly, ox + lx] = a
+                    depth_out[oy + ly, ox + lx] = st[4 * TILE * TILE + p] / a if a > 0 else np.float32(0.0)
+
+
+def rasterize_fast(means, quats, scales, opacities, colors, w2c, intrinsics: Intrinsics, *, background=None,
+                   near: float = 0.01, return_depth: bool = False, return_alpha: bool = False,
+                   alpha_min: float = ALPHA_MIN, t_min: float = T_MIN,
+                   threads: int | None = None) -> RenderOutput:
+    """Render Gaussians on the CPU; the arguments of ``rasterize`` as numpy (torch tensors accepted).
+
+    means [N, 3], quats [N, 4] (w, x, y, z), scales [N, 3] linear, opacities [N] in [0, 1],
+    colors [N, C] or SH [N, K, C]; converted to float32. w2c [4, 4], intrinsics, background and
+    near as in ``rasterize``. alpha_min: a splat is skipped where its alpha is below this;
+    t_min: a pixel stops once blending would leave less transmittance than this.
+    threads: threads for the blending (default: numba's, all cores); a service on a shared or
+    small machine may prefer 1, as a preempted worker thread stalls the whole parallel region.
+    Set for this call only (numba's thread count is per calling thread).
+    returns RenderOutput of float32 numpy arrays: image [H, W, C], alpha [H, W] and depth [H, W]
+    (expected camera z) when asked for.
+    """
+    arrays = as_float32_arrays(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors)
+    chk = check_inputs(*arrays.values(), w2c, intrinsics, background, near)
+    for name, value in (("alpha_min", alpha_min), ("t_min", t_min)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < ALPHA_MAX:
+            raise InvalidInputError(f"{name} must be a number in [0, {ALPHA_MAX}), got {value!r}")
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int)
+                                or not 1 <= threads <= numba.config.NUMBA_NUM_THREADS):
+        raise InvalidInputError(f"threads must be an integer in [1, {numba.config.NUMBA_NUM_THREADS}], "
+                                f"got {threads!r}")
+    width, height = intrinsics.width, intrinsics.height
+    n = chk.means.shape[0]
+    coeffs = chk.colors if chk.colors.ndim == 3 else np.ascontiguousarray(chk.colors[:, None, :])
+    splat = np.zeros((n, 6), np.float32)
+    depth_key = np.zeros(n, np.float32)
+    rect = np.empty((n, 4), np.int32)
+    color = np.zeros((n, chk.channels), np.float32)
+    _preprocess(chk.means, chk.quats, chk.scales, chk.opacities, coeffs, chk.colors.ndim == 3, chk.w2c,
+                intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, width, height, float(near),
+                float(alpha_min), splat, depth_key, rect, color)
+    grid_x, grid_y = -(-width // TILE), -(-height // TILE)
+    start, ids = _bin(rect, depth_key.view(np.uint32), grid_x, grid_y)
+    image = np.empty((height, width, chk.channels), np.float32)
+    alpha = np.empty((height, width), np.float32)
+    depth = np.empty((height, width), np.float32)
+    previous = numba.set_parallel_chunksize(1)  # work items go to threads one at a time
+    previous_threads = numba.get_num_threads()
+    try:
+        if threads is not None:
+            numba.set_num_threads(threads)
+        _blend(start, ids, splat, depth_key, rect, color, chk.background, width, height, grid_x,
+               np.float32(alpha_min), np.float32(t_min), image, alpha, depth)
+    finally:
+        numba.set_parallel_chunksize(previous)
+        numba.set_num_threads(previous_threads)
+    return RenderOutput(image=image, alpha=alpha if return_alpha else None,
+                        depth=depth if return_depth else None)

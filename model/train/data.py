@@ -1,0 +1,146 @@
+"""What training needs from a recording, as plain arrays, plus the event windows it samples.
+
+The model never reads events: the caller injects ``event_map(t0_us, t1_us)``, the signed polarity sum
+I_E of the events in [t0_us, t1_us) as float32 [H, W] at the event camera's resolution (the sensor's
+accumulation). ``EventGrid`` calls it once per sub-step of every gap between anchors and keeps the
+running sums, so any window on the grid is one subtraction.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from edmcgs.geometry import Intrinsics, Trajectory, validate_pose
+from tqdm.auto import tqdm
+
+from edmcgs.errors import InvalidInputError, TrainingError
+
+EventMapFn = Callable[[int, int], np.ndarray]
+"""(t0_us, t1_us) -> float32 [event_height, event_width] signed polarity sum of events in [t0, t1)."""
+
+
+@dataclass
+class TrainingData:
+    """Anchors, held-out frames, the camera and the event source of one recording."""
+
+    anchors_t_us: np.ndarray
+    """[F] int64 strictly increasing anchor times."""
+    anchor_images: np.ndarray
+    """[F, H, W, C] uint8, C = 1 or 3."""
+    anchor_poses: np.ndarray
+    """[F, 4, 4] float64 c2w of the anchors."""
+    intrinsics: Intrinsics
+    """The camera of the frames (and of the events, at ``event_size``)."""
+    trajectory: Trajectory
+    """Event-camera c2w over time."""
+    t_end_us: int
+    """End of the span to train (>= the last anchor)."""
+    event_map: EventMapFn | None = None
+    """The injected accumulation; None trains the time-only model."""
+    event_size: tuple[int, int] | None = None
+    """(width, height) of the event maps; default the image size."""
+    held_out_t_us: np.ndarray | None = None
+    """[G] int64 times of ground-truth frames for evaluation."""
+    held_out_images: np.ndarray | None = None
+    """[G, H, W, C] uint8."""
+    held_out_poses: np.ndarray | None = None
+    """[G, 4, 4] float64 c2w, or None to use the trajectory."""
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.anchors_t_us)
+        if t.ndim != 1 or t.size == 0 or not np.issubdtype(t.dtype, np.integer):
+            raise TrainingError("training needs at least one anchor frame (int64 times)")
+        self.anchors_t_us = t.astype(np.int64)
+        if np.any(np.diff(self.anchors_t_us) <= 0):
+            raise InvalidInputError("anchors_t_us must be strictly increasing")
+        f = self.anchors_t_us.size
+        img = np.asarray(self.anchor_images)
+        if img.dtype != np.uint8 or img.shape[:1] != (f,) or img.ndim != 4 or img.shape[3] not in (1, 3):
+            raise InvalidInputError(f"anchor_images must be uint8 [{f}, H, W, 1|3], "
+                                    f"got {img.dtype} {img.shape}")
+        if (img.shape[2], img.shape[1]) != (self.intrinsics.width, self.intrinsics.height):
+            raise InvalidInputError("anchor_images and intrinsics disagree on the image size")
+        poses = np.asarray(self.anchor_poses, dtype=np.float64)
+        if poses.shape != (f, 4, 4):
+            raise InvalidInputError(f"anchor_poses must be [{f}, 4, 4], got {poses.shape}")
+        self.anchor_poses = np.stack([validate_pose(p, name=f"anchor_poses[{i}]")
+                                      for i, p in enumerate(poses)])
+        if int(self.t_end_us) < int(self.anchors_t_us[-1]) or int(self.t_end_us) <= int(self.anchors_t_us[0]):
+            raise InvalidInputError("t_end_us must be >= the last anchor and after the first")
+        self.t_end_us = int(self.t_end_us)
+        if self.event_size is None:
+            self.event_size = (self.intrinsics.width, self.intrinsics.height)
+        if self.held_out_t_us is not None:
+            ht = np.asarray(self.held_out_t_us).astype(np.int64)
+            himg = np.asarray(self.held_out_images)
+            if himg.dtype != np.uint8 or himg.shape[:1] != ht.shape or himg.shape[1:] != img.shape[1:]:
+                raise InvalidInputError("held_out_images must be uint8 [G, H, W, C] like the anchors")
+            self.held_out_t_us = ht
+
+    @property
+    def channels(self) -> int:
+        return int(self.anchor_images.shape[3])
+
+    def held_out_pose(self, i: int) -> np.ndarray:
+        """c2w of held-out frame ``i`` (its own pose, else the trajectory at its time)."""
+        if self.held_out_poses is not None:
+            return np.asarray(self.held_out_poses[i], dtype=np.float64)
+        return self.trajectory.at(int(self.held_out_t_us[i]))
+
+    def evaluable(self) -> np.ndarray:
+        """Indices of the held-out frames inside [first anchor, t_end] (the model has a state there)."""
+        if self.held_out_t_us is None:
+            return np.zeros(0, dtype=np.int64)
+        t = self.held_out_t_us
+        return np.flatnonzero((t >= self.anchors_t_us[0]) & (t <= self.t_end_us))
+
+
+class EventGrid:
+    """Running event sums on ``substeps`` + 1 times per gap (gap n starts at anchor n).
+
+    times: np.ndarray   # [G, S + 1] int64; times[n, 0] is anchor n, times[n, S] the gap's end
+    cum: Tensor         # [G, S + 1, He, We] float32; cum[n, k] = I_E over [times[n, 0], times[n, k])
+    ends_at_anchor: np.ndarray  # [G] bool, True where times[n, S] is anchor n + 1
+    """
+
+    def __init__(self, times: np.ndarray, cum: torch.Tensor, ends_at_anchor: np.ndarray):
+        self.times, self.cum, self.ends_at_anchor = times, cum, ends_at_anchor
+
+    @classmethod
+    def build(cls, data: TrainingData, substeps: int, *, progress: bool = False) -> EventGrid:
+        if data.event_map is None:
+            raise TrainingError("the event branch and event loss need an event source (event_map)")
+        anchors = data.anchors_t_us
+        starts, ends, at_anchor = [], [], []
+        for n, start in enumerate(anchors):
+            end = int(anchors[n + 1]) if n + 1 < anchors.size else data.t_end_us
+            if end > start:
+                starts.append(int(start))
+                ends.append(end)
+                at_anchor.append(n + 1 < anchors.size)
+        w, h = data.event_size
+        k = np.arange(substeps + 1)
+        times = np.stack([s + (k * (e - s)) // substeps
+                          for s, e in zip(starts, ends, strict=True)]).astype(np.int64)
+        cum = torch.zeros(len(starts), substeps + 1, h, w)
+        bar = tqdm(total=cum.shape[0] * substeps, desc="event windows", disable=not progress, leave=False)
+        for n in range(times.shape[0]):
+            for j in range(substeps):
+                window = np.asarray(data.event_map(int(times[n, j]), int(times[n, j + 1])), dtype=np.float32)
+                if window.shape != (h, w):
+                    raise InvalidInputError(f"event_map returned {window.shape}, expected {(h, w)}")
+                cum[n, j + 1] = cum[n, j] + torch.from_numpy(window)
+                bar.update()
+        bar.close()
+        return cls(times, cum, np.asarray(at_anchor, dtype=bool))
+
+    @property
+    def num_gaps(self) -> int:
+        return int(self.times.shape[0])
+
+    @property
+    def substeps(self) -> int:
+        return int(self.times.shape[1]) - 1

@@ -1,0 +1,79 @@
+"""The photometric loss at the RGB anchors: (1 - lambda_d) L1 + lambda_d D-SSIM."""
+
+from edmcgs.model.eval.ssim import ssim
+from torch import Tensor
+
+
+def photometric_loss(rendered: Tensor, target: Tensor, lambda_dssim: float) -> Tensor:
+    """rendered, target: Tensor  # [H, W, C] in [0, 1]; D-SSIM = 1 - SSIM (as in 3DGS)."""
+    l1 = (rendered - target).abs().mean()
+    return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - ssim(rendered, target))
+
+
+# ---- folded from model/train/losses.py ----
+"""The event loss from the event generation model: L(t_b) - L(t_a) = C * sum of polarities in [t_a, t_b]."""
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+LUMA = (0.299, 0.587, 0.114)
+"""Rec. 601 weights that turn a rendered RGB image into the luminance an event pixel sees."""
+
+
+def log_luminance(image: Tensor, eps: float) -> Tensor:
+    """log(I + eps) of a [H, W, C] image in [0, 1] (C = 1 grey, or 3 RGB reduced to luminance) -> [H, W]."""
+    if image.shape[-1] == 3:
+        lum = image @ torch.tensor(LUMA, dtype=image.dtype, device=image.device)
+    else:
+        lum = image[..., 0]
+    return torch.log(lum.clamp_min(0.0) + eps)
+
+
+def event_loss(render_a: Tensor, render_b: Tensor, event_sum: Tensor, contrast: float, eps: float, *,
+               levels: int = 1) -> Tensor:
+    """Mean L1 between the rendered log-luminance change and the events' prediction of it.
+
+    render_a, render_b: Tensor  # [H, W, C] renders at t_a < t_b (render them with colours detached, so
+                                #  that this loss moves geometry and motion, never the colours)
+    event_sum: Tensor           # [H, W] signed polarity sum over [t_a, t_b) at the render's resolution
+    levels: 1 compares pixels (the paper's loss); L > 1 averages it over a pyramid of L levels, each
+            2x2 mean-pooled from the one before. A coarse level still sees an edge that moved further
+            than a pixel's neighbourhood, so large motions get a gradient towards the events.
+    """
+    change = log_luminance(render_b, eps) - log_luminance(render_a, eps)
+    residual = (change - contrast * event_sum)[None, None]
+    total = residual.abs().mean()
+    for _ in range(levels - 1):
+        if min(residual.shape[-2:]) < 2:
+            break
+        residual = F.avg_pool2d(residual, 2)
+        total = total + residual.abs().mean()
+    return total / levels
+
+
+# ---- folded from model/train/losses.py ----
+"""Regularisers on the control points: temporal local isometry (TLI) and KNN Laplacian smoothness."""
+
+from torch import Tensor
+
+
+def tli_loss(points_t1: Tensor, points_t2: Tensor, graph: Tensor) -> Tensor:
+    """Mean squared change of edge length between two nearby times.
+
+    points_t1, points_t2: Tensor  # [M, 3] deformed control points at t - dt/2 and t + dt/2
+    graph: Tensor                 # [M, K] int64 neighbours (edges (j, graph[j, k]))
+    Zero for any rigid motion between the two times; positive for a stretch or shear.
+    """
+    len1 = (points_t1[:, None, :] - points_t1[graph]).norm(dim=-1)
+    len2 = (points_t2[:, None, :] - points_t2[graph]).norm(dim=-1)
+    return (len1 - len2).square().mean()
+
+
+def laplacian_smoothness(values: Tensor, graph: Tensor) -> Tensor:
+    """Mean squared difference of each point's value from the mean of its graph neighbours.
+
+    values: Tensor  # [M, D] (g_phi's displacement per control point)
+    graph: Tensor   # [M, K] int64
+    """
+    return (values - values[graph].mean(1)).square().sum(-1).mean()

@@ -1,0 +1,311 @@
+"""Training of EdMCGS: composes the losses, schedules and density control of their own modules.
+
+One iteration:
+  * an anchor frame: the state at tau_n with an empty window, photometric loss (L1 + D-SSIM);
+  * with events: a gap n and two sub-step times t_a < t_b in it (t_a may be the anchor, t_b the next
+    anchor), each state driven by the events since tau_n; the event loss compares the rendered
+    log-luminance change (colours detached) with C * sum(p) over [t_a, t_b); TLI on the control
+    points between t_a and t_b; Laplacian smoothness of g_phi's displacement;
+  * without events: TLI between two nearby times.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from edmcgs.geometry import world_to_camera
+from edmcgs.model.checkpoint import save_checkpoint
+from edmcgs.model.train.density import GradientStats, densify_and_prune, reset_opacity, screen_space_grad
+from edmcgs.model.dynamic import EdMCGS, background_color, render_image
+from edmcgs.model.eval.evaluation import evaluate, summarize
+from edmcgs.model.train.losses import event_loss
+from edmcgs.model.motion.gaussians import GaussianState
+from edmcgs.model.train.losses import photometric_loss
+from edmcgs.model.train.losses import laplacian_smoothness, tli_loss
+from edmcgs.model.train.schedule import exp_decay, ramp
+from edmcgs.model.train.data import EventGrid, TrainingData
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from edmcgs.errors import InvalidInputError, TrainingError
+
+MAX_BAD_STEPS = 20
+"""Consecutive non-finite losses after which training stops with a TrainingError."""
+
+
+def _resize(images: Tensor, height: int, width: int) -> Tensor:
+    """[B, H, W, C] -> [B, height, width, C] by area averaging (identity at the same size)."""
+    if images.shape[1:3] == (height, width):
+        return images
+    return F.interpolate(images.permute(0, 3, 1, 2), size=(height, width), mode="area").permute(0, 2, 3, 1)
+
+
+class Trainer:
+    """Optimises a model on one recording's arrays; ``fit`` runs to ``config.iterations``."""
+
+    def __init__(self, model: EdMCGS, data: TrainingData, *, device: str | torch.device = "cpu",
+                 progress: bool = True):
+        self.cfg = cfg = model.config
+        if cfg.events and data.event_map is None:
+            raise TrainingError("config.events is on but the recording gives no event source")
+        if data.channels != model.meta.channels:
+            raise InvalidInputError(f"the data has {data.channels} channels, the model {model.meta.channels}")
+        self.device = torch.device(device)
+        self.model = model.to(self.device).train()
+        self.data = data
+        self.progress = progress
+        intr = model.meta.intrinsics
+        w, h = max(8, round(intr.width * cfg.train_scale)), max(8, round(intr.height * cfg.train_scale))
+        self.intr = intr if (w, h) == (intr.width, intr.height) else intr.scaled(w, h)
+        ew, eh = max(8, round(w * cfg.event_render_scale)), max(8, round(h * cfg.event_render_scale))
+        self.event_intr = self.intr if (ew, eh) == (w, h) else self.intr.scaled(ew, eh)
+        images = torch.from_numpy(data.anchor_images).float() / 255.0
+        self.anchor_images = _resize(images, h, w).to(self.device)
+        self.anchor_w2c = self._w2c(data.anchor_poses)
+        self.anchor_times = [model.meta.normalized_time(int(t)) for t in data.anchors_t_us]
+        self.grid = EventGrid.build(data, cfg.substeps, progress=progress) if cfg.events else None
+        if self.grid is not None:
+            self.grid.cum = self.grid.cum.to(self.device)
+            g, s1 = self.grid.times.shape
+            self.grid_w2c = self._w2c(data.trajectory.at(self.grid.times.reshape(-1))).reshape(g, s1, 4, 4)
+            self.grid_t = [[model.meta.normalized_time(int(t)) for t in row] for row in self.grid.times]
+        self.background = background_color(cfg, model.meta.channels).to(self.device)
+        self.optimizer = self._build_optimizer()
+        self.stats = GradientStats(len(model.gaussians), self.device)
+        self.step = 0
+        self.bad_steps = 0
+        self.rng = np.random.default_rng(cfg.seed)
+        self.generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
+        self.history: list[dict] = []
+        self.train_seconds = 0.0
+        """Wall-clock seconds spent in training steps (not in evaluation or checkpointing)."""
+
+    # ------------------------------------------------------------------ setup
+    def _w2c(self, c2w: np.ndarray) -> Tensor:
+        return torch.as_tensor(world_to_camera(c2w), dtype=torch.float32, device=self.device)
+
+    def _build_optimizer(self) -> torch.optim.Adam:
+        cfg, m = self.cfg, self.model
+        g = m.gaussians
+        groups = [
+            {"name": "means", "params": [g.means], "lr": cfg.lr_means * float(m.extent)},
+            {"name": "quats", "params": [g.quats], "lr": cfg.lr_quats},
+            {"name": "log_scales", "params": [g.log_scales], "lr": cfg.lr_scales},
+            {"name": "opacity_logits", "params": [g.opacity_logits], "lr": cfg.lr_opacity},
+            {"name": "features", "params": [g.features], "lr": cfg.lr_features},
+            {"name": "radius", "params": [m.control.log_radius], "lr": cfg.lr_radius},
+            {"name": "deform", "params": list(m.prior.parameters()), "lr": cfg.lr_deform},
+        ]
+        if m.transition is not None:
+            groups.append({"name": "event", "params": [*m.encoder.parameters(), *m.transition.parameters()],
+                           "lr": cfg.lr_event})
+        return torch.optim.Adam(groups, eps=1e-15)
+
+    def _set_schedules(self, progress: float) -> None:
+        cfg = self.cfg
+        lrs = {"means": exp_decay(cfg.lr_means * float(self.model.extent), 0.01, progress),
+               "deform": exp_decay(cfg.lr_deform, 0.02, progress),
+               "event": exp_decay(cfg.lr_event, 0.1, progress)}
+        for group in self.optimizer.param_groups:
+            if group["name"] in lrs:
+                group["lr"] = lrs[group["name"]]
+        if self.model.transition is not None:
+            self.model.event_scale.fill_(ramp(progress, *cfg.event_warmup))
+
+    # ------------------------------------------------------------------ one step
+    def _render(self, state: GaussianState, w2c: Tensor, intr=None) -> Tensor:
+        return render_image(state, w2c, intr or self.intr, self.background)
+
+    def _gap_motion(self, gap: int, k: int):
+        """Control-point motion at grid time (gap, k): the next anchor's state at the gap's end."""
+        grid = self.grid
+        if k == grid.substeps and grid.ends_at_anchor[gap]:
+            return self.model.control_motion(self.anchor_times[gap + 1])
+        emap = grid.cum[gap, k] if k > 0 else None
+        return self.model.control_motion(self.grid_t[gap][k], emap, self.grid_w2c[gap, k])
+
+    def train_step(self) -> dict[str, float]:
+        """One optimisation step; returns the loss terms (floats)."""
+        cfg, model = self.cfg, self.model
+        progress = self.step / cfg.iterations
+        self._set_schedules(progress)
+        static = progress < cfg.deform_from
+        terms: dict[str, Tensor] = {}
+
+        n = int(self.rng.integers(len(self.anchor_times)))
+        anchor_state = model.state_at(self.anchor_times[n], static=static)
+        anchor_state.means.retain_grad()
+        image = self._render(anchor_state, self.anchor_w2c[n])
+        terms["photo"] = photometric_loss(image, self.anchor_images[n], cfg.lambda_dssim)
+        loss = terms["photo"]
+
+        cp = model.control.positions
+        if not static and self.grid is not None:
+            gap = int(self.rng.integers(self.grid.num_gaps))
+            s = self.grid.substeps
+            a = 0 if self.rng.random() < cfg.anchored_pairs else int(self.rng.integers(0, s))
+            b = int(self.rng.integers(a + 1, min(s, a + cfg.max_pair_steps) + 1))
+            trans_a, rot_a, disp_a = self._gap_motion(gap, a)
+            trans_b, rot_b, disp_b = self._gap_motion(gap, b)
+            renders = []
+            for trans, rot, k in ((trans_a, rot_a, a), (trans_b, rot_b, b)):
+                st = model.state_from_motion(trans, rot)
+                st = GaussianState(st.means, st.quats, st.scales, st.opacities, st.colors.detach())
+                renders.append(self._render(st, self.grid_w2c[gap, k], self.event_intr))
+            events = self.grid.cum[gap, b] - self.grid.cum[gap, a]
+            ei = self.event_intr
+            events = _resize(events[None, :, :, None], ei.height, ei.width)[0, :, :, 0]
+            terms["event"] = event_loss(renders[0], renders[1], events, cfg.contrast_threshold, cfg.log_eps,
+                                        levels=cfg.event_loss_levels)
+            loss = loss + cfg.lambda_event * terms["event"]
+            if cfg.tli:
+                terms["tli"] = tli_loss(cp + trans_a, cp + trans_b, model.control.graph)
+                loss = loss + cfg.lambda_tli * terms["tli"]
+            disps = [d for d in (disp_a, disp_b) if d is not None]
+            if disps:
+                graph = model.control.graph
+                terms["smooth"] = sum(laplacian_smoothness(d, graph) for d in disps) / len(disps)
+                loss = loss + cfg.lambda_smooth * terms["smooth"]
+        elif not static and cfg.tli:
+            # Time-only model: isometry between two nearby times, dt one sub-step of an average gap.
+            dt = 1.0 / (max(len(self.anchor_times) - 1, 1) * cfg.substeps)
+            t = float(self.rng.uniform(dt / 2, 1 - dt / 2))
+            trans_1, _, _ = model.control_motion(t - dt / 2)
+            trans_2, _, _ = model.control_motion(t + dt / 2)
+            terms["tli"] = tli_loss(cp + trans_1, cp + trans_2, model.control.graph)
+            loss = loss + cfg.lambda_tli * terms["tli"]
+
+        self.optimizer.zero_grad(set_to_none=True)
+        if not torch.isfinite(loss):
+            self.bad_steps += 1
+            if self.bad_steps > MAX_BAD_STEPS:
+                raise TrainingError(f"the loss was not finite for {self.bad_steps} steps in a row "
+                                    f"(step {self.step})")
+            self.step += 1
+            return {"loss": float("nan")}
+        loss.backward()
+        self._sanitize_gradients()
+        self.bad_steps = 0
+        if cfg.densify_from <= progress < cfg.densify_until and anchor_state.means.grad is not None:
+            self.stats.add(screen_space_grad(anchor_state.means.grad, anchor_state.means.detach(),
+                                             self.anchor_w2c[n], self.intr.fx, self.intr.fy,
+                                             self.intr.width, self.intr.height))
+        self.optimizer.step()
+        self.step += 1
+        self._density_control(progress)
+        out = {name: float(value.detach()) for name, value in terms.items()}
+        out["loss"] = float(loss.detach())
+        return out
+
+    def _sanitize_gradients(self) -> None:
+        # A single degenerate splat can produce a NaN gradient entry; zeroing it keeps Adam's moments finite.
+        for group in self.optimizer.param_groups:
+            for p in group["params"]:
+                if p.grad is not None:
+                    torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+
+    def _density_control(self, progress: float) -> None:
+        cfg, model = self.cfg, self.model
+        if not (cfg.densify_from <= progress < cfg.densify_until):
+            return
+        if self.step % cfg.densify_every == 0:
+            extent = float(model.extent)
+            densify_and_prune(model.gaussians, self.optimizer, self.stats, grad_threshold=cfg.densify_grad,
+                              extent=extent, percent_dense=cfg.percent_dense, min_opacity=cfg.prune_opacity,
+                              max_size=cfg.prune_size * extent, max_count=cfg.max_gaussians,
+                              generator=self.generator)
+            self.stats = GradientStats(len(model.gaussians), self.device)
+            if progress < cfg.control_resample_until and len(model.gaussians) >= model.control.num_points:
+                model.control.resample(model.gaussians.means, radius=cfg.radius_init * extent)
+                self._forget("radius")
+            else:
+                model.control.rebind(model.gaussians.means)
+        if cfg.opacity_reset_every and self.step % cfg.opacity_reset_every == 0:
+            reset_opacity(model.gaussians, self.optimizer)
+
+    def _forget(self, name: str) -> None:
+        for group in self.optimizer.param_groups:
+            if group["name"] == name:
+                for p in group["params"]:
+                    self.optimizer.state.pop(p, None)
+
+    # ------------------------------------------------------------------ loop, evaluation, resume
+    def evaluate(self, frames: int | None = None) -> dict[str, float]:
+        """Mean PSNR / SSIM on ``frames`` evenly spaced held-out frames (all when None)."""
+        idx = self.data.evaluable()
+        if frames is not None and idx.size > frames:
+            idx = idx[np.linspace(0, idx.size - 1, frames).round().astype(int)]
+        was_training = self.model.training
+        self.model.eval()
+        try:
+            # The PyTorch renderer: the numba one would reset torch's OpenMP thread count mid-training.
+            return summarize(evaluate(self.model, self.data, idx, fast=False))
+        finally:
+            self.model.train(was_training)
+
+    def fit(self, checkpoint_path: str | os.PathLike | None = None) -> list[dict]:
+        """Train to ``config.iterations``; periodic evaluation and resumable checkpoints. Returns the
+        evaluation history ({step, psnr, ssim, frames, seconds}); ``seconds`` counts training steps only
+        (evaluations and checkpoints are off the clock)."""
+        cfg = self.cfg
+        bar = tqdm(total=cfg.iterations, initial=self.step, desc="train", disable=not self.progress,
+                   dynamic_ncols=True)
+        last: dict[str, float] = {}
+        ema: dict[str, float] = {}
+        while self.step < cfg.iterations:
+            started = time.perf_counter()
+            last = self.train_step()
+            self.train_seconds += time.perf_counter() - started
+            for key, value in last.items():
+                if math.isfinite(value):
+                    ema[key] = value if key not in ema else 0.9 * ema[key] + 0.1 * value
+            bar.update(1)
+            if self.step % 10 == 0 or self.step == cfg.iterations:
+                post = {k: f"{v:.4g}" for k, v in ema.items()}
+                post["N"] = len(self.model.gaussians)
+                bar.set_postfix(post, refresh=False)
+            if cfg.eval_every and self.step % cfg.eval_every == 0 and self.data.evaluable().size:
+                result = {"step": self.step, **self.evaluate(cfg.eval_frames), "seconds": self.train_seconds}
+                self.history.append(result)
+                bar.write(f"step {self.step}: held-out PSNR {result['psnr']:.2f} dB, "
+                          f"SSIM {result['ssim']:.4f} "
+                          f"({result['frames']} frames), {len(self.model.gaussians)} Gaussians")
+            if checkpoint_path and cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0 \
+                    and self.step < cfg.iterations:
+                save_checkpoint(self.model, checkpoint_path, train_state=self.train_state())
+        bar.close()
+        self.model.event_scale.fill_(1.0)
+        self.model.eval()
+        if checkpoint_path:
+            save_checkpoint(self.model, checkpoint_path)
+        return self.history
+
+    def train_state(self) -> dict:
+        """Everything besides the model needed to continue this run (plain containers and tensors)."""
+        return {"step": self.step, "optimizer": self.optimizer.state_dict(), "stats": self.stats.state_dict(),
+                "rng": self.rng.bit_generator.state, "generator": self.generator.get_state(),
+                "history": self.history, "train_seconds": self.train_seconds}
+
+    def load_train_state(self, state: dict) -> None:
+        """Continue from ``train_state()`` output (the model must come from the same checkpoint)."""
+        self.step = int(state["step"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.stats.load_state_dict(state["stats"])
+        self.rng.bit_generator.state = state["rng"]
+        self.generator.set_state(state["generator"])
+        self.history = list(state.get("history", []))
+        self.train_seconds = float(state.get("train_seconds", 0.0))
+
+
+def write_history_csv(history: list[dict], path: str | os.PathLike) -> None:
+    """The evaluation history as CSV (step, psnr, ssim, frames, seconds)."""
+    lines = ["step,psnr,ssim,frames,seconds"]
+    lines += [f"{h['step']},{h['psnr']:.4f},{h['ssim']:.5f},{h['frames']},{h['seconds']:.1f}"
+              for h in history]
+    Path(path).write_text("\n".join(lines) + "\n")

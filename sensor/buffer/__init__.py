@@ -1,0 +1,1 @@
+"""Buffering: the event ring, the anchor store and the ingest thread that fills them."""

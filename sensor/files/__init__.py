@@ -1,0 +1,1 @@
+"""Files: our HDF5 recording format, atomic writes and ``edmcgs record``."""

@@ -1,0 +1,217 @@
+"""``edmcgs record``: record a live camera or any replay to AEDAT4 (dv-processing's writer) or our HDF5.
+
+    edmcgs record SOURCE.aedat4|SOURCE.h5 -o OUT.h5 [--duration S] [--start S] [--factor F]
+    edmcgs record --live [--serial SN] -o OUT.aedat4 --duration 10
+
+Output files are written atomically: nothing appears at OUT until the recording is complete. Ctrl-C
+stops a recording early and keeps what was recorded (the usual way to end a live capture).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import dv_processing as dv
+from edmcgs.sensor.files.atomic import atomic_output
+from edmcgs.sensor.sources.dv_bridge import dv_error_text, event_store, image_frame, imu_samples
+from edmcgs.sensor.sources.open import AEDAT_SUFFIXES, HDF5_SUFFIXES, open_source
+from edmcgs.sensor.sources.pacing import Pacing
+from edmcgs.sensor.files.recording import RecordingWriter
+from edmcgs.sensor.sources.base import EventSource, SensorBatch, StreamInfo
+from tqdm import tqdm
+
+from edmcgs.errors import EdmcgsError, InvalidInputError, RecordingError
+
+
+class AedatOutput:
+    """Batches -> an AEDAT4 file through dv-processing's MonoCameraWriter, atomically."""
+
+    def __init__(self, path: Path, info: StreamInfo, *, frames: bool = True) -> None:
+        self._atomic = atomic_output(path)
+        tmp = self._atomic.__enter__()
+        config = dv.io.MonoCameraWriter.Config(info.sensor)
+        config.addEventStream((info.width, info.height))
+        self._frames = frames and info.has_frames
+        if self._frames:
+            config.addFrameStream(info.frame_size)
+        if info.has_imu:
+            config.addImuStream()
+        try:
+            self._writer = dv.io.MonoCameraWriter(str(tmp), config)
+        except RuntimeError as exc:
+            self.abort(exc)
+            raise RecordingError(f"cannot write {path}: {dv_error_text(exc)}") from exc
+        self._imu = info.has_imu
+
+    def write(self, batch: SensorBatch) -> None:
+        if len(batch.events):
+            self._writer.writeEvents(event_store(batch.events))
+        if self._frames and batch.frames is not None:
+            for i in range(len(batch.frames)):
+                self._writer.writeFrame(image_frame(int(batch.frames.t_us[i]), batch.frames.images[i]))
+        if self._imu and batch.imu is not None:
+            for sample in imu_samples(batch.imu):
+                self._writer.writeImu(sample)
+
+    def finish(self, metadata: dict) -> None:
+        self._writer = None  # dv flushes and closes the file when the writer is released
+        self._atomic.__exit__(None, None, None)
+
+    def abort(self, exc: BaseException) -> None:
+        self._writer = None
+        self._atomic.__exit__(type(exc), exc, exc.__traceback__)
+
+
+class Hdf5Output:
+    """Batches -> our HDF5 recording (events and anchor frames), atomically."""
+
+    def __init__(self, path: Path, info: StreamInfo, *, frames: bool = True) -> None:
+        self._frames = frames and info.has_frames
+        if self._frames and info.frame_size != (info.width, info.height):
+            raise RecordingError(f"the source's frames are {info.frame_size} but its events "
+                                 f"{(info.width, info.height)}; our recordings need one resolution "
+                                 "(use --no-frames to record events only)")
+        self._writer = RecordingWriter(path, width=info.width, height=info.height, sensor=info.sensor)
+
+    def write(self, batch: SensorBatch) -> None:
+        self._writer.append_events(batch.events)
+        if self._frames and batch.frames is not None:
+            self._writer.append_anchors(batch.frames)
+
+    def finish(self, metadata: dict) -> None:
+        self._writer.finish(metadata=metadata)
+
+    def abort(self, exc: BaseException) -> None:
+        self._writer.abort(exc)
+
+
+def _output(path: Path, info: StreamInfo, frames: bool):
+    suffix = path.suffix.lower()
+    if suffix in AEDAT_SUFFIXES:
+        return AedatOutput(path, info, frames=frames)
+    if suffix in HDF5_SUFFIXES:
+        return Hdf5Output(path, info, frames=frames)
+    raise InvalidInputError(
+        f"output {path}: expected a name ending in {', '.join(AEDAT_SUFFIXES + HDF5_SUFFIXES)}")
+
+
+def record(source: EventSource, output: Path, *, duration_s: float | None = None, frames: bool = True,
+           progress: bool = True, source_name: str = "") -> dict:
+    """Copy ``source`` to ``output`` until its end, ``duration_s`` of stream time (counted from the first
+    event), or Ctrl-C.
+
+    Returns a summary (events, frames, stream seconds, whether interrupted, the source's drop counts).
+    """
+    info = source.info
+    out = _output(output, info, frames)
+    t_begin = t_stop = None
+    n_events = n_frames = 0
+    interrupted = False
+    total = duration_s if duration_s is not None else (
+        (info.t_range_us[1] - info.t_range_us[0]) / 1e6 if info.t_range_us else None)
+    bar = tqdm(total=total, unit="s", desc=f"recording {output.name}", disable=not progress,
+               bar_format="{l_bar}{bar}| {n:.2f}/{total_fmt} s [{elapsed}<{remaining}{postfix}]")
+    shown = 0.0
+    try:
+        while True:
+            try:
+                batch = source.read()
+            except KeyboardInterrupt:
+                interrupted = True
+                break
+            if batch is None:
+                break
+            ev = batch.events
+            if t_begin is None and len(ev):  # durations count from the first event
+                t_begin = ev.t_start
+                t_stop = None if duration_s is None else t_begin + round(duration_s * 1e6)
+            done = False
+            if t_stop is not None:
+                reached = batch.t_end_us if batch.t_end_us is not None else (ev.t_end if len(ev) else None)
+                if reached is not None and reached >= t_stop:
+                    done = True
+                    ev = ev.time_slice(-(2**62), t_stop)
+                    fr = batch.frames.time_slice(-(2**62), t_stop) if batch.frames is not None else None
+                    imu = batch.imu[batch.imu["t"] < t_stop] if batch.imu is not None else None
+                    batch = SensorBatch(events=ev, frames=fr if fr is not None and len(fr) else None,
+                                        imu=imu, t_end_us=t_stop)
+            out.write(batch)
+            n_events += len(batch.events)
+            n_frames += 0 if batch.frames is None else len(batch.frames)
+            now = batch.t_end_us if batch.t_end_us is not None else batch.events.t_end
+            if t_begin is not None and now is not None:
+                elapsed = (now - t_begin) / 1e6
+                bar.update(max(0.0, min(elapsed, total or math.inf) - shown))
+                shown = max(shown, min(elapsed, total or math.inf))
+                bar.set_postfix(events=n_events, refresh=False)
+            if done:
+                break
+        summary = {"events": n_events, "frames": n_frames, "seconds": shown, "interrupted": interrupted,
+                   "source": source_name, "sensor": info.sensor, "source_stats": source.stats.as_dict()}
+        out.finish({"recorded_by": "edmcgs record", **summary})
+        return summary
+    except BaseException as exc:
+        out.abort(exc)
+        raise
+    finally:
+        bar.close()
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="edmcgs record", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("source", nargs="?", help="recording to replay (.aedat4, .h5, .hdf5)")
+    p.add_argument("-o", "--output", required=True, type=Path, help="output file (.aedat4, .h5, .hdf5)")
+    p.add_argument("--live", action="store_true", help="record the DAVIS camera on USB instead of a file")
+    p.add_argument("--serial", help="with --live: the camera's serial number (default: the first one)")
+    p.add_argument("--duration", type=float,
+                   help="seconds of stream time to record, from the first event (default: all, or Ctrl-C)")
+    p.add_argument("--start", type=float, default=0.0, help="replays: skip this many seconds first")
+    p.add_argument("--factor", type=float, default=0.0,
+                   help="replays: real-time factor (1 = wall clock; default 0 = as fast as possible)")
+    p.add_argument("--resolution", help="HDF5 layouts without one (DSEC, v2e): WIDTHxHEIGHT, e.g. 640x480")
+    p.add_argument("--no-frames", action="store_true", help="record events only")
+    p.add_argument("--force", action="store_true", help="replace OUTPUT if it exists")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def _resolution(text: str | None) -> tuple[int, int] | None:
+    if text is None:
+        return None
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InvalidInputError(f"--resolution must look like 640x480, got {text!r}") from None
+    return w, h
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if args.live == (args.source is not None):
+        parser.error("give a SOURCE file to replay, or --live (not both)")
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        parser.error(f"--duration must be a positive number of seconds, got {args.duration}")
+    if not (math.isfinite(args.start) and args.start >= 0):
+        parser.error(f"--start must be >= 0 seconds, got {args.start}")
+    if args.output.exists() and not args.force:
+        parser.error(f"{args.output} exists (use --force to replace it)")
+    try:
+        pacing = Pacing(factor=args.factor, start_offset_us=round(args.start * 1e6))
+        source = open_source(args.source, live=args.live, serial=args.serial, pacing=pacing,
+                             resolution=_resolution(args.resolution))
+        with source:
+            summary = record(source, args.output, duration_s=args.duration, frames=not args.no_frames,
+                             progress=not args.quiet, source_name=args.source or "live")
+    except EdmcgsError as exc:
+        print(f"edmcgs record: error: {exc}", file=sys.stderr)
+        return 1
+    dropped = summary["source_stats"]["dropped"]
+    print(f"wrote {args.output}: {summary['events']} events, {summary['frames']} frames, "
+          f"{summary['seconds']:.3f} s" + (" (stopped by Ctrl-C)" if summary["interrupted"] else "")
+          + (f"; {dropped} invalid events dropped: {summary['source_stats']}" if dropped else ""))
+    return 0
