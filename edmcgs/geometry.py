@@ -1,4 +1,5 @@
-"""Pinhole cameras: intrinsics, OpenCV-convention poses, projection, wire parsing and trajectories.
+"""Geometry shared by every layer: pinhole cameras, OpenCV-convention poses and their checks, projection,
+wire parsing of poses, trajectories, and quaternion algebra (numpy and differentiable torch).
 
 Conventions: a pose is a camera-to-world 4x4 float64 numpy array (OpenCV: x right, y down, z
 forward); quaternions are (w, x, y, z); pixel centres sit at integer coordinates (pixel (row i,
@@ -13,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from edmcgs.geometry import quat_to_rotmat
+from torch import Tensor
 
 from edmcgs.errors import InvalidInputError, PoseError
 
@@ -75,12 +76,53 @@ class Intrinsics:
 
 # ----------------------------------------------------------------------------------------- rotations
 
-def quat_to_rotmat(q) -> np.ndarray:
-    """Rotation matrices of quaternions (normalised here; a zero or non-finite one is a PoseError).
+def quat_multiply(a: Tensor, b: Tensor) -> Tensor:
+    """Hamilton product a * b (rotation b first, then a).
 
-    q: array-like  # [..., 4] (w, x, y, z)
-    returns np.ndarray  # [..., 3, 3] float64
+    a, b: Tensor  # [..., 4] (w, x, y, z), broadcastable
     """
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    ], dim=-1)
+
+
+def quat_normalize(q: Tensor, eps: float = 1e-12) -> Tensor:
+    """q / |q|; a zero quaternion becomes the identity instead of NaN."""
+    norm = q.norm(dim=-1, keepdim=True)
+    identity = torch.zeros_like(q)
+    identity[..., 0] = 1.0
+    return torch.where(norm > eps, q / norm.clamp_min(eps), identity)
+
+
+def _quat_to_rotmat_torch(q: Tensor) -> Tensor:
+    """Rotation matrices of unit quaternions (differentiable).
+
+    q: Tensor  # [..., 4] (w, x, y, z), unit norm
+    returns Tensor  # [..., 3, 3]
+    """
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], dim=-1).reshape(*q.shape[:-1], 3, 3)
+
+
+def quat_to_rotmat(q):
+    """Rotation matrices of quaternions, in the type given.
+
+    A torch Tensor  # [..., 4] unit norm (w, x, y, z): the differentiable algebra of the deformation
+    path, returns Tensor [..., 3, 3] of its dtype, nothing checked. Anything else (array-like
+    [..., 4]): normalised here, a zero or non-finite quaternion is a PoseError; returns np.ndarray
+    [..., 3, 3] float64.
+    """
+    if isinstance(q, Tensor):
+        return _quat_to_rotmat_torch(q)
     q = np.asarray(q, dtype=np.float64)
     if q.shape[-1:] != (4,):
         raise PoseError(f"quaternion must have 4 components (w, x, y, z), got shape {q.shape}")
@@ -89,7 +131,7 @@ def quat_to_rotmat(q) -> np.ndarray:
     norm = np.linalg.norm(q, axis=-1, keepdims=True)
     if (norm < 1e-12).any():
         raise PoseError("quaternion has zero norm; it describes no rotation")
-    return quat_to_rotmat(torch.from_numpy(q / norm)).numpy()
+    return _quat_to_rotmat_torch(torch.from_numpy(q / norm)).numpy()
 
 
 def rotmat_to_quat(R) -> np.ndarray:
@@ -331,49 +373,5 @@ class Trajectory:
         return int(self.t_us.size)
 
 
-__all__ = ["Intrinsics", "Trajectory", "parse_pose", "pose_from_quat", "project", "quat_to_rotmat",
-           "rotmat_to_quat", "validate_pose", "world_to_camera"]
-
-
-# ---- folded from edmcgs/geometry.py ----
-"""Differentiable quaternion algebra on torch tensors, (w, x, y, z) order, for the deformation path."""
-
-import torch
-from torch import Tensor
-
-
-def quat_multiply(a: Tensor, b: Tensor) -> Tensor:
-    """Hamilton product a * b (rotation b first, then a).
-
-    a, b: Tensor  # [..., 4] (w, x, y, z), broadcastable
-    """
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ], dim=-1)
-
-
-def quat_normalize(q: Tensor, eps: float = 1e-12) -> Tensor:
-    """q / |q|; a zero quaternion becomes the identity instead of NaN."""
-    norm = q.norm(dim=-1, keepdim=True)
-    identity = torch.zeros_like(q)
-    identity[..., 0] = 1.0
-    return torch.where(norm > eps, q / norm.clamp_min(eps), identity)
-
-
-def quat_to_rotmat(q: Tensor) -> Tensor:
-    """Rotation matrices of unit quaternions.
-
-    q: Tensor  # [..., 4] (w, x, y, z), unit norm
-    returns Tensor  # [..., 3, 3]
-    """
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(*q.shape[:-1], 3, 3)
+__all__ = ["Intrinsics", "Trajectory", "parse_pose", "pose_from_quat", "project", "quat_multiply",
+           "quat_normalize", "quat_to_rotmat", "rotmat_to_quat", "validate_pose", "world_to_camera"]

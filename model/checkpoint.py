@@ -11,10 +11,10 @@ Schema (version 2)::
      "state_dict": {name: tensor},
      "train_state": {...} | None}   # optimizer and progress, only in checkpoints written mid-training
 
-Version 2 adds what the scene leaves out (``edmcgs.model.motion.leanness``): the frozen control points (decided
-when a final checkpoint is written, ``train_state`` None) and ``lean``, the record of every decision; a
-static camera's trajectory is stored as one pose. Version 1 files load with nothing frozen and ``lean``
-derived from the weights. A missing, truncated, foreign or newer file raises ``CheckpointError``.
+Version 2 adds what the scene leaves out (``edmcgs.model.motion.leanness``): the frozen control points
+(decided when a final checkpoint is written, ``train_state`` None) and ``lean``, the record of every
+decision; a static camera's trajectory is stored as one pose. Version 1 files load with nothing frozen
+and ``lean`` derived from the weights. A missing, truncated, foreign or newer file raises ``CheckpointError``.
 Writes are atomic (a temporary file in the same folder, fsynced, then renamed over the target).
 """
 
@@ -26,14 +26,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from edmcgs.geometry import Intrinsics, Trajectory
-from edmcgs.model.config import EdmcgsConfig
-from edmcgs.model.motion.control_points import ControlPoints
-from edmcgs.model.dynamic import EdMCGS, SceneMeta
-from edmcgs.model.motion.gaussians import Gaussians
-from edmcgs.model.motion.leanness import decisions, frozen_control_points
 
 from edmcgs.errors import CheckpointError, EdmcgsError
+from edmcgs.geometry import Intrinsics, Trajectory
+from edmcgs.model.config import EdmcgsConfig
+from edmcgs.model.dynamic import EdMCGS, SceneMeta
+from edmcgs.model.motion.control_points import ControlPoints
+from edmcgs.model.motion.gaussians import Gaussians
+from edmcgs.model.motion.leanness import decisions, frozen_control_points
 
 FORMAT = "edmcgs-checkpoint"
 VERSION = 2

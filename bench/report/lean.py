@@ -1,8 +1,8 @@
 """What each scene's checkpoint leaves out, and what that saves, measured side by side in one run.
 
 A trained checkpoint (version 2) records what its scene does not need in ``meta["lean"]``
-(``edmcgs.model.motion.leanness``): one channel for grey frames, the SH degree its views constrain, one pose for
-a static camera, no event branch without events, frozen control points. Its *full twin* is the same
+(``edmcgs.model.motion.leanness``): one channel for grey frames, the SH degree its views constrain, one
+pose for a static camera, no event branch without events, frozen control points. Its *full twin* is the same
 weights written as a checkpoint that leaves none of that out: nothing frozen (every Gaussian skinned),
 three channels (a grey colour repeated), SH at the configured maximum (the higher coefficients zero: the
 same image), the recording's whole trajectory for a static camera. The event branch cannot be added
@@ -24,18 +24,18 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
+from bench.report.render import pick_frame
 from edmcgs.model.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
 from edmcgs.model.config import EdmcgsConfig
 from edmcgs.model.dynamic import background_color
-from edmcgs.model.motion.leanness import control_motion_bound
 from edmcgs.model.eval.metrics import psnr
+from edmcgs.model.motion.leanness import control_motion_bound
 from edmcgs.model.render.sh import SH_C0
 from edmcgs.model.train.data import TrainingData
-from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.files.recording import Recording
+from edmcgs.sensor.frames import Frames
 from edmcgs.synth.esim import luminance
-
-from bench.report.render import pick_frame
 
 PSNR_IDENTICAL = 100.0
 """``metrics.psnr``'s cap: the images are equal."""

@@ -1,21 +1,17 @@
-"""The photometric loss at the RGB anchors: (1 - lambda_d) L1 + lambda_d D-SSIM."""
+"""The losses of training, each a pure function of tensors.
 
-from edmcgs.model.eval.ssim import ssim
-from torch import Tensor
+- photometric: (1 - lambda_d) L1 + lambda_d D-SSIM at the RGB anchors;
+- event: the event generation model, L(t_b) - L(t_a) = C * sum of polarities in [t_a, t_b);
+- regularisers on the control points: temporal local isometry (TLI) and KNN Laplacian smoothness.
 
-
-def photometric_loss(rendered: Tensor, target: Tensor, lambda_dssim: float) -> Tensor:
-    """rendered, target: Tensor  # [H, W, C] in [0, 1]; D-SSIM = 1 - SSIM (as in 3DGS)."""
-    l1 = (rendered - target).abs().mean()
-    return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - ssim(rendered, target))
-
-
-# ---- folded from model/train/losses.py ----
-"""The event loss from the event generation model: L(t_b) - L(t_a) = C * sum of polarities in [t_a, t_b]."""
+A new loss is a function here, weighted by a config field and composed in ``trainer``.
+"""
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+from edmcgs.model.eval.ssim import ssim
 
 LUMA = (0.299, 0.587, 0.114)
 """Rec. 601 weights that turn a rendered RGB image into the luminance an event pixel sees."""
@@ -52,10 +48,11 @@ def event_loss(render_a: Tensor, render_b: Tensor, event_sum: Tensor, contrast: 
     return total / levels
 
 
-# ---- folded from model/train/losses.py ----
-"""Regularisers on the control points: temporal local isometry (TLI) and KNN Laplacian smoothness."""
 
-from torch import Tensor
+def photometric_loss(rendered: Tensor, target: Tensor, lambda_dssim: float) -> Tensor:
+    """rendered, target: Tensor  # [H, W, C] in [0, 1]; D-SSIM = 1 - SSIM (as in 3DGS)."""
+    l1 = (rendered - target).abs().mean()
+    return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - ssim(rendered, target))
 
 
 def tli_loss(points_t1: Tensor, points_t2: Tensor, graph: Tensor) -> Tensor:
