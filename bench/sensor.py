@@ -19,15 +19,15 @@ import time
 from pathlib import Path
 
 import numpy as np
-from edmcgs.sensor.event_map import accumulate
-from edmcgs.sensor.events import Events
-from edmcgs.sensor.sources.hdf5 import Hdf5Replay
-from edmcgs.sensor.sources.pacing import Pacing
-from edmcgs.sensor.files.recording import RecordingWriter
-from edmcgs.sensor.buffer.ring import BYTES_PER_EVENT, EventRingBuffer
 from tqdm import tqdm
 
 from bench.results import table, write_json
+from edmcgs.sensor.buffer.ring import BYTES_PER_EVENT, EventRingBuffer
+from edmcgs.sensor.event_map import accumulate
+from edmcgs.sensor.events import Events
+from edmcgs.sensor.files.recording import RecordingWriter
+from edmcgs.sensor.sources.hdf5 import Hdf5Replay
+from edmcgs.sensor.sources.pacing import Pacing
 
 WIDTH, HEIGHT = 346, 260
 TARGETS = {"ring_ingest_mev_s": (">=", 20.0), "accumulate_1m_ms": ("<=", 5.0),

@@ -66,8 +66,8 @@ def build_scene(folder: str | os.PathLike, *, width: int = 346, height: int = 26
     from edmcgs.model.config import preset
     from edmcgs.model.dynamic import EdMCGS
     from edmcgs.sensor.events import Events
-    from edmcgs.sensor.frames import Frames
     from edmcgs.sensor.files.recording import Recording, write_recording
+    from edmcgs.sensor.frames import Frames
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -312,8 +312,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--gaussians", type=int, help="Gaussians of the built scene (default: the demo preset's "
                                                  "6000; a trained demo has up to 30k)")
     args = p.parse_args(argv)
-    from edmcgs.clients.client import Client
     from tqdm import tqdm
+
+    from edmcgs.clients.client import Client
 
     steps = tqdm(total=5, desc="bench.serve", unit="step")
     with tempfile.TemporaryDirectory(prefix="bench-serve-") as tmp:

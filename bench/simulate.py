@@ -22,12 +22,12 @@ from pathlib import Path
 
 import numba
 import numpy as np
-from edmcgs.synth.build import BuildConfig, build_recording
-from edmcgs.synth.esim import EventSimulator, SimulatorConfig
-from edmcgs.synth.scene import make_scene, render
 from tqdm import tqdm
 
 from bench.results import table, write_json
+from edmcgs.synth.build import BuildConfig, build_recording
+from edmcgs.synth.esim import EventSimulator, SimulatorConfig
+from edmcgs.synth.scene import make_scene, render
 
 TARGETS = {"sim_mpix_s": (">=", 20.0), "sim_frame_ms": ("<=", 5.0), "synth_small_s": ("<=", 60.0)}
 

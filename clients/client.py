@@ -24,9 +24,10 @@ from urllib.parse import urlsplit, urlunsplit
 
 import httpx
 import numpy as np
-from edmcgs import protocol
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import ClientConnection, connect
+
+from edmcgs import protocol
 
 # --- errors -------------------------------------------------------------------------------------
 

@@ -23,11 +23,11 @@ from pathlib import Path
 
 import httpx
 import numpy as np
-from edmcgs import protocol
-from edmcgs.clients.client import Client, ServiceError
 from PIL import Image
 from tqdm import tqdm
 
+from edmcgs import protocol
+from edmcgs.clients.client import Client, ServiceError
 from edmcgs.errors import EdmcgsError, InvalidInputError
 
 FORMATS = (".gif", ".mp4")

@@ -11,8 +11,8 @@ import numpy as np
 
 from edmcgs.errors import EdmcgsError, InvalidInputError
 from edmcgs.model.eval.lpips import VGG_FILE
-from edmcgs.sensor.files.recording import read_recording
 from edmcgs.pipeline import training_data
+from edmcgs.sensor.files.recording import read_recording
 
 
 def main(argv: list[str] | None = None) -> int:

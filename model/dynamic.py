@@ -16,22 +16,21 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from edmcgs.geometry import Intrinsics, Trajectory, project, validate_pose, world_to_camera
+from torch import Tensor, nn
+
+from edmcgs.errors import InvalidInputError, RenderError
+from edmcgs.geometry import Intrinsics, Trajectory, project, quat_normalize, validate_pose, world_to_camera
 from edmcgs.model.config import EdmcgsConfig
 from edmcgs.model.motion.control_points import ControlPoints
 from edmcgs.model.motion.deformation import DeformationField
 from edmcgs.model.motion.event_branch import EventEncoder, EventTransition, sample_global, sample_local
-from edmcgs.model.train.losses import LUMA
 from edmcgs.model.motion.gaussians import Gaussians, GaussianState
 from edmcgs.model.motion.initialization import backproject_anchors, scene_center_and_extent
 from edmcgs.model.motion.leanness import choose_sh_degree
-from edmcgs.geometry import quat_normalize
-from edmcgs.model.render.rasterize import rasterize
 from edmcgs.model.motion.skin_plan import SkinPlan, build_plan, plan_key, skin
 from edmcgs.model.motion.skinning import identity_rotations, lbs
-from torch import Tensor, nn
-
-from edmcgs.errors import InvalidInputError, RenderError
+from edmcgs.model.render.rasterize import rasterize
+from edmcgs.model.train.losses import LUMA
 
 NEAR = 0.01
 """Control points closer than this to the event camera (or behind it) read a zero motion code."""

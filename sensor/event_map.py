@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from edmcgs.sensor.events import Events
 
 from edmcgs.errors import InvalidInputError
+from edmcgs.sensor.events import Events
 
 
 @numba.njit(cache=True, nogil=True)

@@ -10,13 +10,14 @@ import logging
 from contextlib import asynccontextmanager
 from importlib.resources import files
 
+from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
+
 from edmcgs.server import errors
 from edmcgs.server.middleware import AccessMiddleware
 from edmcgs.server.routes import health, render, scene, stream
 from edmcgs.server.service import Service
 from edmcgs.server.settings import Settings
-from fastapi import FastAPI
-from fastapi.staticfiles import StaticFiles
 
 log = logging.getLogger("edmcgs.server")
 

@@ -61,6 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     # OMP_WAIT_POLICY in the environment wins.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     import uvicorn
+
     from edmcgs.server.app import create_app
     from edmcgs.server.service import Service
     from edmcgs.server.settings import Settings

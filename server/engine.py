@@ -13,18 +13,18 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+
+from edmcgs.errors import InvalidInputError, WindowUnavailable
 from edmcgs.geometry import Intrinsics
 from edmcgs.model.dynamic import EdMCGS
 from edmcgs.sensor.buffer.anchors import AnchorStore
+from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.events import Events
-from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.server.encode import to_uint8
 from edmcgs.server.playback import Playback
 from edmcgs.server.state_cache import StateCache
 from edmcgs.server.timeline import Timeline
-
-from edmcgs.errors import InvalidInputError, WindowUnavailable
 
 
 class TimeNotRenderable(WindowUnavailable):

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import logging
 
-from edmcgs.protocol import ProtocolError, error_body
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
@@ -27,6 +26,7 @@ from edmcgs.errors import (
     RenderError,
     WindowUnavailable,
 )
+from edmcgs.protocol import ProtocolError, error_body
 
 log = logging.getLogger("edmcgs.server")
 

@@ -17,14 +17,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
 from edmcgs import protocol
+from edmcgs.errors import EdmcgsError, InvalidInputError, RenderError
 from edmcgs.model.checkpoint import load_checkpoint
 from edmcgs.sensor.buffer.anchors import AnchorStore
 from edmcgs.sensor.buffer.ingest import Ingest
-from edmcgs.sensor.sources.open import open_source
-from edmcgs.sensor.sources.pacing import Pacing
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.sources.base import EventSource, SensorBatch
+from edmcgs.sensor.sources.open import open_source
+from edmcgs.sensor.sources.pacing import Pacing
 from edmcgs.server import demo
 from edmcgs.server.encode import encode
 from edmcgs.server.engine import Engine
@@ -34,8 +36,6 @@ from edmcgs.server.playback import Playback
 from edmcgs.server.render_pool import RenderPool
 from edmcgs.server.settings import Settings
 from edmcgs.server.timeline import Timeline
-
-from edmcgs.errors import EdmcgsError, InvalidInputError, RenderError
 
 log = logging.getLogger("edmcgs.server")
 

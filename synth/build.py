@@ -25,13 +25,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.files.recording import Recording, write_recording
-from edmcgs.synth.esim import LUMA_WEIGHTS, AdaptiveSampling, SimulatorConfig, simulate_render
-from edmcgs.synth.scene import SCENES, SIZES, Scene, make_scene, render
 from tqdm import tqdm
 
 from edmcgs.errors import EdmcgsError, InvalidInputError
+from edmcgs.sensor.files.recording import Recording, write_recording
+from edmcgs.sensor.frames import Frames
+from edmcgs.synth.esim import LUMA_WEIGHTS, AdaptiveSampling, SimulatorConfig, simulate_render
+from edmcgs.synth.scene import SCENES, SIZES, Scene, make_scene, render
 
 GENERATOR = "edmcgs.synth.build/1"
 SHUTTER = 0.5

@@ -24,9 +24,9 @@ from dataclasses import asdict, dataclass
 
 import numba as nb
 import numpy as np
-from edmcgs.sensor.events import Events
 
 from edmcgs.errors import InvalidInputError
+from edmcgs.sensor.events import Events
 
 # Rec.601 luma weights, as ESIM (OpenCV's RGB2GRAY) uses them.
 LUMA_WEIGHTS = (0.299, 0.587, 0.114)

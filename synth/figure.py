@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from edmcgs.geometry import rotmat_to_quat
 from edmcgs.synth.cloud import Cloud, pose_parts
 from edmcgs.synth.primitives import box, capsule, checker, ellipsoid, solid, stripes

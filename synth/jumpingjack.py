@@ -8,6 +8,7 @@ interpolator in time cannot recover the in-between poses, while the events recor
 from __future__ import annotations
 
 import numpy as np
+
 from edmcgs.synth.cloud import rotation
 from edmcgs.synth.figure import ROOT_HEIGHT, Figure
 from edmcgs.synth.orbit import Orbit

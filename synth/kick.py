@@ -8,6 +8,7 @@ goes through most of a kick, which a smooth interpolator in time cannot recover.
 from __future__ import annotations
 
 import numpy as np
+
 from edmcgs.synth.cloud import rotation
 from edmcgs.synth.figure import ROOT_HEIGHT, Figure
 from edmcgs.synth.orbit import Orbit

@@ -10,6 +10,7 @@ interpolation between anchors.
 from __future__ import annotations
 
 import numpy as np
+
 from edmcgs.geometry import rotmat_to_quat
 from edmcgs.synth.cloud import Cloud, pose_parts, rotation
 from edmcgs.synth.orbit import Orbit

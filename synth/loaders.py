@@ -23,13 +23,13 @@ import os
 from pathlib import Path
 
 import numpy as np
-from edmcgs.geometry import validate_pose
-from edmcgs.sensor.events import Events, EventStats
-from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.files.recording import Recording
 from PIL import Image
 
 from edmcgs.errors import EdmcgsError, ReplayFormatError
+from edmcgs.geometry import validate_pose
+from edmcgs.sensor.events import Events, EventStats
+from edmcgs.sensor.files.recording import Recording
+from edmcgs.sensor.frames import Frames
 
 BLENDER_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 """Right-multiplied onto a Blender c2w: flips the camera's y and z axes."""

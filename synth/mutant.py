@@ -10,6 +10,7 @@ periods (0.36 to 0.62 s) are incommensurate, so no two anchors look alike.
 from __future__ import annotations
 
 import numpy as np
+
 from edmcgs.geometry import rotmat_to_quat
 from edmcgs.synth.cloud import Cloud, axis_angle_quat, quat_multiply, rotation
 from edmcgs.synth.orbit import Orbit

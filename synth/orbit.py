@@ -6,9 +6,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from edmcgs.geometry import Intrinsics
 
 from edmcgs.errors import InvalidInputError
+from edmcgs.geometry import Intrinsics
 
 DAVIS346 = Intrinsics(fx=300.0, fy=300.0, cx=172.5, cy=129.5, width=346, height=260)
 """346x260 with a 60 degree horizontal field of view, principal point at the centre."""

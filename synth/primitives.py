@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+
 from edmcgs.geometry import rotmat_to_quat
 from edmcgs.synth.cloud import Cloud
 

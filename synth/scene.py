@@ -11,12 +11,12 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+
+from edmcgs.errors import InvalidInputError
 from edmcgs.geometry import Intrinsics, world_to_camera
 from edmcgs.model.render.rasterize_fast import rasterize_fast
 from edmcgs.synth.cloud import Cloud
 from edmcgs.synth.orbit import DAVIS346, Orbit
-
-from edmcgs.errors import InvalidInputError
 
 SCENES = ("jumpingjack", "kick", "mutant", "lego")
 """Scene names; scene ``name`` is built by ``edmcgs.synth.<name>.make(size)``."""

@@ -31,10 +31,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from edmcgs.model.camera import Intrinsics
-from edmcgs.synth.orbit import DAVIS346
 
 from edmcgs.errors import InvalidInputError
+from edmcgs.geometry import Intrinsics
+from edmcgs.synth.orbit import DAVIS346
 
 FULL_WIDTH, FULL_HEIGHT = DAVIS346.width, DAVIS346.height
 CANVAS_SUPERSAMPLING = 4

@@ -24,14 +24,14 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.recording import Recording, write_recording
-from edmcgs.synth.build import TRAJECTORY_STEP_US, frame_times
-from edmcgs.synth.esim import AdaptiveSampling, SimulatorConfig, simulate_render
-from edmcgs.synth.traffic import FULL_HEIGHT, FULL_WIDTH, TrafficScene
 from tqdm import tqdm
 
 from edmcgs.errors import EdmcgsError, InvalidInputError
+from edmcgs.sensor.files.recording import Recording, write_recording
+from edmcgs.sensor.frames import Frames
+from edmcgs.synth.build import TRAJECTORY_STEP_US, frame_times
+from edmcgs.synth.esim import AdaptiveSampling, SimulatorConfig, simulate_render
+from edmcgs.synth.traffic import FULL_HEIGHT, FULL_WIDTH, TrafficScene
 
 GENERATOR = "edmcgs.synth.traffic_build/1"
 APS_HZ = 25.0

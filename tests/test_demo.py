@@ -1,6 +1,7 @@
 """The bundled demo scene (`make demo` regenerates it) loads, and its checkpoint fits its recording."""
 
 import numpy as np
+
 from edmcgs.model.checkpoint import load_checkpoint
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.files.recording import read_recording

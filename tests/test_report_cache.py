@@ -1,8 +1,7 @@
 """bench.report caches trained runs by the resolved config: a retuned preset trains again."""
 
-from edmcgs.model.config import preset
-
 from bench.report.training import run_key
+from edmcgs.model.config import preset
 
 
 def test_a_run_is_cached_under_its_resolved_config():

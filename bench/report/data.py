@@ -15,12 +15,12 @@ from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
-from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.files.recording import Recording, read_recording, write_recording
-from edmcgs.synth.build import BuildConfig, build_recording
-from edmcgs.synth.esim import AdaptiveSampling
 
 from bench.report.settings import ReportSettings
+from edmcgs.sensor.files.recording import Recording, read_recording, write_recording
+from edmcgs.sensor.frames import Frames
+from edmcgs.synth.build import BuildConfig, build_recording
+from edmcgs.synth.esim import AdaptiveSampling
 
 MAX_DELTA = 2.0
 """The builder's bisection criterion (events per pixel per simulation step)."""

@@ -25,7 +25,6 @@ from pathlib import Path
 
 import numba
 import torch
-from edmcgs.model.eval.lpips import LPIPS, find_weights
 from tqdm import tqdm
 
 from bench.report.data import scene_recordings
@@ -43,6 +42,7 @@ from bench.report.stability import (
     sparse_anchor_rows,
 )
 from bench.report.training import load_run_model, train_run
+from edmcgs.model.eval.lpips import LPIPS, find_weights
 from edmcgs.pipeline import training_data
 
 DAY_US = 86_400_000_000

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
-from edmcgs.model.eval.lpips import SKIPPED as LPIPS_SKIPPED
 
 from bench.report.paper import PAPER_SYNTHETIC, PAPER_TRAINING
 from bench.report.settings import VARIANTS, ReportSettings
+from edmcgs.model.eval.lpips import SKIPPED as LPIPS_SKIPPED
 
 FILES = {
     "ablation.csv": "final held-out PSNR / SSIM of every run (scene, rate, variant), with training time",

@@ -24,18 +24,18 @@ import time
 
 import numpy as np
 import torch
-from edmcgs.geometry import world_to_camera
-from edmcgs.model.motion.control_points import ControlPoints
-from edmcgs.model.dynamic import EdMCGS, background_color
-from edmcgs.model.eval.metrics import psnr, ssim_score
-from edmcgs.model.motion.neighbors import farthest_point_sampling, knn
-from edmcgs.model.render.rasterize_fast import rasterize_fast
-from edmcgs.sensor.files.recording import Recording
-from edmcgs.synth.scene import make_scene
 from tqdm import tqdm
 
+from edmcgs.geometry import world_to_camera
+from edmcgs.model.dynamic import EdMCGS, background_color
+from edmcgs.model.eval.metrics import psnr, ssim_score
+from edmcgs.model.motion.control_points import ControlPoints
+from edmcgs.model.motion.neighbors import farthest_point_sampling, knn
 from edmcgs.model.render import reference as reference_render
+from edmcgs.model.render.rasterize_fast import rasterize_fast
 from edmcgs.pipeline import training_data
+from edmcgs.sensor.files.recording import Recording
+from edmcgs.synth.scene import make_scene
 
 OPACITY_THRESHOLDS = (0.0, 0.01, 0.03, 0.1, 0.2, 0.4)
 CONTROL_DIVISORS = (1, 2, 4, 8, 16, 32)

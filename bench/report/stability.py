@@ -11,19 +11,19 @@ import time
 
 import numpy as np
 import torch
+
+from bench.report.render import pick_frame, state_arrays
 from edmcgs.geometry import pose_from_quat, project, world_to_camera
 from edmcgs.model.dynamic import EdMCGS, background_color
 from edmcgs.model.eval.metrics import psnr
+from edmcgs.model.render import reference as reference_render
 from edmcgs.model.render.rasterize import rasterize
 from edmcgs.model.render.rasterize_fast import rasterize_fast
+from edmcgs.pipeline import training_data
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import Recording
 from edmcgs.synth.scene import make_scene
-
-from edmcgs.model.render import reference as reference_render
-from bench.report.render import pick_frame, state_arrays
-from edmcgs.pipeline import training_data
 
 TEST_CASES = [
     ("stiff motion", "half-frame crossing between two anchors at 10 fps: finite losses, params, renders",

@@ -16,15 +16,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
+
 from edmcgs.model.checkpoint import load_checkpoint, save_checkpoint
 from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.eval.evaluation import evaluate, summarize
 from edmcgs.model.eval.lpips import LPIPS
 from edmcgs.model.train.trainer import Trainer
-from edmcgs.sensor.files.recording import Recording
-from tqdm import tqdm
-
 from edmcgs.pipeline import build_config, training_data
+from edmcgs.sensor.files.recording import Recording
 
 
 def _overrides(switches: dict, iterations: int, train_scale: float | None) -> list[str]:

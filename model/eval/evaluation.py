@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.eval.lpips import LPIPS
 from edmcgs.model.eval.metrics import psnr, ssim_score

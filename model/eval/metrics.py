@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import torch
+
 from edmcgs.model.eval.ssim import ssim
 
 

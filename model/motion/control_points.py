@@ -5,9 +5,10 @@ from __future__ import annotations
 import math
 
 import torch
+from torch import Tensor, nn
+
 from edmcgs.model.motion.neighbors import farthest_point_sampling, knn
 from edmcgs.model.motion.skinning import skinning_weights
-from torch import Tensor, nn
 
 
 class ControlPoints(nn.Module):

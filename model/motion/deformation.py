@@ -1,8 +1,9 @@
 """The RGB prior f_theta(gamma(sg(mu_j)), gamma(t)): a deformation MLP evaluated at the control points."""
 
 import torch
-from edmcgs.model.motion.encoding import encoded_size, positional_encoding
 from torch import Tensor, nn
+
+from edmcgs.model.motion.encoding import encoded_size, positional_encoding
 
 
 class DeformationField(nn.Module):

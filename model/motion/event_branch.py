@@ -9,8 +9,9 @@ event-camera pixels) saw no event gets an exactly zero displacement too.
 
 import torch
 import torch.nn.functional as F
-from edmcgs.model.motion.encoding import encoded_size, positional_encoding
 from torch import Tensor, nn
+
+from edmcgs.model.motion.encoding import encoded_size, positional_encoding
 
 FEATURES = 32
 """Channels of Phi's output (the motion code's width)."""

@@ -5,8 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from edmcgs.model.render.sh import SH_C0
 from torch import Tensor, nn
+
+from edmcgs.model.render.sh import SH_C0
 
 
 @dataclass

@@ -21,9 +21,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from edmcgs.model.motion.gaussians import GaussianState
-from edmcgs.geometry import quat_multiply, quat_normalize, quat_to_rotmat
 from torch import Tensor
+
+from edmcgs.geometry import quat_multiply, quat_normalize, quat_to_rotmat
+from edmcgs.model.motion.gaussians import GaussianState
 
 
 @dataclass

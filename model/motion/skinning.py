@@ -8,8 +8,9 @@ where p_k is the canonical control point, r_k^t / R_k^t its rotation and T_k^t i
 """
 
 import torch
-from edmcgs.geometry import quat_multiply, quat_normalize, quat_to_rotmat
 from torch import Tensor
+
+from edmcgs.geometry import quat_multiply, quat_normalize, quat_to_rotmat
 
 
 def skinning_weights(means: Tensor, control: Tensor, log_radius: Tensor, idx: Tensor) -> Tensor:

@@ -26,8 +26,9 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
-from edmcgs.model.render.projection import ALPHA_MAX, ALPHA_MIN, T_MIN
 from torch import Tensor
+
+from edmcgs.model.render.projection import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 BLOCK = 4
 """Compositing block edge (px). Any size gives the same image (the splat lists come from the

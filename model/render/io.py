@@ -11,10 +11,10 @@ from typing import Any
 
 import numpy as np
 import torch
-from edmcgs.geometry import Intrinsics, validate_pose
-from edmcgs.model.render.sh import NUM_COEFFS
 
 from edmcgs.errors import InvalidInputError
+from edmcgs.geometry import Intrinsics, validate_pose
+from edmcgs.model.render.sh import NUM_COEFFS
 
 
 @dataclass

@@ -14,9 +14,9 @@ import math
 from dataclasses import dataclass
 
 import torch
-from edmcgs.geometry import quat_to_rotmat
-from edmcgs.geometry import Intrinsics
 from torch import Tensor
+
+from edmcgs.geometry import Intrinsics, quat_to_rotmat
 
 TILE = 16
 """Tile edge in pixels: a Gaussian is considered for every pixel of every tile its radius touches."""

@@ -11,14 +11,14 @@ from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-from edmcgs.geometry import Intrinsics
-from edmcgs.model.render.composite import composite, make_plan
-from edmcgs.model.render.projection import ewa_project, screen_rect
-from edmcgs.model.render.io import RenderOutput, check_inputs
-from edmcgs.model.render.sh import sh_to_color
 from torch import Tensor
 
 from edmcgs.errors import InvalidInputError
+from edmcgs.geometry import Intrinsics
+from edmcgs.model.render.composite import composite, make_plan
+from edmcgs.model.render.io import RenderOutput, check_inputs
+from edmcgs.model.render.projection import ewa_project, screen_rect
+from edmcgs.model.render.sh import sh_to_color
 
 __all__ = ["RenderOutput", "rasterize"]
 

@@ -20,13 +20,13 @@ import math
 
 import numba
 import numpy as np
-from edmcgs.geometry import Intrinsics
-from edmcgs.model.render.projection import ALPHA_MAX, ALPHA_MIN, FRUSTUM_SLACK, LOWPASS, SIGMAS, T_MIN, TILE
-from edmcgs.model.render.io import RenderOutput, as_float32_arrays, check_inputs
-from edmcgs.model.render.sh import SH_C0, SH_C1, SH_C2, SH_C3
-from edmcgs.model.render.simd_exp import exp_nonpositive
 
 from edmcgs.errors import InvalidInputError
+from edmcgs.geometry import Intrinsics
+from edmcgs.model.render.io import RenderOutput, as_float32_arrays, check_inputs
+from edmcgs.model.render.projection import ALPHA_MAX, ALPHA_MIN, FRUSTUM_SLACK, LOWPASS, SIGMAS, T_MIN, TILE
+from edmcgs.model.render.sh import SH_C0, SH_C1, SH_C2, SH_C3
+from edmcgs.model.render.simd_exp import exp_nonpositive
 
 __all__ = ["RenderOutput", "rasterize_fast"]
 

@@ -13,10 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from edmcgs.geometry import Intrinsics, Trajectory, validate_pose
 from tqdm.auto import tqdm
 
 from edmcgs.errors import InvalidInputError, TrainingError
+from edmcgs.geometry import Intrinsics, Trajectory, validate_pose
 
 EventMapFn = Callable[[int, int], np.ndarray]
 """(t0_us, t1_us) -> float32 [event_height, event_width] signed polarity sum of events in [t0, t1)."""

@@ -6,9 +6,10 @@ from __future__ import annotations
 import math
 
 import torch
-from edmcgs.model.motion.gaussians import PER_GAUSSIAN, Gaussians
-from edmcgs.geometry import quat_normalize, quat_to_rotmat
 from torch import Tensor
+
+from edmcgs.geometry import quat_normalize, quat_to_rotmat
+from edmcgs.model.motion.gaussians import PER_GAUSSIAN, Gaussians
 
 
 class GradientStats:

@@ -19,21 +19,19 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from edmcgs.geometry import world_to_camera
-from edmcgs.model.checkpoint import save_checkpoint
-from edmcgs.model.train.density import GradientStats, densify_and_prune, reset_opacity, screen_space_grad
-from edmcgs.model.dynamic import EdMCGS, background_color, render_image
-from edmcgs.model.eval.evaluation import evaluate, summarize
-from edmcgs.model.train.losses import event_loss
-from edmcgs.model.motion.gaussians import GaussianState
-from edmcgs.model.train.losses import photometric_loss
-from edmcgs.model.train.losses import laplacian_smoothness, tli_loss
-from edmcgs.model.train.schedule import exp_decay, ramp
-from edmcgs.model.train.data import EventGrid, TrainingData
 from torch import Tensor
 from tqdm.auto import tqdm
 
 from edmcgs.errors import InvalidInputError, TrainingError
+from edmcgs.geometry import world_to_camera
+from edmcgs.model.checkpoint import save_checkpoint
+from edmcgs.model.dynamic import EdMCGS, background_color, render_image
+from edmcgs.model.eval.evaluation import evaluate, summarize
+from edmcgs.model.motion.gaussians import GaussianState
+from edmcgs.model.train.data import EventGrid, TrainingData
+from edmcgs.model.train.density import GradientStats, densify_and_prune, reset_opacity, screen_space_grad
+from edmcgs.model.train.losses import event_loss, laplacian_smoothness, photometric_loss, tli_loss
+from edmcgs.model.train.schedule import exp_decay, ramp
 
 MAX_BAD_STEPS = 20
 """Consecutive non-finite losses after which training stops with a TrainingError."""

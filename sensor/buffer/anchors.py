@@ -12,9 +12,9 @@ import threading
 from dataclasses import dataclass
 
 import numpy as np
-from edmcgs.sensor.frames import Frames
 
 from edmcgs.errors import InvalidInputError, WindowUnavailable
+from edmcgs.sensor.frames import Frames
 
 
 @dataclass(frozen=True)

@@ -7,11 +7,10 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 
+from edmcgs.errors import DeviceDisconnected, EdmcgsError
 from edmcgs.sensor.buffer.anchors import AnchorStore
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.sources.base import EventSource, SensorBatch
-
-from edmcgs.errors import DeviceDisconnected, EdmcgsError
 
 
 class Ingest:

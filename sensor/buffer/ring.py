@@ -22,9 +22,9 @@ import threading
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from edmcgs.sensor.events import Events
 
 from edmcgs.errors import InvalidInputError, WindowUnavailable
+from edmcgs.sensor.events import Events
 
 BYTES_PER_EVENT = 8 + 2 + 2 + 1
 

@@ -15,15 +15,15 @@ import sys
 from pathlib import Path
 
 import dv_processing as dv
-from edmcgs.sensor.files.atomic import atomic_output
-from edmcgs.sensor.sources.dv_bridge import dv_error_text, event_store, image_frame, imu_samples
-from edmcgs.sensor.sources.open import AEDAT_SUFFIXES, HDF5_SUFFIXES, open_source
-from edmcgs.sensor.sources.pacing import Pacing
-from edmcgs.sensor.files.recording import RecordingWriter
-from edmcgs.sensor.sources.base import EventSource, SensorBatch, StreamInfo
 from tqdm import tqdm
 
 from edmcgs.errors import EdmcgsError, InvalidInputError, RecordingError
+from edmcgs.sensor.files.atomic import atomic_output
+from edmcgs.sensor.files.recording import RecordingWriter
+from edmcgs.sensor.sources.base import EventSource, SensorBatch, StreamInfo
+from edmcgs.sensor.sources.dv_bridge import dv_error_text, event_store, image_frame, imu_samples
+from edmcgs.sensor.sources.open import AEDAT_SUFFIXES, HDF5_SUFFIXES, open_source
+from edmcgs.sensor.sources.pacing import Pacing
 
 
 class AedatOutput:

@@ -29,11 +29,11 @@ from pathlib import Path
 
 import h5py
 import numpy as np
-from edmcgs.sensor.files.atomic import atomic_output
-from edmcgs.sensor.events import Events
-from edmcgs.sensor.frames import Frames
 
 from edmcgs.errors import InvalidInputError, RecordingError, ReplayFormatError
+from edmcgs.sensor.events import Events
+from edmcgs.sensor.files.atomic import atomic_output
+from edmcgs.sensor.frames import Frames
 
 FORMAT_NAME = "edmcgs.recording"
 FORMAT_VERSION = 1

@@ -11,13 +11,13 @@ from pathlib import Path
 
 import dv_processing as dv
 import numpy as np
-from edmcgs.sensor.sources.dv_bridge import dv_error_text, frame_image, imu_array, store_columns
-from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.sources.pacing import Pacing
-from edmcgs.sensor.sources.replay import Chunk, Replay
-from edmcgs.sensor.sources.base import StreamInfo
 
 from edmcgs.errors import ReplayFormatError
+from edmcgs.sensor.frames import Frames
+from edmcgs.sensor.sources.base import StreamInfo
+from edmcgs.sensor.sources.dv_bridge import dv_error_text, frame_image, imu_array, store_columns
+from edmcgs.sensor.sources.pacing import Pacing
+from edmcgs.sensor.sources.replay import Chunk, Replay
 
 
 class AedatReplay(Replay):

@@ -16,12 +16,12 @@ from collections.abc import Callable
 import dv_processing as dv
 import numpy as np
 import usb.core
-from edmcgs.sensor.sources.dv_bridge import dv_error_text, frame_image, imu_array, store_columns
+
+from edmcgs.errors import BackendMissing, DeviceDisconnected, DeviceNotFound, InvalidInputError, SensorError
 from edmcgs.sensor.events import DEFAULT_MAX_DISORDER_US, Events
 from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.sources.base import SensorBatch, SourceBase, StreamInfo
-
-from edmcgs.errors import BackendMissing, DeviceDisconnected, DeviceNotFound, InvalidInputError, SensorError
+from edmcgs.sensor.sources.dv_bridge import dv_error_text, frame_image, imu_array, store_columns
 
 INIVATION_VENDOR_ID = 0x152A
 DAVIS_PRODUCT_IDS = {0x841A: "DAVIS FX3", 0x841B: "DAVIS FX2"}

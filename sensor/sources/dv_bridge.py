@@ -10,6 +10,7 @@ import re
 
 import dv_processing as dv
 import numpy as np
+
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.sources.base import IMU_DTYPE
 

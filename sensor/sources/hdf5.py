@@ -24,14 +24,14 @@ from pathlib import Path
 
 import h5py
 import numpy as np
-from edmcgs.sensor.events import Events
-from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.sources.pacing import Pacing
-from edmcgs.sensor.files.recording import RecordingFile, is_recording, open_hdf5
-from edmcgs.sensor.sources.replay import Chunk, Replay
-from edmcgs.sensor.sources.base import StreamInfo
 
 from edmcgs.errors import InvalidInputError, ReplayFormatError
+from edmcgs.sensor.events import Events
+from edmcgs.sensor.files.recording import RecordingFile, is_recording, open_hdf5
+from edmcgs.sensor.frames import Frames
+from edmcgs.sensor.sources.base import StreamInfo
+from edmcgs.sensor.sources.pacing import Pacing
+from edmcgs.sensor.sources.replay import Chunk, Replay
 
 SUPPORTED_LAYOUTS = (
     "edmcgs recording (attribute format='edmcgs.recording')",

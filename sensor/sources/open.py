@@ -5,10 +5,9 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from edmcgs.sensor.sources.pacing import Pacing
-from edmcgs.sensor.sources.base import EventSource
-
 from edmcgs.errors import InvalidInputError
+from edmcgs.sensor.sources.base import EventSource
+from edmcgs.sensor.sources.pacing import Pacing
 
 AEDAT_SUFFIXES = (".aedat4",)
 HDF5_SUFFIXES = (".h5", ".hdf5")

@@ -13,12 +13,12 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
-from edmcgs.sensor.events import DEFAULT_MAX_DISORDER_US, Events
-from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.sources.pacing import Pacer, Pacing
-from edmcgs.sensor.sources.base import SensorBatch, SourceBase, StreamInfo
 
 from edmcgs.errors import InvalidInputError
+from edmcgs.sensor.events import DEFAULT_MAX_DISORDER_US, Events
+from edmcgs.sensor.frames import Frames
+from edmcgs.sensor.sources.base import SensorBatch, SourceBase, StreamInfo
+from edmcgs.sensor.sources.pacing import Pacer, Pacing
 
 _FOREVER = 2**62  # a time bound past any real timestamp
 

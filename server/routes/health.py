@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-from edmcgs.server.metrics import Registry
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse, PlainTextResponse
+
+from edmcgs.server.metrics import Registry
 
 router = APIRouter()
 

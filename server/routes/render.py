@@ -6,11 +6,12 @@ import math
 from functools import partial
 from typing import Literal
 
+from fastapi import APIRouter, Header, Query, Request
+from fastapi.responses import Response
+
 from edmcgs import protocol
 from edmcgs.geometry import parse_pose
 from edmcgs.server.service import Service, invalid
-from fastapi import APIRouter, Header, Query, Request
-from fastapi.responses import Response
 
 router = APIRouter()
 

@@ -22,14 +22,14 @@ from collections import deque
 from functools import partial
 
 import numpy as np
-from edmcgs import protocol
-from edmcgs.geometry import parse_pose
-from edmcgs.server.errors import body_of
-from edmcgs.server.service import Service, invalid
 from fastapi import APIRouter, WebSocket
 from starlette.websockets import WebSocketDisconnect
 
+from edmcgs import protocol
 from edmcgs.errors import EdmcgsError, WindowUnavailable
+from edmcgs.geometry import parse_pose
+from edmcgs.server.errors import body_of
+from edmcgs.server.service import Service, invalid
 
 router = APIRouter()
 log = logging.getLogger("edmcgs.server")

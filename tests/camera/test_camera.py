@@ -3,6 +3,8 @@
 import numpy as np
 import pytest
 import torch
+
+from edmcgs.errors import InvalidInputError, PoseError
 from edmcgs.geometry import (
     Intrinsics,
     Trajectory,
@@ -14,8 +16,6 @@ from edmcgs.geometry import (
     validate_pose,
     world_to_camera,
 )
-
-from edmcgs.errors import InvalidInputError, PoseError
 
 RNG = np.random.default_rng(0)
 

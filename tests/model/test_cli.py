@@ -4,13 +4,15 @@ import csv
 
 import numpy as np
 import pytest
-from edmcgs.model.checkpoint import load_checkpoint
-from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.files.recording import Recording, write_recording
-from edmcgs.synth.esim import simulate_frames
 
 from edmcgs.cli import main
+from edmcgs.model.checkpoint import load_checkpoint
+from edmcgs.sensor.files.recording import Recording, write_recording
+from edmcgs.sensor.frames import Frames
+from edmcgs.synth.esim import simulate_frames
 from tests.support import tiny_scene
+
+
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
     t = tiny_scene.T0 + np.arange(0, 200_001, 2_000, dtype=np.int64)

@@ -4,20 +4,30 @@ import math
 
 import pytest
 import torch
+
+from edmcgs.errors import InvalidInputError
+from edmcgs.geometry import quat_multiply, quat_normalize, quat_to_rotmat
 from edmcgs.model.config import EdmcgsConfig, preset
+from edmcgs.model.eval.ssim import ssim
 from edmcgs.model.motion.control_points import ControlPoints
 from edmcgs.model.motion.deformation import DeformationField
 from edmcgs.model.motion.encoding import encoded_size, positional_encoding
-from edmcgs.model.motion.event_branch import EventEncoder, EventTransition, sample_global, sample_local, saturate
-from edmcgs.model.train.losses import event_loss, log_luminance
+from edmcgs.model.motion.event_branch import (
+    EventEncoder,
+    EventTransition,
+    sample_global,
+    sample_local,
+    saturate,
+)
 from edmcgs.model.motion.neighbors import farthest_point_sampling, knn
-from edmcgs.model.train.losses import photometric_loss
-from edmcgs.geometry import quat_multiply, quat_normalize, quat_to_rotmat
-from edmcgs.model.train.losses import laplacian_smoothness, tli_loss
 from edmcgs.model.motion.skinning import identity_rotations, lbs, skinning_weights
-from edmcgs.model.eval.ssim import ssim
-
-from edmcgs.errors import InvalidInputError
+from edmcgs.model.train.losses import (
+    event_loss,
+    laplacian_smoothness,
+    log_luminance,
+    photometric_loss,
+    tli_loss,
+)
 
 
 def _random_rotations(m, gen):

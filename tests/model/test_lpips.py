@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 import torch
-from edmcgs.model.eval.lpips import LPIPS, find_weights
 
 from edmcgs.errors import InvalidInputError
+from edmcgs.model.eval.lpips import LPIPS, find_weights
 from tests.support.lpips_weights import image_pair, random_weights
 
 # The reference package (lpips 0.1.4, torchvision's vgg16 layout) on random_weights(0) and image_pair(1),
@@ -72,13 +72,12 @@ def test_find_weights(tmp_path, monkeypatch):
 
 
 def test_evaluation_scores_lpips_when_given_weights(metric, tmp_path, capsys):
+    from edmcgs.cli import main
     from edmcgs.model.checkpoint import load_checkpoint
     from edmcgs.model.eval.evaluation import evaluate, summarize
+    from edmcgs.pipeline import training_data
     from edmcgs.sensor.files.recording import read_recording
     from edmcgs.server import demo
-
-    from edmcgs.cli import main
-    from edmcgs.pipeline import training_data
 
     ckpt, rec = demo.files()
     data = training_data(read_recording(rec))

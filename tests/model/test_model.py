@@ -5,14 +5,15 @@ import math
 import numpy as np
 import pytest
 import torch
+
+from edmcgs.errors import CheckpointError, InvalidInputError
 from edmcgs.model.checkpoint import FORMAT, VERSION, load_checkpoint, read_checkpoint, save_checkpoint
 from edmcgs.model.config import preset
 from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.motion.event_branch import FIELD
 from edmcgs.model.train.trainer import Trainer
-
-from edmcgs.errors import CheckpointError, InvalidInputError
 from tests.support import tiny_scene
+
 TINY = preset("demo").replace(init_points=600, num_control_points=32, deform_width=32, deform_depth=2,
                               iterations=40, substeps=4, max_pair_steps=4, eval_every=0, checkpoint_every=0,
                               densify_from=0.2, densify_every=10, densify_until=0.8, train_scale=1.0,

@@ -5,16 +5,16 @@ import math
 
 import numpy as np
 import torch
-from edmcgs.model.motion import leanness
-from edmcgs.model.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
-from edmcgs.sensor.events import Events
-from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.files.recording import Recording
 
 from bench.report import lean as report_lean
-from tests.support import tiny_scene
+from edmcgs.model.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
+from edmcgs.model.motion import leanness
+from edmcgs.sensor.events import Events
+from edmcgs.sensor.files.recording import Recording
+from edmcgs.sensor.frames import Frames
 from tests.model.test_model import TINY, build, randomize_event_branch
 from tests.model.test_skin_plan import perturb_prior
+from tests.support import tiny_scene
 
 
 def _half_frozen(tmp_path, **kwargs):

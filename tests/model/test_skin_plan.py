@@ -2,14 +2,13 @@
 
 import numpy as np
 import torch
-from edmcgs.geometry import world_to_camera
+
+from edmcgs.geometry import quat_to_rotmat, world_to_camera
 from edmcgs.model.motion.gaussians import GaussianState
-from edmcgs.geometry import quat_to_rotmat
 from edmcgs.model.motion.skin_plan import _skin_torch, build_plan, skin
 from edmcgs.model.motion.skinning import lbs
-
-from tests.support import tiny_scene
 from tests.model.test_model import build, randomize_event_branch
+from tests.support import tiny_scene
 
 
 def perturb_prior(model, scale=0.3, seed=1):

@@ -3,13 +3,12 @@
 import numpy as np
 import pytest
 import torch
-from edmcgs.model.render import composite
-from edmcgs.geometry import Intrinsics
-from edmcgs.model.render.rasterize import rasterize
 
-from edmcgs.model.render import reference
-from tests.support.scenes import at_camera_depth, random_scene, with_values
 from edmcgs.errors import InvalidInputError, PoseError
+from edmcgs.geometry import Intrinsics
+from edmcgs.model.render import composite, reference
+from edmcgs.model.render.rasterize import rasterize
+from tests.support.scenes import at_camera_depth, random_scene, with_values
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
 BG = [0.1, 0.2, 0.3]

@@ -10,13 +10,13 @@ import numba
 import numpy as np
 import pytest
 import torch
+
+from edmcgs.errors import InvalidInputError, PoseError
 from edmcgs.geometry import Intrinsics
+from edmcgs.model.render import reference
 from edmcgs.model.render.rasterize import rasterize
 from edmcgs.model.render.rasterize_fast import rasterize_fast
-
-from edmcgs.model.render import reference
 from tests.support.scenes import at_camera_depth, random_scene, with_values
-from edmcgs.errors import InvalidInputError, PoseError
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
 BG = [0.1, 0.2, 0.3]
@@ -183,7 +183,7 @@ def test_a_new_process_loads_the_kernels_from_the_jit_cache():
     fast(random_scene(20, 20, 10, seed=60, sh_degree=2))  # make sure the cache is written
     script = (
         "import json, numpy as np\n"
-        "from edmcgs.model import rasterize_fast as rf\n"
+        "from edmcgs.model.render import rasterize_fast as rf\n"
         "from edmcgs.geometry import Intrinsics\n"
         "rf.rasterize_fast(np.zeros((1, 3)) + [0, 0, 2], [[1, 0, 0, 0]], np.full((1, 3), .1), [.5],"
         " np.zeros((1, 9, 3)), np.eye(4), Intrinsics(10., 10., 4., 4., 9, 9))\n"

@@ -4,9 +4,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from edmcgs.sensor.events import Events
-from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.files.recording import Recording
+from edmcgs.sensor.frames import Frames
 
 DVXPLORER = Path(__file__).resolve().parents[3] / "shared" / "data" / "dvxplorer_person.aedat4"
 

@@ -1,14 +1,14 @@
 import dv_processing as dv
 import numpy as np
 import pytest
-from edmcgs.sensor.sources.aedat import AedatReplay
-from edmcgs.sensor.events import Events
-from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.sources.open import open_source
-from edmcgs.sensor.sources.pacing import Pacer, Pacing
-from edmcgs.sensor.sources.base import EventSource
 
 from edmcgs.errors import InvalidInputError, ReplayFormatError
+from edmcgs.sensor.events import Events
+from edmcgs.sensor.frames import Frames
+from edmcgs.sensor.sources.aedat import AedatReplay
+from edmcgs.sensor.sources.base import EventSource
+from edmcgs.sensor.sources.open import open_source
+from edmcgs.sensor.sources.pacing import Pacer, Pacing
 
 from .conftest import make_events, write_aedat
 

@@ -6,15 +6,15 @@ import dv_processing as dv
 import numpy as np
 import pytest
 import usb.core
-from edmcgs.sensor.buffer.anchors import AnchorStore
-from edmcgs.sensor.sources.davis import DavisSource
-from edmcgs.sensor.events import Events
-from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.buffer.ingest import Ingest
-from edmcgs.sensor.sources.open import open_source
-from edmcgs.sensor.buffer.ring import EventRingBuffer
 
 from edmcgs.errors import BackendMissing, DeviceDisconnected, DeviceNotFound, SensorError
+from edmcgs.sensor.buffer.anchors import AnchorStore
+from edmcgs.sensor.buffer.ingest import Ingest
+from edmcgs.sensor.buffer.ring import EventRingBuffer
+from edmcgs.sensor.events import Events
+from edmcgs.sensor.frames import Frames
+from edmcgs.sensor.sources.davis import DavisSource
+from edmcgs.sensor.sources.open import open_source
 
 from .conftest import make_events, write_aedat
 

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
-from edmcgs.sensor.event_map import accumulate
-from edmcgs.sensor.events import Events
 
 from edmcgs.errors import InvalidInputError
+from edmcgs.sensor.event_map import accumulate
+from edmcgs.sensor.events import Events
 
 
 def _random_events(n, w, h, seed=0):

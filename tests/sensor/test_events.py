@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
-from edmcgs.sensor.events import DEFAULT_MAX_DISORDER_US, Events, EventStats, normalize_polarity
 
 from edmcgs.errors import InvalidInputError
+from edmcgs.sensor.events import DEFAULT_MAX_DISORDER_US, Events, EventStats, normalize_polarity
 
 
 def _ev(t, x=None, y=None, p=None):

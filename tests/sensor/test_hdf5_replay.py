@@ -3,14 +3,14 @@ import tracemalloc
 import h5py
 import numpy as np
 import pytest
+
+from edmcgs.errors import InvalidInputError, ReplayFormatError
 from edmcgs.sensor.events import Events
+from edmcgs.sensor.files.recording import write_recording
 from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.sources.hdf5 import Hdf5Replay
 from edmcgs.sensor.sources.open import open_source
 from edmcgs.sensor.sources.pacing import Pacing
-from edmcgs.sensor.files.recording import write_recording
-
-from edmcgs.errors import InvalidInputError, ReplayFormatError
 
 from .conftest import make_events, make_recording
 

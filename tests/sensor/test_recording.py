@@ -4,8 +4,9 @@ import sys
 import h5py
 import numpy as np
 import pytest
+
+from edmcgs.errors import InvalidInputError, RecordingError, ReplayFormatError
 from edmcgs.sensor.events import Events
-from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.files.recording import (
     FORMAT_VERSION,
     Recording,
@@ -14,8 +15,7 @@ from edmcgs.sensor.files.recording import (
     read_recording,
     write_recording,
 )
-
-from edmcgs.errors import InvalidInputError, RecordingError, ReplayFormatError
+from edmcgs.sensor.frames import Frames
 
 from .conftest import make_events, make_recording
 

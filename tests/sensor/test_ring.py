@@ -3,11 +3,11 @@ import time
 
 import numpy as np
 import pytest
-from edmcgs.sensor.buffer.anchors import AnchorStore
-from edmcgs.sensor.events import Events
-from edmcgs.sensor.buffer.ring import EventRingBuffer
 
 from edmcgs.errors import InvalidInputError, WindowUnavailable
+from edmcgs.sensor.buffer.anchors import AnchorStore
+from edmcgs.sensor.buffer.ring import EventRingBuffer
+from edmcgs.sensor.events import Events
 
 
 def _stream(n, *, t0=1_700_000_000_000_000, step=3, seed=0):

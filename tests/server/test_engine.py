@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from edmcgs.model.checkpoint import load_checkpoint
 from edmcgs.sensor.buffer.anchors import AnchorStore
+from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import read_recording
-from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.server.engine import Engine, TimeNotRenderable
 from edmcgs.server.timeline import Timeline
 

@@ -13,14 +13,14 @@ import dv_processing as dv
 import httpx
 import numpy as np
 import pytest
+
+from bench.serve import ServerProcess, build_scene
 from edmcgs.clients.client import Busy, Client, ServerError
+from edmcgs.errors import CheckpointError, ReplayFormatError
 from edmcgs.server import demo
 from edmcgs.server.app import create_app
 from edmcgs.server.service import Service
 from edmcgs.server.settings import Settings
-
-from bench.serve import ServerProcess, build_scene
-from edmcgs.errors import CheckpointError, ReplayFormatError
 from tests.sensor.conftest import DVXPLORER
 from tests.server.conftest import ThreadServer
 

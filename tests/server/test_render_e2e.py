@@ -7,11 +7,11 @@ import io
 import httpx
 import numpy as np
 import pytest
+from PIL import Image
+
 from edmcgs import protocol
 from edmcgs.clients.client import Client, InvalidRequest, TimeUnavailable, Unauthorized
 from edmcgs.sensor.files.recording import read_recording
-from PIL import Image
-
 from tests.server.conftest import HEIGHT, TOKEN, WIDTH
 
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

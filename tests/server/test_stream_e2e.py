@@ -9,11 +9,11 @@ import time
 
 import numpy as np
 import pytest
+from websockets.sync.client import connect
+
 from edmcgs import protocol
 from edmcgs.clients.client import InvalidRequest
 from edmcgs.sensor.files.recording import read_recording
-from websockets.sync.client import connect
-
 from tests.server.conftest import HEIGHT, TOKEN, WIDTH
 
 SIDE_POSE = [0.05, 0.0, 0.0, 0.995, 0.0, 0.0998, 0.0]

@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+
 from edmcgs import protocol
 from edmcgs.server.encode import to_uint8
 from edmcgs.server.metrics import CallbackCounter, Counter, Gauge, Histogram, Registry

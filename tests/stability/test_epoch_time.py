@@ -12,14 +12,14 @@ import itertools
 
 import numpy as np
 import torch
+
 from edmcgs.geometry import Trajectory, pose_from_quat
 from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.train.data import EventGrid, TrainingData
-from edmcgs.sensor.events import Events
 from edmcgs.sensor.buffer.ring import EventRingBuffer
-
-from tests.support import tiny_scene
+from edmcgs.sensor.events import Events
 from tests.model.test_model import TINY, randomize_event_branch
+from tests.support import tiny_scene
 
 T0 = 1_700_000_000_000_000
 DAY = 86_400_000_000

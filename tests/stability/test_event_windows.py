@@ -12,16 +12,16 @@ import math
 import numpy as np
 import pytest
 import torch
+
 from edmcgs.geometry import project
 from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.motion.event_branch import FIELD
-from edmcgs.model.train.trainer import Trainer
 from edmcgs.model.train.data import TrainingData
+from edmcgs.model.train.trainer import Trainer
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.events import Events
-
-from tests.support import tiny_scene
 from tests.model.test_model import TINY, build, randomize_event_branch, states_equal
+from tests.support import tiny_scene
 
 MID_GAP = tiny_scene.T0 + 50_000  # between the first two anchors (0 and 100 ms)
 

@@ -15,6 +15,7 @@ against the torch one) and, over the pixels the object covers, a mean <= 1e-6.
 import numpy as np
 import pytest
 import torch
+
 from edmcgs.geometry import world_to_camera
 from edmcgs.model.render.rasterize import rasterize
 from edmcgs.model.render.rasterize_fast import rasterize_fast

@@ -8,15 +8,14 @@ import math
 
 import numpy as np
 import torch
+
 from edmcgs.geometry import Trajectory
 from edmcgs.model.dynamic import EdMCGS
-from edmcgs.model.train.losses import event_loss, log_luminance
-from edmcgs.model.train.losses import photometric_loss
-from edmcgs.model.train.trainer import Trainer
 from edmcgs.model.train.data import TrainingData
-
-from tests.support import tiny_scene
+from edmcgs.model.train.losses import event_loss, log_luminance, photometric_loss
+from edmcgs.model.train.trainer import Trainer
 from tests.model.test_model import TINY
+from tests.support import tiny_scene
 
 C, EPS = 0.2, 1e-3
 

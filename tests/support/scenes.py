@@ -1,6 +1,7 @@
 """Random Gaussian scenes in front of a camera, for the rasterizer tests and the benchmark."""
 
 import numpy as np
+
 from edmcgs.geometry import Intrinsics, pose_from_quat, world_to_camera
 
 

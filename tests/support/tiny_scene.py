@@ -4,6 +4,7 @@ seen by a static camera, with an ideal event camera (round(delta log-luminance /
 from __future__ import annotations
 
 import numpy as np
+
 from edmcgs.geometry import Intrinsics, Trajectory
 from edmcgs.model.train.data import TrainingData
 

@@ -2,13 +2,13 @@
 
 import numpy as np
 import pytest
+
+from edmcgs.errors import InvalidInputError
 from edmcgs.geometry import Intrinsics, Trajectory
 from edmcgs.sensor.files.recording import read_recording
 from edmcgs.synth.build import BuildConfig, build_recording, frame_times, main
 from edmcgs.synth.esim import AdaptiveSampling, SimulatorConfig
 from edmcgs.synth.scene import make_scene, render
-
-from edmcgs.errors import InvalidInputError
 
 # uniform 10 ms steps keep the tests quick; the real builds refine down to 250 µs
 COARSE = AdaptiveSampling(dt_max_us=10_000, dt_min_us=10_000)

@@ -4,6 +4,8 @@ import math
 
 import numpy as np
 import pytest
+
+from edmcgs.errors import InvalidInputError
 from edmcgs.sensor.events import Events
 from edmcgs.synth.esim import (
     AdaptiveSampling,
@@ -14,8 +16,6 @@ from edmcgs.synth.esim import (
     simulate_frames,
     simulate_render,
 )
-
-from edmcgs.errors import InvalidInputError
 
 C = 0.2
 EPS = 1e-3

@@ -5,12 +5,12 @@ import math
 
 import numpy as np
 import pytest
-from edmcgs.geometry import Intrinsics, project, world_to_camera
-from edmcgs.sensor.files.recording import read_recording, write_recording
-from edmcgs.synth.loaders import load_dnerf, load_ed3dgs
 from PIL import Image
 
 from edmcgs.errors import ReplayFormatError
+from edmcgs.geometry import Intrinsics, project, world_to_camera
+from edmcgs.sensor.files.recording import read_recording, write_recording
+from edmcgs.synth.loaders import load_dnerf, load_ed3dgs
 
 W, H = 8, 6
 ANGLE = 0.8

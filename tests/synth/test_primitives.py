@@ -1,6 +1,7 @@
 """Surface Gaussians: on their shape, facing out along its normal, about one per spacing squared."""
 
 import numpy as np
+
 from edmcgs.geometry import quat_to_rotmat
 from edmcgs.synth.cloud import Cloud, axis_angle_quat, pose_parts, quat_multiply, rotation
 from edmcgs.synth.primitives import (

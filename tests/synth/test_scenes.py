@@ -2,12 +2,12 @@
 
 import numpy as np
 import pytest
+
+from edmcgs.errors import InvalidInputError
 from edmcgs.geometry import project, validate_pose, world_to_camera
 from edmcgs.synth.esim import SimulatorConfig, simulate_frames
 from edmcgs.synth.orbit import DAVIS346, look_at
 from edmcgs.synth.scene import SCENES, make_scene, render
-
-from edmcgs.errors import InvalidInputError
 
 
 @pytest.fixture(scope="module", params=SCENES)

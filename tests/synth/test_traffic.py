@@ -4,14 +4,14 @@ import math
 
 import numpy as np
 import pytest
-from edmcgs.sensor.recording import read_recording, write_recording
+
+from edmcgs.errors import InvalidInputError
+from edmcgs.pipeline import training_data
+from edmcgs.sensor.files.recording import read_recording, write_recording
 from edmcgs.synth.build import main as synth_main
 from edmcgs.synth.esim import AdaptiveSampling, SimulatorConfig
 from edmcgs.synth.traffic import TrafficScene
 from edmcgs.synth.traffic_build import TrafficConfig, aps_frame, build_traffic, read_out
-
-from edmcgs.errors import InvalidInputError
-from edmcgs.train_cli import training_data
 
 COARSE = AdaptiveSampling(dt_max_us=4000, dt_min_us=4000)  # uniform 4 ms steps: quick
 TINY = dict(width=86, height=65, duration_s=0.4, sampling=COARSE, subframes=4)

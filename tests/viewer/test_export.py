@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from edmcgs.clients.export import GifWriter, Mp4Writer, gif_durations_ms, open_writer, sweep_times_us
 from PIL import Image, ImageSequence
 
+from edmcgs.clients.export import GifWriter, Mp4Writer, gif_durations_ms, open_writer, sweep_times_us
 from edmcgs.errors import InvalidInputError
 
 

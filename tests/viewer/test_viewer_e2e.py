@@ -9,10 +9,10 @@ import re
 
 import numpy as np
 import pytest
-from edmcgs.clients.client import Client
-from edmcgs.clients.export import main as export_main
 from PIL import Image, ImageSequence
 
+from edmcgs.clients.client import Client
+from edmcgs.clients.export import main as export_main
 from tests.viewer.conftest import MAX_SIZE, VIEW_H, VIEW_W
 
 FRAMES = "Number(document.getElementById('frames').textContent)"
