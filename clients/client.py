@@ -64,9 +64,10 @@ class ServerError(ServiceError):
     """500 (or any other status): the render failed on the server."""
 
 
-_BY_STATUS = {422: InvalidRequest, 416: TimeUnavailable, 401: Unauthorized, 503: Busy}
-_BY_NAME = {"InvalidInputError": InvalidRequest, "PoseError": InvalidRequest, "ProtocolError": InvalidRequest,
-            "WindowUnavailable": TimeUnavailable, "TimeNotRenderable": TimeUnavailable}
+_Code = protocol.ErrorCode
+_BY_CODE = {_Code.INVALID_INPUT: InvalidRequest, _Code.TIME_UNAVAILABLE: TimeUnavailable,
+            _Code.UNAUTHORIZED: Unauthorized, _Code.BUSY: Busy, _Code.NOT_READY: Busy,
+            _Code.RENDER_FAILED: ServerError}
 
 
 def _raise_for(response: httpx.Response) -> None:
@@ -78,9 +79,9 @@ def _raise_for(response: httpx.Response) -> None:
         body = {"detail": response.text or response.reason_phrase}
     if not isinstance(body, dict):
         body = {"detail": str(body)}
-    cls = _BY_STATUS.get(response.status_code, ServerError)
-    exc = cls(response.status_code, str(body.get("detail")), error=body.get("error"),
-              param=body.get("param"), valid_range=body.get("valid_range"))
+    err = protocol.ErrorBody.from_message(body, response.status_code)
+    exc = _BY_CODE[err.error](response.status_code, err.detail, error=err.error, param=err.param,
+                              valid_range=err.valid_range)
     if isinstance(exc, Busy):
         try:
             exc.retry_after_s = float(response.headers.get("Retry-After", 1))
@@ -90,33 +91,16 @@ def _raise_for(response: httpx.Response) -> None:
 
 
 def _error_message(message: dict) -> ServiceError:
-    cls = _BY_NAME.get(message.get("error"), ServerError)
-    return cls(0, str(message.get("detail")), error=message.get("error"), param=message.get("param"),
-               valid_range=message.get("valid_range"))
+    err = protocol.ErrorBody.from_message(message)
+    return _BY_CODE[err.error](0, err.detail, error=err.error, param=err.param, valid_range=err.valid_range)
 
 
 # --- results ------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class RenderMeta:
-    """What the server says about a render (from headers, or the msgpack body)."""
-
-    t_us: int
-    """Absolute µs rendered."""
-    t: float
-    """The same, seconds from the scene's start."""
-    anchor_us: int
-    """tau(t): the anchor whose events window drove the deformation."""
-    events: int
-    """Events in [tau(t), t]."""
-    render_ms: float
-    """Server time of the render and its encoding."""
-    width: int
-    height: int
-    channels: int
-    format: str
-    """"png", "jpeg" or "msgpack"."""
+RenderMeta = protocol.FrameMeta
+"""What the server says about a render (from headers, or the msgpack body); ``format`` is the one asked
+for: "png", "jpeg" or "msgpack"."""
 
 
 @dataclass(frozen=True)
@@ -211,15 +195,8 @@ class Client:
             body = protocol.unpack(response.content)
             image = decode_image(body["data"], body["format"], body["width"], body["height"],
                                  body["channels"])
-            meta = RenderMeta(body["t_us"], body["t"], body["anchor_us"], body["events"], body["render_ms"],
-                              body["width"], body["height"], body["channels"], format)
-            return image, meta
-        h = response.headers
-        return response.content, RenderMeta(
-            int(h[protocol.HEADER_T_US]), float(h[protocol.HEADER_T]), int(h[protocol.HEADER_ANCHOR_US]),
-            int(h[protocol.HEADER_EVENTS]), float(h[protocol.HEADER_RENDER_MS]),
-            int(h[protocol.HEADER_WIDTH]), int(h[protocol.HEADER_HEIGHT]), int(h[protocol.HEADER_CHANNELS]),
-            format)
+            return image, protocol.FrameMeta.from_message(body, format)
+        return response.content, protocol.FrameMeta.from_headers(response.headers, format)
 
     def _get(self, path: str, params: dict | None = None) -> httpx.Response:
         response = self._http.get(path, params=params)
@@ -237,7 +214,7 @@ class Client:
         try:  # fail here, with the field named, rather than on the server
             protocol.Subscription().updated(message)
         except protocol.ProtocolError as exc:
-            raise InvalidRequest(0, exc.detail, error="ProtocolError", param=exc.param) from None
+            raise InvalidRequest(0, exc.detail, error=_Code.INVALID_INPUT, param=exc.param) from None
         parts = urlsplit(self.base_url)
         scheme = "wss" if parts.scheme == "https" else "ws"
         url = urlunsplit((scheme, parts.netloc, parts.path + "/stream", "", ""))
@@ -249,7 +226,8 @@ class Client:
             ws = opened.__enter__()
         except InvalidStatus as exc:
             status = exc.response.status_code
-            cls = Unauthorized if status in (401, 403) else _BY_STATUS.get(status, ServerError)
+            code = protocol.ErrorBody.from_message({}, status).error
+            cls = Unauthorized if status in (401, 403) else _BY_CODE[code]
             raise cls(status, f"websocket refused: {exc.response.body.decode(errors='replace') or status}") \
                 from None
         return Stream(ws, opened, message, self.timeout if timeout is None else timeout)
@@ -329,4 +307,4 @@ def _pose_numbers(pose) -> list[float]:
         return protocol.check_pose_numbers(flat)
     except (TypeError, ValueError) as exc:
         detail = exc.detail if isinstance(exc, protocol.ProtocolError) else f"pose must be numbers: {exc}"
-        raise InvalidRequest(0, detail, error="ProtocolError", param="pose") from None
+        raise InvalidRequest(0, detail, error=_Code.INVALID_INPUT, param="pose") from None

@@ -13,8 +13,8 @@ HTTP ``GET /render``
     or 7 numbers ``tx,ty,tz,qw,qx,qy,qz``, comma-separated or a JSON array; absent: the event
     camera's own pose at t), ``width``, ``height`` (one alone keeps the aspect ratio), ``format``
     (``png`` | ``jpeg`` | ``msgpack``; absent: negotiated from ``Accept``, default png). The headers
-    ``HEADERS`` describe the render. ``msgpack`` bodies are a frame map (below) without ``seq`` and
-    ``dropped``.
+    ``HEADERS`` describe the render (``FrameMeta.headers`` / ``from_headers``). ``msgpack`` bodies
+    are a frame map (below) without ``seq`` and ``dropped``.
 
 Websocket ``/stream``
     Client -> server: a subscription map (msgpack binary or JSON text), see ``Subscription``. It may
@@ -26,11 +26,11 @@ Websocket ``/stream``
     older unsent frames are dropped and counted in ``dropped``.
 
 Errors (HTTP bodies and websocket ``error`` messages)
-    JSON / msgpack map ``{"error": <class name>, "detail": <message>, "param": <name or null>,
-    "valid_range": {"t_min", "t_max", "t_us_min", "t_us_max"} or null}``. HTTP status: 401 missing
-    or wrong token, 416 a time that cannot be rendered now (``valid_range`` says what can), 422 a
-    malformed parameter (``param`` names it), 503 busy (``Retry-After`` header) or not ready, 500 a
-    failed render.
+    JSON / msgpack map ``{"error": <ErrorCode>, "detail": <message>, "param": <name or null>,
+    "valid_range": {"t_min", "t_max", "t_us_min", "t_us_max"} or null}`` (``ErrorBody``). Each code has
+    one HTTP status (``STATUS``): 401 unauthorized, 416 time_unavailable (``valid_range`` says what
+    can be rendered), 422 invalid_input (``param`` names it), 503 busy (``Retry-After`` header) or
+    not_ready, 500 render_failed.
 """
 
 from __future__ import annotations
@@ -38,16 +38,28 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import asdict, dataclass, fields
+from enum import StrEnum
 from typing import Any, Literal
 
 import msgpack
+
+
+def t_us_of_seconds(t: float, t_start_us: int) -> int:
+    """Seconds from the scene's start -> absolute µs: ``t_start_us + round(t * 1e6)``."""
+    return int(t_start_us) + round(t * 1e6)
+
+
+def seconds_of(t_us: int, t_start_us: int) -> float:
+    """Absolute µs -> seconds from the scene's start."""
+    return (int(t_us) - int(t_start_us)) / 1e6
+
 
 # --- HTTP ---------------------------------------------------------------------------------------
 
 HEADER_T_US = "X-Edmcgs-T-Us"  # absolute µs actually rendered (int)
 HEADER_T = "X-Edmcgs-T"  # the same, seconds from the scene's start (float)
 HEADER_ANCHOR_US = "X-Edmcgs-Anchor-Us"  # tau(t): the anchor frame whose events window was used (int µs)
-HEADER_EVENTS = "X-Edmcgs-Events"  # number of events in the window [tau(t), t] (int)
+HEADER_EVENTS = "X-Edmcgs-Events"  # number of events in the half-open window [tau(t), t) (int)
 HEADER_RENDER_MS = "X-Edmcgs-Render-Ms"  # server time spent on the render, encoding included (float)
 HEADER_WIDTH = "X-Edmcgs-Width"  # image width, px
 HEADER_HEIGHT = "X-Edmcgs-Height"  # image height, px
@@ -72,7 +84,7 @@ FRAME_KEYS = (
     "t_us",  # absolute µs rendered
     "t",  # seconds from the scene's start
     "anchor_us",  # tau(t) in absolute µs
-    "events",  # events in [tau(t), t]
+    "events",  # events in the half-open window [tau(t), t)
     "render_ms",  # server time of the render and its encoding
     "arrived_unix_us",  # live mode: Unix µs at which the oldest event new to this frame reached the ring
     "width",
@@ -260,7 +272,112 @@ def unpack(data: bytes) -> dict:
     return msgpack.unpackb(data, raw=False)
 
 
-def error_body(error: str, detail: str, param: str | None = None,
+# --- errors -------------------------------------------------------------------------------------
+
+class ErrorCode(StrEnum):
+    """The ``error`` field of an error map: what went wrong, named for the client, never a class name.
+
+    Each code has one HTTP status (``STATUS``); a websocket ``error`` message carries the same codes.
+    """
+
+    INVALID_INPUT = "invalid_input"
+    """422: a malformed parameter or message; ``param`` names it."""
+    TIME_UNAVAILABLE = "time_unavailable"
+    """416: the time cannot be rendered now; ``valid_range`` says what can."""
+    UNAUTHORIZED = "unauthorized"
+    """401: the bearer token is missing or wrong."""
+    BUSY = "busy"
+    """503 with ``Retry-After``: every render slot is taken."""
+    NOT_READY = "not_ready"
+    """503: the model or the event source is not up (yet, or any more)."""
+    RENDER_FAILED = "render_failed"
+    """500: the render failed; the service lives on."""
+
+
+STATUS = {ErrorCode.INVALID_INPUT: 422, ErrorCode.TIME_UNAVAILABLE: 416, ErrorCode.UNAUTHORIZED: 401,
+          ErrorCode.BUSY: 503, ErrorCode.NOT_READY: 503, ErrorCode.RENDER_FAILED: 500}
+"""The HTTP status of each error code."""
+
+
+@dataclass(frozen=True)
+class ErrorBody:
+    """The error map of HTTP bodies and websocket ``error`` messages (``ERROR_KEYS``)."""
+
+    error: ErrorCode
+    detail: str
+    param: str | None = None
+    valid_range: dict | None = None
+    """``{"t_min", "t_max", "t_us_min", "t_us_max"}`` (seconds from the scene's start, absolute µs)."""
+
+    def to_message(self) -> dict:
+        return {"type": "error", "error": self.error.value, "detail": self.detail, "param": self.param,
+                "valid_range": self.valid_range}
+
+    @classmethod
+    def from_message(cls, message: dict, status: int | None = None) -> ErrorBody:
+        """Read an error map; an unknown or missing code is taken from the HTTP status, else RENDER_FAILED."""
+        try:
+            code = ErrorCode(message.get("error"))
+        except ValueError:
+            by_status = {s: c for c, s in reversed(STATUS.items())}
+            code = by_status.get(status, ErrorCode.RENDER_FAILED)
+        return cls(code, str(message.get("detail")), message.get("param"), message.get("valid_range"))
+
+
+def error_body(error: ErrorCode, detail: str, param: str | None = None,
                valid_range: dict | None = None) -> dict:
     """The error map of HTTP bodies and websocket ``error`` messages."""
-    return {"type": "error", "error": error, "detail": detail, "param": param, "valid_range": valid_range}
+    return ErrorBody(ErrorCode(error), detail, param, valid_range).to_message()
+
+
+# --- frames -------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class FrameMeta:
+    """What the server says about one render: the ``HEADERS`` of GET /render, the keys of a frame map."""
+
+    t_us: int
+    """Absolute µs rendered."""
+    t: float
+    """The same, seconds from the scene's start."""
+    anchor_us: int
+    """tau(t): the anchor whose events window drove the deformation."""
+    events: int
+    """Events in the half-open window [tau(t), t)."""
+    render_ms: float
+    """Server time of the render and its encoding."""
+    width: int
+    height: int
+    channels: int
+    """1 (grey) or 3 (RGB)."""
+    format: str
+    """The format asked for: png | jpeg | msgpack (HTTP), jpeg | png | raw (websocket)."""
+
+    def headers(self) -> dict[str, str]:
+        """The ``HEADERS`` of a GET /render response."""
+        return {HEADER_T_US: str(self.t_us), HEADER_T: repr(self.t), HEADER_ANCHOR_US: str(self.anchor_us),
+                HEADER_EVENTS: str(self.events), HEADER_RENDER_MS: f"{self.render_ms:.3f}",
+                HEADER_WIDTH: str(self.width), HEADER_HEIGHT: str(self.height),
+                HEADER_CHANNELS: str(self.channels)}
+
+    @classmethod
+    def from_headers(cls, headers, format: str) -> FrameMeta:
+        """Read the ``HEADERS`` of a GET /render response (any case-insensitive mapping)."""
+        return cls(int(headers[HEADER_T_US]), float(headers[HEADER_T]), int(headers[HEADER_ANCHOR_US]),
+                   int(headers[HEADER_EVENTS]), float(headers[HEADER_RENDER_MS]), int(headers[HEADER_WIDTH]),
+                   int(headers[HEADER_HEIGHT]), int(headers[HEADER_CHANNELS]), format)
+
+    def to_message(self, data: bytes, **stream: Any) -> dict:
+        """A frame map (``FRAME_KEYS``): these fields and the image ``data``, plus the websocket's ``seq``,
+        ``dropped`` and ``arrived_unix_us`` when given in ``stream``."""
+        unknown = set(stream) - {"seq", "dropped", "arrived_unix_us"}
+        if unknown:
+            raise ValueError(f"not a frame key: {sorted(unknown)}")
+        return {"type": "frame", **asdict(self), "data": data, **stream}
+
+    @classmethod
+    def from_message(cls, message: dict, format: str | None = None) -> FrameMeta:
+        """Read a frame map (the ``data`` and stream keys are left to the caller)."""
+        return cls(int(message["t_us"]), float(message["t"]), int(message["anchor_us"]),
+                   int(message["events"]), float(message["render_ms"]), int(message["width"]),
+                   int(message["height"]), int(message["channels"]), format or message["format"])

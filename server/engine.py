@@ -1,6 +1,6 @@
 """The render engine: (time, pose, size) -> pixels, from the model, the event ring and the anchors.
 
-    t ──> stream window [tau, T) on the ring's clock (timeline.py) ──> events ──> I_E
+    t ──> stream window [tau, T) on the ring's clock (clock.py, pure) ──> events ──> I_E
       ──> model.deform(t, I_E)            (pose-independent: cached, computed once per instant)
       ──> model.render(state, pose, K)    (per client; numba fast path, off the event loop)
 
@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from edmcgs import protocol
 from edmcgs.errors import InvalidInputError, WindowUnavailable
 from edmcgs.geometry import Intrinsics
 from edmcgs.model.dynamic import EdMCGS
@@ -21,30 +22,11 @@ from edmcgs.sensor.buffer.anchors import AnchorStore
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.events import Events
+from edmcgs.server import clock
+from edmcgs.server.clock import Instant, Span, Timeline, TimeNotRenderable
 from edmcgs.server.encode import to_uint8
 from edmcgs.server.playback import Playback
 from edmcgs.server.state_cache import StateCache
-from edmcgs.server.timeline import Timeline
-
-
-class TimeNotRenderable(WindowUnavailable):
-    """A time that cannot be rendered now; ``valid_range`` is the protocol's map of what can."""
-
-    def __init__(self, message: str, valid_range: dict | None):
-        super().__init__(message)
-        self.valid_range = valid_range
-
-
-@dataclass(frozen=True)
-class Instant:
-    """A renderable instant."""
-
-    t_us: int
-    """Scene time rendered (the checkpoint's clock)."""
-    anchor_us: int
-    """tau(t) on the scene clock."""
-    window: tuple[int, int]
-    """[tau, T) on the ring's clock: the events of I_E."""
 
 
 @dataclass(frozen=True)
@@ -77,6 +59,7 @@ class Engine:
         self.scene_anchors = np.asarray(self.meta.anchors_us, dtype=np.int64)
         self.first_us = int(self.scene_anchors[0])  # the Markov chain has no state before it
         self.end_us = int(self.meta.t_end_us)
+        self.span = Span(self.first_us, self.end_us)
         # The numba rasterizer on a CPU; the torch one where the model lives on a GPU.
         self.fast = model.center.device.type == "cpu"
         self.raster_threads = raster_threads
@@ -84,10 +67,10 @@ class Engine:
     # ------------------------------------------------------------------ time
     def t_us_of_seconds(self, t: float) -> int:
         """Seconds from the scene's start -> absolute scene µs."""
-        return self.meta.t_start_us + round(t * 1e6)
+        return protocol.t_us_of_seconds(t, self.meta.t_start_us)
 
     def seconds_of(self, t_us: int) -> float:
-        return (int(t_us) - self.meta.t_start_us) / 1e6
+        return protocol.seconds_of(t_us, self.meta.t_start_us)
 
     def head(self) -> tuple[int, int] | None:
         """(stream µs, scene µs) of the head: the newest time whose events and anchor have all arrived.
@@ -108,25 +91,10 @@ class Engine:
         head = self.head()
         if head is None:
             raise TimeNotRenderable("no events have arrived yet; retry in a moment", None)
-        wm, head_scene = head
-        tl = self.timeline
-        if t_us is None:
-            t_us, stream_t = head_scene, wm
-            what = f"the head of the stream (scene time {self._fmt(t_us)})"
-        else:
-            t_us = int(t_us)
-            stream_t = tl.stream_of(t_us, wm)
-            what = f"t={self._fmt(t_us)}"
-        if not self.first_us <= t_us <= self.end_us:
-            self._unavailable(f"{what} is outside the checkpoint's span: the first anchor is at "
-                              f"{self._fmt(self.first_us)} and the span ends at {self._fmt(self.end_us)}")
-        if stream_t > wm or (tl.period_us is not None and stream_t < tl.stream_origin_us):
-            self._unavailable(f"{what} has not been streamed yet")
-        a_stream = self._anchor_stream(stream_t, t_us)
-        a_scene = t_us - (stream_t - a_stream) if a_stream is not None else None
-        if a_scene is None or a_scene < self.first_us:
-            self._unavailable(f"{what}: no anchor frame of this pass of the stream precedes it yet")
-        return Instant(t_us, a_scene, (a_stream, stream_t))
+        try:
+            return clock.resolve(t_us, head[0], self.timeline, self.span, self._anchor_stream, self._fmt)
+        except TimeNotRenderable as exc:
+            self._unavailable(str(exc))
 
     def _anchor_stream(self, stream_t: int, scene_t: int) -> int | None:
         """tau on the stream clock: the source's frames when it has them, else the checkpoint's anchors."""
@@ -134,9 +102,8 @@ class Engine:
             try:
                 return self.anchors.tau(stream_t)
             except WindowUnavailable as exc:
-                self._unavailable(str(exc))
-        i = int(np.searchsorted(self.scene_anchors, scene_t, side="right")) - 1
-        return None if i < 0 else stream_t - (scene_t - int(self.scene_anchors[i]))
+                raise TimeNotRenderable(str(exc)) from None
+        return clock.scene_anchor_stream(self.scene_anchors, stream_t, scene_t)
 
     # ------------------------------------------------------------------ what can be rendered
     def renderable(self) -> list[tuple[int, int]]:
@@ -144,39 +111,9 @@ class Engine:
         head = self.head()
         if head is None:
             return []
-        wm, s_wm = head
-        tl = self.timeline
         stats = self.ring.stats()
-        oldest = stats.oldest_us
-        if stats.overflowed or stats.expired:
-            if oldest is None:
-                return []  # everything received was dropped
-            floor = oldest + 1  # a window starting at the oldest retained time may miss events dropped there
-        else:  # nothing dropped: all since the stream's start (an empty window is complete too)
-            floor = tl.stream_origin_us if oldest is None else min(oldest, tl.stream_origin_us)
-        s_floor = tl.scene_of(floor)
-        anchors = self._scene_anchor_times()
-
-        def first_anchor_from(s: int) -> int | None:
-            i = int(np.searchsorted(anchors, s, side="left"))
-            return int(anchors[i]) if i < len(anchors) else None
-
-        def clip(lo: int | None, hi: int) -> list[tuple[int, int]]:
-            if lo is None:
-                return []
-            lo, hi = max(lo, self.first_us), min(hi, self.end_us)
-            return [(lo, hi)] if lo <= hi else []
-
-        p_wm, p_floor = tl.pass_start(wm), tl.pass_start(floor)
-        if p_wm is None or p_wm == p_floor:
-            return clip(first_anchor_from(s_floor), s_wm)
-        current = clip(first_anchor_from(tl.scene_origin_us), s_wm)
-        if p_wm - p_floor >= 2 * tl.period_us:
-            return clip(self.first_us, self.end_us)  # a whole earlier pass is retained
-        previous = clip(first_anchor_from(s_floor), self.end_us)
-        if current and previous and previous[0][0] <= current[0][1] + 1:
-            return [(current[0][0], max(current[0][1], previous[0][1]))]
-        return previous + current
+        return clock.renderable(head[0], self.timeline, self.span, self._scene_anchor_times(),
+                                stats.oldest_us, bool(stats.overflowed or stats.expired))
 
     def _scene_anchor_times(self) -> np.ndarray:
         if self.anchors is None or self.timeline is None:

@@ -1,13 +1,13 @@
-"""The one place where errors become HTTP status codes (and websocket error messages).
+"""The one place where errors become the wire's error codes, hence HTTP statuses (``protocol.STATUS``).
 
-    InvalidInputError, PoseError, ProtocolError, request validation   -> 422, ``param`` names the input
-    WindowUnavailable (t before the first anchor, outside the trained
-      span, events not retained or not arrived yet)                   -> 416, ``valid_range`` says what is
-    Busy (render queue full)                                          -> 503 + Retry-After
-    NotReady (model or source not up), DeviceDisconnected             -> 503
-    Unauthorized                                                      -> 401 + WWW-Authenticate
-    RenderError, any other EdmcgsError, any unexpected exception      -> 500 with a message; the process
-                                                                         lives on
+    InvalidInputError, PoseError, ProtocolError, request validation -> invalid_input (422), ``param``
+    WindowUnavailable (t before the first anchor, outside the span,
+      events not retained or not arrived yet)                      -> time_unavailable (416), ``valid_range``
+    Busy (render queue full)                                       -> busy (503 + Retry-After)
+    NotReady (model or source not up), DeviceDisconnected          -> not_ready (503)
+    Unauthorized                                                   -> unauthorized (401 + WWW-Authenticate)
+    RenderError, any other EdmcgsError, any unexpected exception   -> render_failed (500) with a message;
+                                                                      the process lives on
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from edmcgs.errors import (
     RenderError,
     WindowUnavailable,
 )
-from edmcgs.protocol import ProtocolError, error_body
+from edmcgs.protocol import STATUS, ErrorBody, ErrorCode, ProtocolError
 
 log = logging.getLogger("edmcgs.server")
 
@@ -47,21 +47,28 @@ class Unauthorized(EdmcgsError):
     """The bearer token is missing or wrong."""
 
 
-def status_of(exc: BaseException) -> int:
-    """HTTP status code of an exception (see the table above)."""
+def code_of(exc: BaseException) -> ErrorCode:
+    """The wire's error code of an exception (see the table above)."""
     if isinstance(exc, (InvalidInputError, ProtocolError, RequestValidationError)):
-        return 422
+        return ErrorCode.INVALID_INPUT
     if isinstance(exc, WindowUnavailable):
-        return 416
-    if isinstance(exc, (Busy, NotReady, DeviceDisconnected)):
-        return 503
+        return ErrorCode.TIME_UNAVAILABLE
+    if isinstance(exc, Busy):
+        return ErrorCode.BUSY
+    if isinstance(exc, (NotReady, DeviceDisconnected)):
+        return ErrorCode.NOT_READY
     if isinstance(exc, Unauthorized):
-        return 401
-    return 500
+        return ErrorCode.UNAUTHORIZED
+    return ErrorCode.RENDER_FAILED
+
+
+def status_of(exc: BaseException) -> int:
+    """HTTP status code of an exception: the status of its error code."""
+    return STATUS[code_of(exc)]
 
 
 def body_of(exc: BaseException) -> dict:
-    """The protocol's error map for an exception (``clients.protocol.error_body``)."""
+    """The protocol's error map for an exception (``ErrorBody``)."""
     if isinstance(exc, RequestValidationError):
         first = exc.errors()[0] if exc.errors() else {}
         loc = [str(p) for p in first.get("loc", ()) if p not in ("query", "body", "header", "path")]
@@ -69,15 +76,14 @@ def body_of(exc: BaseException) -> dict:
         detail = f"{param}: {first.get('msg', 'invalid value')}" if param else str(first.get("msg", exc))
         if "input" in first:
             detail += f" (got {first['input']!r})"
-        return error_body("InvalidInputError", detail, param)
-    status = status_of(exc)
-    if status == 500 and not isinstance(exc, RenderError | EdmcgsError):
+        return ErrorBody(ErrorCode.INVALID_INPUT, detail, param).to_message()
+    code = code_of(exc)
+    if code is ErrorCode.RENDER_FAILED and not isinstance(exc, RenderError | EdmcgsError):
         detail = f"render failed: {type(exc).__name__}: {exc}"
     else:
         detail = str(exc) or type(exc).__name__
     param = getattr(exc, "param", None) or ("pose" if isinstance(exc, PoseError) else None)
-    return error_body(type(exc).__name__ if isinstance(exc, EdmcgsError | ProtocolError) else "RenderError",
-                      detail, param, getattr(exc, "valid_range", None))
+    return ErrorBody(code, detail, param, getattr(exc, "valid_range", None)).to_message()
 
 
 def response_of(exc: BaseException) -> JSONResponse:

@@ -3,7 +3,7 @@
 A checkpoint without an event branch needs no events, so every time of its span renders at once and
 nothing is ingested. What a sensor's stream gives the engine, a head that moves, comes from this clock
 instead: its stream time is the wall-clock time since the service opened (times ``speed``), looping over
-the span like a looping replay (see timeline.py), so the head (GET /render without t, the websocket's
+the span like a looping replay (see clock.py), so the head (GET /render without t, the websocket's
 live mode, the viewer) plays the scene. The stream is taken to have begun two passes before the
 clock starts: a whole earlier pass counts as delivered, and the renderable range is the whole span from
 the first request on (``Engine.renderable``).
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import time
 
-from edmcgs.server.timeline import Timeline
+from edmcgs.server.clock import Timeline, playback_watermark
 
 
 class Playback:
@@ -27,11 +27,10 @@ class Playback:
         self.period_us = int(end_us) - int(first_us) + 1
         self.timeline = Timeline(int(first_us), int(first_us), self.period_us)
         self.speed = float(speed)
+        self.first_us = int(first_us)
         self._start_ns = time.monotonic_ns()
-        # head = watermark - 1 = first_us + 2 periods at the start: scene time first_us, third pass
-        self._base_us = int(first_us) + 2 * self.period_us + 1
 
     def watermark_us(self) -> int:
         """Stream time up to which the (empty) stream is complete: now on this clock."""
         elapsed_us = (time.monotonic_ns() - self._start_ns) // 1000
-        return self._base_us + int(elapsed_us * self.speed)
+        return playback_watermark(self.first_us, self.period_us, elapsed_us, self.speed)

@@ -28,6 +28,7 @@ from edmcgs.sensor.sources.base import EventSource, SensorBatch
 from edmcgs.sensor.sources.open import open_source
 from edmcgs.sensor.sources.pacing import Pacing
 from edmcgs.server import demo
+from edmcgs.server.clock import Timeline
 from edmcgs.server.encode import encode
 from edmcgs.server.engine import Engine
 from edmcgs.server.live import Arrivals, HeadSignal
@@ -35,7 +36,6 @@ from edmcgs.server.metrics import CallbackCounter, Counter, Gauge, Histogram, Re
 from edmcgs.server.playback import Playback
 from edmcgs.server.render_pool import RenderPool
 from edmcgs.server.settings import Settings
-from edmcgs.server.timeline import Timeline
 
 log = logging.getLogger("edmcgs.server")
 
@@ -90,6 +90,16 @@ class Metrics:
                                           "Websocket frames dropped because the client read slower than "
                                           "they were rendered (latest wins)."))
         self.stream_clients = 0
+
+
+@dataclass(frozen=True)
+class RenderedFrame:
+    """One render as the routes send it: the wire's description, the encoded bytes, and the event window
+    it used (the half-open [tau, T) on the ring's clock; the stream route needs it, the wire does not)."""
+
+    meta: protocol.FrameMeta
+    data: bytes
+    window: tuple[int, int]
 
 
 class Service:
@@ -186,7 +196,7 @@ class Service:
         """Ingest thread, after each batch is stored."""
         if self.engine.timeline is None and len(batch.events):
             # A camera's clock is known at its first event; align it with the scene's start and loop
-            # over the trained span (see timeline.py).
+            # over the trained span (see clock.py).
             meta = self.model.meta
             self.engine.timeline = Timeline(int(batch.events.t[0]), meta.t_start_us,
                                             meta.t_end_us - meta.t_start_us + 1)
@@ -239,8 +249,8 @@ class Service:
         return int(width), int(height)
 
     def render_frame(self, t_us: int | None, pose: np.ndarray | None, width: int, height: int,
-                     fmt: str) -> dict:
-        """Blocking (run on the pool): the protocol's frame map for one render, ``data`` encoded."""
+                     fmt: str) -> RenderedFrame:
+        """Blocking (run on the pool): one render, ``data`` encoded in ``fmt`` (png | jpeg | raw)."""
         t0 = time.perf_counter()
         try:
             rendered = self.engine.render(t_us, pose, width, height)
@@ -252,10 +262,11 @@ class Service:
             raise RenderError(f"render failed: {type(exc).__name__}: {exc}") from exc
         ms = (time.perf_counter() - t0) * 1e3
         inst = rendered.instant
-        return {"type": "frame", "t_us": inst.t_us, "t": self.engine.seconds_of(inst.t_us),
-                "anchor_us": inst.anchor_us, "events": rendered.events, "render_ms": round(ms, 3),
-                "width": width, "height": height, "channels": int(rendered.pixels.shape[2]), "format": fmt,
-                "data": data, "window_start_us": inst.window[0], "window_end_us": inst.window[1]}
+        meta = protocol.FrameMeta(t_us=inst.t_us, t=self.engine.seconds_of(inst.t_us),
+                                  anchor_us=inst.anchor_us, events=rendered.events, render_ms=round(ms, 3),
+                                  width=width, height=height, channels=int(rendered.pixels.shape[2]),
+                                  format=fmt)
+        return RenderedFrame(meta, data, inst.window)
 
     def scene(self) -> dict:
         """The body of GET /scene."""

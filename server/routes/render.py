@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import math
 from functools import partial
-from typing import Literal
+from typing import Annotated, Literal
 
-from fastapi import APIRouter, Header, Query, Request
+from fastapi import APIRouter, Depends, Header, Query, Request
 from fastapi.responses import Response
 
 from edmcgs import protocol
@@ -56,41 +56,43 @@ def parse_pose_param(pose: str | None):
     return parse_pose(protocol.parse_pose_text(pose), name="pose")
 
 
+def get_service(request: Request) -> Service:
+    """The running service (built by the app's lifespan)."""
+    return request.app.state.service
+
+
+ServiceDep = Annotated[Service, Depends(get_service)]
+
+
+def scene_time(service: ServiceDep, t: Annotated[float | None, Query(description=T_DOC)] = None,
+               t_us: Annotated[int | None, Query(description=T_US_DOC)] = None) -> int | None:
+    """The query's time as scene µs (None: the head)."""
+    return parse_time(service, t, t_us)
+
+
+def pose_query(pose: Annotated[str | None, Query(description=POSE_DOC)] = None):
+    """The query's pose, c2w float64 [4, 4], or None."""
+    return parse_pose_param(pose)
+
+
 @router.get(
     "/render", response_class=Response, summary="Render the scene at time t from a pose",
     responses={200: {"content": {"image/png": {}, "image/jpeg": {}, "application/msgpack": {}},
                      "description": "the image; headers " + ", ".join(protocol.HEADERS)}, **ERRORS})
 async def render(
-    request: Request,
-    t: float | None = Query(None, description=T_DOC),
-    t_us: int | None = Query(None, description=T_US_DOC),
-    pose: str | None = Query(None, description=POSE_DOC),
-    width: int | None = Query(None, description=SIZE_DOC.format("width")),
-    height: int | None = Query(None, description=SIZE_DOC.format("height")),
-    format: Literal["png", "jpeg", "msgpack"] | None = Query(None, description=FORMAT_DOC),
-    accept: str | None = Header(None, include_in_schema=False),
+    service: ServiceDep,
+    scene_t: Annotated[int | None, Depends(scene_time)],
+    c2w: Annotated[object, Depends(pose_query)],
+    width: Annotated[int | None, Query(description=SIZE_DOC.format("width"))] = None,
+    height: Annotated[int | None, Query(description=SIZE_DOC.format("height"))] = None,
+    format: Annotated[Literal["png", "jpeg", "msgpack"] | None, Query(description=FORMAT_DOC)] = None,
+    accept: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> Response:
-    service: Service = request.app.state.service
-    scene_t = parse_time(service, t, t_us)
-    c2w = parse_pose_param(pose)
     w, h = service.size(width, height)
     fmt = format or protocol.negotiate_format(accept)
     frame = await service.pool.run(partial(service.render_frame, scene_t, c2w, w, h,
                                            "raw" if fmt == "msgpack" else fmt))
-    service.metrics.render.observe(frame["render_ms"] / 1e3, "http")
-    headers = {
-        protocol.HEADER_T_US: str(frame["t_us"]),
-        protocol.HEADER_T: repr(frame["t"]),
-        protocol.HEADER_ANCHOR_US: str(frame["anchor_us"]),
-        protocol.HEADER_EVENTS: str(frame["events"]),
-        protocol.HEADER_RENDER_MS: f"{frame['render_ms']:.3f}",
-        protocol.HEADER_WIDTH: str(frame["width"]),
-        protocol.HEADER_HEIGHT: str(frame["height"]),
-        protocol.HEADER_CHANNELS: str(frame["channels"]),
-        "Cache-Control": "no-store",
-    }
-    if fmt == "msgpack":
-        body = protocol.pack({k: frame[k] for k in protocol.FRAME_KEYS if k in frame})
-    else:
-        body = frame["data"]
+    service.metrics.render.observe(frame.meta.render_ms / 1e3, "http")
+    headers = {**frame.meta.headers(), "Cache-Control": "no-store"}
+    body = protocol.pack(frame.meta.to_message(frame.data)) if fmt == "msgpack" else frame.data
     return Response(body, media_type=protocol.MEDIA_TYPES[fmt], headers=headers)

@@ -189,15 +189,16 @@ class StreamSession:
             except EdmcgsError as exc:
                 self._control(body_of(exc))
                 continue
-            self.service.metrics.render.observe(frame["render_ms"] / 1e3, "stream")
-            window_start, window_end = frame.pop("window_start_us"), frame.pop("window_end_us")
+            self.service.metrics.render.observe(frame.meta.render_ms / 1e3, "stream")
+            window_start, window_end = frame.window
+            message = frame.meta.to_message(frame.data)
             if sub.mode == "live":
                 # Events new to this frame: those past the previous frame's window, or for the first
                 # frame its whole window (not every batch the ring still remembers).
                 since = window_start if last_window_end is None else last_window_end
-                frame["arrived_unix_us"] = self.service.arrivals.first_after(since)
+                message["arrived_unix_us"] = self.service.arrivals.first_after(since)
                 last_window_end = window_end
-            self._push(frame)
+            self._push(message)
 
     async def _wait_for_events(self) -> None:
         """Until the ingest thread stores events, the subscription changes, or LIVE_IDLE_S passes."""

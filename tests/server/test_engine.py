@@ -10,8 +10,8 @@ from edmcgs.sensor.buffer.anchors import AnchorStore
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import read_recording
-from edmcgs.server.engine import Engine, TimeNotRenderable
-from edmcgs.server.timeline import Timeline
+from edmcgs.server.clock import Timeline, TimeNotRenderable
+from edmcgs.server.engine import Engine
 
 
 @pytest.fixture(scope="module")

@@ -107,7 +107,8 @@ def test_raw_json_and_msgpack_subscriptions(server):
         ws.send(protocol.pack({"mode": "sweep", "t0": 5.0, "t1": 5.0, "fps": 10}))  # outside the span
         messages = [protocol.unpack(ws.recv(timeout=10)) for _ in range(3)]
         errors = [m for m in messages if m["type"] == "error"]
-        assert errors and errors[0]["error"] == "TimeNotRenderable" and errors[0]["valid_range"]
+        assert errors and errors[0]["error"] == protocol.ErrorCode.TIME_UNAVAILABLE
+        assert errors[0]["valid_range"]
 
 
 def _metrics(client) -> dict[str, float]:

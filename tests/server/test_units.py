@@ -1,4 +1,4 @@
-"""Unit tests of the service's pure parts: timeline, state cache, metrics text, wire schema."""
+"""Unit tests of the service's pure parts: state cache, metrics text, wire schema."""
 
 from __future__ import annotations
 
@@ -12,32 +12,8 @@ from edmcgs import protocol
 from edmcgs.server.encode import to_uint8
 from edmcgs.server.metrics import CallbackCounter, Counter, Gauge, Histogram, Registry
 from edmcgs.server.state_cache import StateCache
-from edmcgs.server.timeline import Timeline
 
 T0 = 1_600_000_000_000_000
-
-
-def test_timeline_without_loop_is_an_offset():
-    tl = Timeline(stream_origin_us=T0, scene_origin_us=5, period_us=None)
-    assert tl.scene_of(T0 + 7) == 12
-    assert tl.stream_of(12, not_after_us=T0) == T0 + 7  # may lie beyond the head; the caller checks
-    assert tl.pass_start(T0 + 7) is None
-
-
-def test_timeline_loops_and_picks_the_latest_pass():
-    period = 2_000_001
-    tl = Timeline(T0, T0, period)
-    assert tl.scene_of(T0 + period + 10) == T0 + 10
-    assert tl.scene_of(T0 + 3 * period - 1) == T0 + period - 1
-    assert tl.pass_start(T0 + 2 * period + 5) == T0 + 2 * period
-    head = T0 + 2 * period + 500_000
-    assert tl.stream_of(T0 + 400_000, head) == T0 + 2 * period + 400_000
-    assert tl.stream_of(T0 + 600_000, head) == T0 + period + 600_000  # not reached in this pass yet
-    assert tl.stream_of(T0 + 600_000, T0 + 100) < T0  # not streamed at all yet
-    for stream_t in (T0, T0 + 1, head, T0 + 7 * period - 1):
-        assert tl.stream_of(tl.scene_of(stream_t), stream_t) == stream_t
-    with pytest.raises(ValueError):
-        Timeline(T0, T0, 0)
 
 
 def test_state_cache_computes_once_for_concurrent_callers():
