@@ -12,9 +12,8 @@ from edmcgs.geometry import world_to_camera
 from edmcgs.model.checkpoint import VERSION, load_checkpoint, read_checkpoint, save_checkpoint
 from edmcgs.model.motion import leanness
 from edmcgs.synth.orbit import look_at
-from tests.model.test_model import TINY, build, randomize_event_branch
-from tests.model.test_skin_plan import perturb_prior
 from tests.support import tiny_scene
+from tests.support.models import TINY, build, perturb_prior, randomize_event_branch
 
 
 def test_a_final_checkpoint_records_frozen_points_and_one_static_pose(tmp_path):

@@ -8,38 +8,10 @@ import torch
 
 from edmcgs.errors import CheckpointError, InvalidInputError
 from edmcgs.model.checkpoint import FORMAT, VERSION, load_checkpoint, read_checkpoint, save_checkpoint
-from edmcgs.model.config import preset
-from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.motion.event_branch import FIELD
 from edmcgs.model.train.trainer import Trainer
 from tests.support import tiny_scene
-
-TINY = preset("demo").replace(init_points=600, num_control_points=32, deform_width=32, deform_depth=2,
-                              iterations=40, substeps=4, max_pair_steps=4, eval_every=0, checkpoint_every=0,
-                              densify_from=0.2, densify_every=10, densify_until=0.8, train_scale=1.0,
-                              event_warmup=(0.0, 0.2))
-
-
-def build(cfg=TINY, **kwargs) -> tuple[EdMCGS, object]:
-    data = tiny_scene.data(**kwargs)
-    model = EdMCGS.from_arrays(anchors_t_us=data.anchors_t_us, anchor_images=data.anchor_images,
-                               intrinsics=data.intrinsics, anchor_poses=data.anchor_poses,
-                               t_end_us=data.t_end_us, trajectory=data.trajectory, config=cfg)
-    return model, data
-
-
-def randomize_event_branch(model: EdMCGS, seed: int = 0) -> None:
-    """Give g_phi and Phi non-trivial weights, as after training."""
-    gen = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for p in [*model.encoder.parameters(), *model.transition.parameters()]:
-            p.copy_(torch.randn(p.shape, generator=gen) * 0.3)
-        model.event_scale.fill_(1.0)
-
-
-def states_equal(a, b) -> bool:
-    fields = ("means", "quats", "scales", "opacities", "colors")
-    return all(torch.equal(getattr(a, f), getattr(b, f)) for f in fields)
+from tests.support.models import TINY, build, randomize_event_branch, states_equal
 
 
 def test_untrained_model_meta_and_tau():

@@ -12,9 +12,8 @@ from edmcgs.model.motion import leanness
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import Recording
 from edmcgs.sensor.frames import Frames
-from tests.model.test_model import TINY, build, randomize_event_branch
-from tests.model.test_skin_plan import perturb_prior
 from tests.support import tiny_scene
+from tests.support.models import TINY, build, perturb_prior, randomize_event_branch
 
 
 def _half_frozen(tmp_path, **kwargs):

@@ -7,15 +7,8 @@ from edmcgs.geometry import quat_to_rotmat, world_to_camera
 from edmcgs.model.motion.gaussians import GaussianState
 from edmcgs.model.motion.skin_plan import _skin_torch, build_plan, skin
 from edmcgs.model.motion.skinning import lbs
-from tests.model.test_model import build, randomize_event_branch
 from tests.support import tiny_scene
-
-
-def perturb_prior(model, scale=0.3, seed=1):
-    gen = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for p in model.prior.parameters():
-            p.add_(torch.randn(p.shape, generator=gen) * scale)
+from tests.support.models import build, perturb_prior, randomize_event_branch
 
 
 def reference(model, t_us, emap):

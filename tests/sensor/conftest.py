@@ -8,8 +8,7 @@ import pytest
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import Recording
 from edmcgs.sensor.frames import Frames
-
-DVXPLORER = Path(__file__).resolve().parents[3] / "shared" / "data" / "dvxplorer_person.aedat4"
+from tests.support.recordings import DVXPLORER
 
 
 def make_events(n: int, width: int, height: int, *, t0: int = 1_700_000_000_000_000, rate_hz: float = 1e6,

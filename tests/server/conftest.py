@@ -4,18 +4,13 @@ servers — ``edmcgs-serve`` in a subprocess, or uvicorn in a thread when a test
 
 from __future__ import annotations
 
-import threading
 import time
 from pathlib import Path
 
 import httpx
 import pytest
 
-from bench.serve import ServerProcess, build_scene, free_port
-
-TOKEN = "e2e-secret-token"
-WIDTH, HEIGHT = 64, 48
-STARTUP_S = 90.0  # torch import + numba cache load; far above the usual ~5 s
+from tests.support.server import HEIGHT, TOKEN, WIDTH, ServerProcess, build_scene
 
 
 @pytest.fixture(scope="session")
@@ -54,31 +49,3 @@ def client(server):
 
     with Client(server.url, token=TOKEN, timeout=20) as c:
         yield c
-
-
-class ThreadServer:
-    """uvicorn in a thread of the test process, serving ``create_app(settings, service_factory=...)``."""
-
-    def __init__(self, app):
-        import uvicorn
-
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        config = uvicorn.Config(app, host="127.0.0.1", port=self.port, log_level="warning",
-                                timeout_graceful_shutdown=2)
-        self.server = uvicorn.Server(config)
-        self.thread = threading.Thread(target=self.server.run, name="uvicorn-test", daemon=True)
-
-    def __enter__(self) -> ThreadServer:
-        self.thread.start()
-        deadline = time.monotonic() + STARTUP_S
-        while not self.server.started:
-            if not self.thread.is_alive() or time.monotonic() > deadline:
-                raise RuntimeError("the in-thread server did not start")
-            time.sleep(0.05)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.server.should_exit = True
-        self.thread.join(15)
-        assert not self.thread.is_alive(), "uvicorn did not stop"

@@ -14,15 +14,14 @@ import httpx
 import numpy as np
 import pytest
 
-from bench.serve import ServerProcess, build_scene
 from edmcgs.clients.client import Busy, Client, ServerError
 from edmcgs.errors import CheckpointError, ReplayFormatError
 from edmcgs.server import demo
 from edmcgs.server.app import create_app
 from edmcgs.server.service import Service
 from edmcgs.server.settings import Settings
-from tests.sensor.conftest import DVXPLORER
-from tests.server.conftest import ThreadServer
+from tests.support.recordings import DVXPLORER
+from tests.support.server import ServerProcess, ThreadServer, build_scene
 
 AEDAT4 = str(DVXPLORER)  # the real DVXplorer recording in ../shared/data
 

@@ -12,7 +12,7 @@ from PIL import Image
 from edmcgs import protocol
 from edmcgs.clients.client import Client, InvalidRequest, TimeUnavailable, Unauthorized
 from edmcgs.sensor.files.recording import read_recording
-from tests.server.conftest import HEIGHT, TOKEN, WIDTH
+from tests.support.server import HEIGHT, TOKEN, WIDTH
 
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 # A pose looking at the scene from 5 cm to the right and tilted by ~11 degrees about y.

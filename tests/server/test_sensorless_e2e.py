@@ -11,11 +11,10 @@ import time
 import numpy as np
 import pytest
 
-from bench.serve import ServerProcess, build_scene
 from edmcgs.clients.client import Client, TimeUnavailable
 from edmcgs.model.checkpoint import load_checkpoint, read_checkpoint
 from edmcgs.server.encode import to_uint8
-from tests.server.conftest import HEIGHT, WIDTH
+from tests.support.server import HEIGHT, WIDTH, ServerProcess, build_scene
 
 SPEED = 2.0  # the playback clock runs at twice real time
 

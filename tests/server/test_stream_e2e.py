@@ -14,7 +14,7 @@ from websockets.sync.client import connect
 from edmcgs import protocol
 from edmcgs.clients.client import InvalidRequest
 from edmcgs.sensor.files.recording import read_recording
-from tests.server.conftest import HEIGHT, TOKEN, WIDTH
+from tests.support.server import HEIGHT, TOKEN, WIDTH
 
 SIDE_POSE = [0.05, 0.0, 0.0, 0.995, 0.0, 0.0998, 0.0]
 

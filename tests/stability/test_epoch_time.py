@@ -18,8 +18,8 @@ from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.train.data import EventGrid, TrainingData
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.events import Events
-from tests.model.test_model import TINY, randomize_event_branch
 from tests.support import tiny_scene
+from tests.support.models import TINY, randomize_event_branch
 
 T0 = 1_700_000_000_000_000
 DAY = 86_400_000_000

@@ -20,8 +20,8 @@ from edmcgs.model.train.data import TrainingData
 from edmcgs.model.train.trainer import Trainer
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.events import Events
-from tests.model.test_model import TINY, build, randomize_event_branch, states_equal
 from tests.support import tiny_scene
+from tests.support.models import TINY, build, randomize_event_branch, states_equal
 
 MID_GAP = tiny_scene.T0 + 50_000  # between the first two anchors (0 and 100 ms)
 

@@ -14,8 +14,8 @@ from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.train.data import TrainingData
 from edmcgs.model.train.losses import event_loss, log_luminance, photometric_loss
 from edmcgs.model.train.trainer import Trainer
-from tests.model.test_model import TINY
 from tests.support import tiny_scene
+from tests.support.models import TINY
 
 C, EPS = 0.2, 1e-3
 

@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from edmcgs.model.train.trainer import Trainer
-from tests.model.test_model import TINY, build
 from tests.support import tiny_scene
+from tests.support.models import TINY, build
 
 
 @pytest.mark.parametrize("gap_ms", [1000, 500])

@@ -11,8 +11,9 @@ from pathlib import Path
 
 import pytest
 
+from tests.support.viewer import MAX_SIZE, VIEW_H, VIEW_W
+
 CHROMIUM = Path("/usr/bin/chromium")
-VIEWER = Path(__file__).resolve().parents[2] / "clients" / "viewer"
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
         "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 
@@ -55,14 +56,11 @@ def page(browser):
 # The real service for the viewer and export tests: the server tests' own helpers (a scene built with
 # the model API, edmcgs-serve in a subprocess on a free loopback port), at a size worth looking at in
 # a screenshot, with a token required and a width/height cap the tests can run into from the page.
-VIEW_W, VIEW_H = 160, 120
-MAX_SIZE = 200
 
 
 @pytest.fixture(scope="package")
 def served(tmp_path_factory):
-    from bench.serve import build_scene
-    from tests.server.conftest import TOKEN, ServerProcess
+    from tests.support.server import TOKEN, ServerProcess, build_scene
 
     rec, ckpt = build_scene(tmp_path_factory.mktemp("viewer-scene"), width=VIEW_W, height=VIEW_H,
                             event_rate=20_000, init_points=2000, control_points=64)

@@ -13,7 +13,7 @@ from PIL import Image, ImageSequence
 
 from edmcgs.clients.client import Client
 from edmcgs.clients.export import main as export_main
-from tests.viewer.conftest import MAX_SIZE, VIEW_H, VIEW_W
+from tests.support.viewer import MAX_SIZE, VIEW_H, VIEW_W
 
 FRAMES = "Number(document.getElementById('frames').textContent)"
 IDLE = "!edmcgsViewer.state.rendering && !edmcgsViewer.state.viewDirty"

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from tests.viewer.conftest import VIEWER
+from tests.support.viewer import VIEWER
 
 
 class _StaticViewer(http.server.SimpleHTTPRequestHandler):

@@ -1,0 +1,136 @@
+"""Every import rule of CONTRIBUTING.md, checked over the source (imports inside functions included)."""
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+FOLDERS = {"edmcgs": "edmcgs", "sensor": "edmcgs.sensor", "model": "edmcgs.model", "synth": "edmcgs.synth",
+           "server": "edmcgs.server", "clients": "edmcgs.clients", "bench": "bench", "tests": "tests"}
+BASE = ("edmcgs.errors", "edmcgs.geometry")
+"""Shared by every layer: the error tree and the camera / pose / quaternion maths."""
+PROTOCOL = "edmcgs.protocol"
+APPLICATION = ("edmcgs.pipeline", "edmcgs.cli", "edmcgs.train_cli", "edmcgs.eval_cli")
+CLI_MODULES = ("edmcgs.cli", "edmcgs.train_cli", "edmcgs.eval_cli", "edmcgs.server.cli")
+MODEL_ROOMS = ("render", "motion", "train", "eval")
+
+
+def _modules():
+    out = {}
+    for folder, package in FOLDERS.items():
+        for path in (ROOT / folder).rglob("*.py"):
+            if ".venv" in path.parts:
+                continue
+            rel = path.relative_to(ROOT / folder).with_suffix("").parts
+            if folder == "edmcgs" and rel and rel[0] in {"model", "sensor", "synth", "server", "clients"}:
+                continue  # a symlinked or stray copy; the mapped folder is the source
+            name = ".".join((package, *rel)).removesuffix(".__init__")
+            out[name] = path
+    return out
+
+
+MODULES = _modules()
+
+
+def _imports(path: Path) -> set[str]:
+    """The project modules a file imports (``from pkg import module`` counts as importing the module)."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            subs = {f"{node.module}.{a.name}" for a in node.names} & MODULES.keys()
+            names.update(subs or {node.module})
+    return {n for n in names if n.split(".")[0] in ("edmcgs", "bench", "tests")}
+
+
+def _within(name: str, *prefixes: str) -> bool:
+    return any(name == p or name.startswith(p + ".") for p in prefixes)
+
+
+def _violations(importer: str, allowed: tuple[str, ...]) -> list[str]:
+    """``importer IMPORTS imported`` for each project import of the modules under ``importer`` outside
+    ``allowed`` (the package root ``edmcgs`` itself holds nothing and is always allowed)."""
+    bad = []
+    for name, path in MODULES.items():
+        if _within(name, importer):
+            bad += [f"{name} imports {i}" for i in sorted(_imports(path))
+                    if i != "edmcgs" and not _within(i, *allowed)]
+    return sorted(bad)
+
+
+def test_the_scan_sees_the_project():
+    assert {"edmcgs.model.dynamic", "edmcgs.sensor.buffer.ring", "edmcgs.protocol"} <= MODULES.keys()
+    assert "tests.support" in MODULES
+    assert "edmcgs.model.render.rasterize" in _imports(MODULES["edmcgs.model.dynamic"])
+
+
+def test_the_shared_base_imports_nothing_above_it():
+    assert _violations("edmcgs.errors", ()) == []
+    assert _violations("edmcgs.geometry", ("edmcgs.errors",)) == []
+    assert _violations(PROTOCOL, ()) == [], "the wire protocol imports nothing of the project"
+
+
+def test_sensor_and_model_import_neither_each_other_nor_anything_above():
+    assert _violations("edmcgs.sensor", ("edmcgs.sensor", *BASE)) == []
+    assert _violations("edmcgs.model", ("edmcgs.model", *BASE)) == []
+
+
+def test_the_renderer_imports_no_other_room_of_the_model():
+    assert _violations("edmcgs.model.render", ("edmcgs.model.render", *BASE)) == []
+
+
+@pytest.mark.parametrize("room", MODEL_ROOMS)
+def test_model_rooms_import_no_application_or_server(room):
+    assert _violations(f"edmcgs.model.{room}", ("edmcgs.model", *BASE)) == []
+
+
+def test_synth_imports_sensor_and_model_only():
+    assert _violations("edmcgs.synth", ("edmcgs.synth", "edmcgs.sensor", "edmcgs.model", *BASE)) == []
+
+
+def test_server_imports_sensor_model_protocol_and_the_pipeline():
+    allowed = ("edmcgs.server", "edmcgs.sensor", "edmcgs.model", PROTOCOL, "edmcgs.pipeline", *BASE)
+    assert _violations("edmcgs.server", allowed) == []
+
+
+def test_clients_import_only_the_wire_protocol():
+    assert _violations("edmcgs.clients", ("edmcgs.clients", PROTOCOL, "edmcgs.errors")) == []
+
+
+def test_nothing_installed_imports_bench_or_tests():
+    assert _violations("edmcgs", ("edmcgs",)) == []
+
+
+def test_no_module_imports_a_cli_module():
+    bad = []
+    for name, path in MODULES.items():
+        if name == "edmcgs.cli" or name.startswith("tests."):
+            continue
+        bad += [f"{name} imports {i}" for i in _imports(path) if i in CLI_MODULES]
+    assert bad == []
+
+
+def test_bench_imports_test_support_never_tests():
+    allowed = ("bench", "edmcgs", "tests.support")
+    assert _violations("bench", allowed) == []
+
+
+def test_test_support_imports_no_test_module_and_no_bench():
+    assert _violations("tests.support", ("tests.support", "edmcgs")) == []
+
+
+def test_tests_import_support_never_each_other():
+    bad = []
+    for name, path in MODULES.items():
+        if not name.startswith("tests.") or name.startswith("tests.support"):
+            continue
+        bad += [f"{name} imports {i}" for i in _imports(path)
+                if i.startswith("tests.") and not _within(i, "tests.support")]
+    assert bad == []
+
+
+def test_a_violation_is_reported():
+    assert "edmcgs.sensor.buffer.ring imports edmcgs.sensor.events" in _violations("edmcgs.sensor",
+                                                                                  ("edmcgs.errors",))
