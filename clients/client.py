@@ -104,20 +104,12 @@ for: "png", "jpeg" or "msgpack"."""
 
 
 @dataclass(frozen=True)
-class Frame:
-    """One websocket frame. ``image()`` decodes it to uint8 [H, W, C]."""
+class Frame(protocol.FrameMeta):
+    """One websocket frame: the render's ``FrameMeta`` plus the stream's numbering and the encoded image.
+    ``image()`` decodes it to uint8 [H, W, C]."""
 
     seq: int
     dropped: int
-    t_us: int
-    t: float
-    anchor_us: int
-    events: int
-    render_ms: float
-    width: int
-    height: int
-    channels: int
-    format: str
     data: bytes
     arrived_unix_us: int | None = None
 
