@@ -16,7 +16,6 @@ import argparse
 import math
 import os
 import sys
-import tempfile
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -27,6 +26,7 @@ from PIL import Image
 from tqdm import tqdm
 
 from edmcgs import protocol
+from edmcgs.atomic import atomic_output
 from edmcgs.clients.client import Client, ServiceError
 from edmcgs.errors import EdmcgsError, InvalidInputError
 
@@ -160,10 +160,7 @@ def export_sweep(client: Client, out: str | os.PathLike, *, t0: float | None = N
                                       format="msgpack")
         return pixels
 
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=out.suffix, dir=out.parent)
-    os.close(fd)
-    tmp = Path(tmp_name)
-    try:
+    with atomic_output(out, InvalidInputError) as tmp:
         writer = open_writer(tmp, fps)
         with ThreadPoolExecutor(jobs) as pool, tqdm(total=len(times), unit="frame", disable=not progress,
                                                      desc=out.name) as bar:
@@ -177,9 +174,6 @@ def export_sweep(client: Client, out: str | os.PathLike, *, t0: float | None = N
                 writer.add(in_flight.popleft().result())
                 bar.update()
         writer.close()
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
     return len(times)
 
 

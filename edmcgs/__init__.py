@@ -5,4 +5,9 @@ rasterizer, deformation, training), ``edmcgs.synth`` (event simulator and synthe
 ``edmcgs.server`` (FastAPI service) and ``edmcgs.clients`` (Python client, browser viewer).
 """
 
-__version__ = "0.1.0"
+from importlib import metadata as _metadata
+
+try:
+    __version__ = _metadata.version("edmcgs")
+except _metadata.PackageNotFoundError:  # run from a source tree that was never installed
+    __version__ = "0+unknown"

@@ -4,6 +4,8 @@ import argparse
 import importlib
 import sys
 
+from edmcgs import __version__
+
 # subcommand -> (module, help). Imported lazily so that `edmcgs --help` is instant.
 COMMANDS = {
     "record": ("edmcgs.sensor.files.record", "record a live camera or a replay to AEDAT4 or HDF5"),
@@ -16,8 +18,9 @@ COMMANDS = {
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or argv[0] in ("-h", "--help") or argv[0] not in COMMANDS:
+    if not argv or argv[0] in ("-h", "--help", "--version") or argv[0] not in COMMANDS:
         parser = argparse.ArgumentParser(prog="edmcgs", description="EdMCGS tools")
+        parser.add_argument("--version", action="version", version=f"edmcgs {__version__}")
         parser.add_argument("command", choices=sorted(COMMANDS), help="; ".join(
             f"{name}: {text}" for name, (_, text) in COMMANDS.items()))
         parser.parse_args(argv[:1])

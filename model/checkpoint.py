@@ -21,12 +21,12 @@ Writes are atomic (a temporary file in the same folder, fsynced, then renamed ov
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from edmcgs.atomic import atomic_output
 from edmcgs.errors import CheckpointError, EdmcgsError
 from edmcgs.geometry import Intrinsics, Trajectory
 from edmcgs.model.config import EdmcgsConfig
@@ -84,16 +84,8 @@ def save_checkpoint(model: EdMCGS, path: str | os.PathLike, *, train_state: dict
         "train_state": train_state,
     }
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            torch.save(payload, fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_output(path, CheckpointError) as tmp:
+        torch.save(payload, tmp)
 
 
 def read_checkpoint(path: str | os.PathLike) -> dict:

@@ -21,6 +21,7 @@ import sys
 
 from pydantic import ValidationError
 
+from edmcgs import __version__
 from edmcgs.errors import EdmcgsError
 
 
@@ -38,6 +39,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, help="TCP port (default 8000; 0: any free port)")
     p.add_argument("--device", help="torch device of the model: cpu (default), cuda, cuda:1 ...")
     p.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
+    p.add_argument("--version", action="version", version=f"edmcgs-serve {__version__}")
     return p
 
 

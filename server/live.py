@@ -8,6 +8,7 @@ import asyncio
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 
 
 class HeadSignal:
@@ -28,25 +29,27 @@ class HeadSignal:
         self._event.set()
         self._event = asyncio.Event()
 
-    async def wait(self, timeout: float) -> None:
-        """Return at the next notify, or after ``timeout`` seconds."""
+    async def wait(self, timeout: float) -> bool:
+        """Return at the next notify (True), or after ``timeout`` seconds (False)."""
         try:
             await asyncio.wait_for(self._event.wait(), timeout)
         except TimeoutError:
-            pass
+            return False
+        return True
 
 
 class Arrivals:
     """Wall-clock arrival of the newest batches: (stream time complete up to, Unix µs), bounded."""
 
-    def __init__(self, keep: int = 4096):
+    def __init__(self, keep: int = 4096, clock: Callable[[], int] = lambda: time.time_ns() // 1000):
         self._items: deque[tuple[int, int]] = deque(maxlen=keep)
         self._lock = threading.Lock()
+        self._clock = clock  # Unix µs
 
     def record(self, complete_until_us: int) -> None:
         """Called by the ingest thread right after a batch reached the ring."""
         with self._lock:
-            self._items.append((int(complete_until_us), time.time_ns() // 1000))
+            self._items.append((int(complete_until_us), int(self._clock())))
 
     def first_after(self, stream_us: int | None) -> int | None:
         """Unix µs at which the first batch bringing events past ``stream_us`` arrived (None: unknown).

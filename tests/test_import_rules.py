@@ -8,8 +8,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 FOLDERS = {"edmcgs": "edmcgs", "sensor": "edmcgs.sensor", "model": "edmcgs.model", "synth": "edmcgs.synth",
            "server": "edmcgs.server", "clients": "edmcgs.clients", "bench": "bench", "tests": "tests"}
-BASE = ("edmcgs.errors", "edmcgs.geometry")
-"""Shared by every layer: the error tree and the camera / pose / quaternion maths."""
+BASE = ("edmcgs.errors", "edmcgs.atomic", "edmcgs.geometry")
+"""Shared by every layer: the error tree, atomic file output and the camera / pose / quaternion maths."""
 PROTOCOL = "edmcgs.protocol"
 APPLICATION = ("edmcgs.pipeline", "edmcgs.cli", "edmcgs.train_cli", "edmcgs.eval_cli")
 CLI_MODULES = ("edmcgs.cli", "edmcgs.train_cli", "edmcgs.eval_cli", "edmcgs.server.cli")
@@ -68,6 +68,7 @@ def test_the_scan_sees_the_project():
 
 def test_the_shared_base_imports_nothing_above_it():
     assert _violations("edmcgs.errors", ()) == []
+    assert _violations("edmcgs.atomic", ("edmcgs.errors",)) == []
     assert _violations("edmcgs.geometry", ("edmcgs.errors",)) == []
     assert _violations(PROTOCOL, ()) == [], "the wire protocol imports nothing of the project"
 
@@ -96,7 +97,7 @@ def test_server_imports_sensor_model_protocol_and_the_pipeline():
 
 
 def test_clients_import_only_the_wire_protocol():
-    assert _violations("edmcgs.clients", ("edmcgs.clients", PROTOCOL, "edmcgs.errors")) == []
+    assert _violations("edmcgs.clients", ("edmcgs.clients", PROTOCOL, "edmcgs.errors", "edmcgs.atomic")) == []
 
 
 def test_nothing_installed_imports_bench_or_tests():

@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -48,8 +49,10 @@ class Trainer:
     """Optimises a model on one recording's arrays; ``fit`` runs to ``config.iterations``."""
 
     def __init__(self, model: EdMCGS, data: TrainingData, *, device: str | torch.device = "cpu",
-                 progress: bool = True):
+                 progress: bool = True, clock: Callable[[], float] = time.perf_counter):
         self.cfg = cfg = model.config
+        self.clock = clock
+        """Seconds for ``train_seconds`` (a test passes its own)."""
         if cfg.events and data.event_map is None:
             raise TrainingError("config.events is on but the recording gives no event source")
         if data.channels != model.meta.channels:
@@ -257,9 +260,9 @@ class Trainer:
         last: dict[str, float] = {}
         ema: dict[str, float] = {}
         while self.step < cfg.iterations:
-            started = time.perf_counter()
+            started = self.clock()
             last = self.train_step()
-            self.train_seconds += time.perf_counter() - started
+            self.train_seconds += self.clock() - started
             for key, value in last.items():
                 if math.isfinite(value):
                     ema[key] = value if key not in ema else 0.9 * ema[key] + 0.1 * value

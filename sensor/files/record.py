@@ -17,8 +17,8 @@ from pathlib import Path
 import dv_processing as dv
 from tqdm import tqdm
 
+from edmcgs.atomic import atomic_output
 from edmcgs.errors import EdmcgsError, InvalidInputError, RecordingError
-from edmcgs.sensor.files.atomic import atomic_output
 from edmcgs.sensor.files.recording import RecordingWriter
 from edmcgs.sensor.sources.base import EventSource, SensorBatch, StreamInfo
 from edmcgs.sensor.sources.dv_bridge import dv_error_text, event_store, image_frame, imu_samples
@@ -30,7 +30,7 @@ class AedatOutput:
     """Batches -> an AEDAT4 file through dv-processing's MonoCameraWriter, atomically."""
 
     def __init__(self, path: Path, info: StreamInfo, *, frames: bool = True) -> None:
-        self._atomic = atomic_output(path)
+        self._atomic = atomic_output(path, RecordingError)
         tmp = self._atomic.__enter__()
         config = dv.io.MonoCameraWriter.Config(info.sensor)
         config.addEventStream((info.width, info.height))

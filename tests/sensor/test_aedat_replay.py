@@ -1,18 +1,21 @@
+import threading
+
 import dv_processing as dv
 import numpy as np
 import pytest
 
-from edmcgs.errors import InvalidInputError, ReplayFormatError
+from edmcgs.errors import InvalidInputError, ReplayFormatError, SensorError
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.sources.aedat import AedatReplay
 from edmcgs.sensor.sources.base import EventSource
 from edmcgs.sensor.sources.open import open_source
 from edmcgs.sensor.sources.pacing import Pacer, Pacing
+from tests.support.recordings import DVX_EVENTS, DVX_FIRST_US, DVX_IMU, DVX_LAST_US, DVX_SENSOR, write_aedat
 
-from .conftest import make_events, write_aedat
+from .conftest import make_events
 
-FIRST_US, LAST_US = 1605537493718345, 1605537494308262
+FIRST_US, LAST_US = DVX_FIRST_US, DVX_LAST_US
 
 
 def _drain(src):
@@ -22,19 +25,19 @@ def _drain(src):
     return batches, events, (Frames.concat(frames) if frames else None)
 
 
-def test_dvxplorer_sample_has_its_documented_numbers(dvxplorer_path):
+def test_a_dvxplorer_recording_replays_whole(dvxplorer_path):
     with AedatReplay(dvxplorer_path, Pacing(factor=0)) as src:
         assert isinstance(src, EventSource)
         info = src.info
         assert (info.width, info.height) == (320, 240)
-        assert info.sensor == "DVXplorer_DXB00010" and not info.has_frames and info.has_imu and not info.live
+        assert info.sensor == DVX_SENSOR and not info.has_frames and info.has_imu and not info.live
         assert info.t_range_us == (FIRST_US, LAST_US)
         batches, ev, frames = _drain(src)
-        assert src.stats.dropped == 0 and src.stats.received == 111_954
-    assert len(ev) == 111_954 and frames is None
+        assert src.stats.dropped == 0 and src.stats.received == DVX_EVENTS
+    assert len(ev) == DVX_EVENTS and frames is None
     assert (ev.t_start, ev.t_end) == (FIRST_US, LAST_US)
     assert round(100 * np.mean(ev.p > 0)) == 49
-    assert sum(len(b.imu) for b in batches if b.imu is not None) == 475
+    assert sum(len(b.imu) for b in batches if b.imu is not None) == DVX_IMU
     # every batch is a 10 ms window, marked complete up to its end, and holds only its own events
     for b in batches:
         assert len(b.events) == 0 or (b.t_end_us - 10_000 <= b.events.t_start and b.events.t_end < b.t_end_us)
@@ -131,9 +134,32 @@ def test_bad_aedat_files_give_clear_errors(tmp_path, dvxplorer_path):
     for name, blob in cases.items():
         (tmp_path / name).write_bytes(blob)
         with pytest.raises(ReplayFormatError) as err:
-            list(AedatReplay(tmp_path / name, Pacing(factor=0)))
+            list(AedatReplay(tmp_path / name, Pacing(factor=0), stall_s=2))
         assert name in str(err.value) and "Stacktrace" not in str(err.value)
+    # dv-processing's LZ4 decoder spins on this damage; the child that decodes it is killed
+    with pytest.raises(ReplayFormatError, match="stalled for 2 s"):
+        list(AedatReplay(tmp_path / "corrupt.aedat4", Pacing(factor=0), stall_s=2))
     with pytest.raises(ReplayFormatError, match="no such file"):
         AedatReplay(tmp_path / "missing.aedat4")
     with pytest.raises(InvalidInputError, match="expected a file ending in"):
         open_source(tmp_path / "x.txt")
+
+
+def test_closing_a_replay_stops_its_stalled_decoder_from_another_thread(tmp_path, dvxplorer_path):
+    corrupt = bytearray(dvxplorer_path.read_bytes())
+    corrupt[2000:2200] = bytes(b ^ 0xFF for b in corrupt[2000:2200])  # a spinning packet, as above
+    (tmp_path / "spin.aedat4").write_bytes(bytes(corrupt))
+    replay = AedatReplay(tmp_path / "spin.aedat4", Pacing(factor=0), stall_s=600)
+    errors = []
+
+    def ingest():
+        try:
+            list(replay)
+        except SensorError as exc:  # "closed", at whichever point the close caught the reader
+            errors.append(str(exc))
+
+    thread = threading.Thread(target=ingest)
+    thread.start()
+    replay.close()  # whatever the decoder is doing
+    thread.join(60)
+    assert not thread.is_alive() and len(errors) == 1 and "closed" in errors[0], errors

@@ -15,8 +15,9 @@ from edmcgs.sensor.events import Events
 from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.sources.davis import DavisSource
 from edmcgs.sensor.sources.open import open_source
+from tests.support.recordings import write_aedat
 
-from .conftest import make_events, write_aedat
+from .conftest import make_events
 
 
 class FakeUsbDevice:

@@ -9,8 +9,9 @@ from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.sources.aedat import AedatReplay
 from edmcgs.sensor.sources.hdf5 import Hdf5Replay
 from edmcgs.sensor.sources.pacing import Pacing
+from tests.support.recordings import DVX_EVENTS, DVX_IMU, DVX_SENSOR, write_aedat
 
-from .conftest import make_events, make_recording, write_aedat
+from .conftest import make_events, make_recording
 
 
 def _events_and_frames(src):
@@ -22,11 +23,11 @@ def _events_and_frames(src):
 def test_dvxplorer_to_hdf5_through_the_edmcgs_command(tmp_path, dvxplorer_path, capsys):
     out = tmp_path / "p.h5"
     assert edmcgs_main(["record", str(dvxplorer_path), "-o", str(out), "--quiet"]) == 0
-    assert "111954 events" in capsys.readouterr().out
+    assert f"{DVX_EVENTS} events" in capsys.readouterr().out
     rec = read_recording(out)
     with AedatReplay(dvxplorer_path, Pacing(factor=0)) as src:
         ev, _ = _events_and_frames(src)
-    assert rec.events == ev and (rec.width, rec.height) == (320, 240) and rec.sensor == "DVXplorer_DXB00010"
+    assert rec.events == ev and (rec.width, rec.height) == (320, 240) and rec.sensor == DVX_SENSOR
     assert len(rec.anchors) == 0 and rec.metadata["recorded_by"] == "edmcgs record"
     assert rec.metadata["source_stats"]["dropped"] == 0
     assert [p.name for p in tmp_path.iterdir()] == ["p.h5"]
@@ -51,7 +52,7 @@ def test_events_frames_and_imu_survive_every_conversion(tmp_path, dvxplorer_path
     for path in (dvxplorer_path, tmp_path / "c.aedat4"):
         with AedatReplay(path, Pacing(factor=0)) as replay:
             imu.append(np.concatenate([b.imu for b in replay if b.imu is not None]))
-    assert len(imu[1]) == 475
+    assert len(imu[1]) == DVX_IMU
     np.testing.assert_array_equal(imu[0], imu[1])
 
 

@@ -173,3 +173,14 @@ def test_recording_validation():
 def test_missing_folder_is_a_recording_error(tmp_path):
     with pytest.raises(RecordingError, match="does not exist"):
         write_recording(tmp_path / "no" / "r.h5", make_recording(n_events=10))
+
+
+def test_recordings_get_the_usual_permissions(tmp_path):
+    import os
+
+    old = os.umask(0o027)
+    try:
+        path = write_recording(tmp_path / "r.h5", make_recording(n_events=100))
+    finally:
+        os.umask(old)
+    assert path.stat().st_mode & 0o777 == 0o640

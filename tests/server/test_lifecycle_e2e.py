@@ -20,10 +20,8 @@ from edmcgs.server import demo
 from edmcgs.server.app import create_app
 from edmcgs.server.service import Service
 from edmcgs.server.settings import Settings
-from tests.support.recordings import DVXPLORER
+from tests.support.recordings import write_dvxplorer
 from tests.support.server import ServerProcess, ThreadServer, build_scene
-
-AEDAT4 = str(DVXPLORER)  # the real DVXplorer recording in ../shared/data
 
 
 def _settings(scene_files, **extra) -> Settings:
@@ -71,15 +69,17 @@ def test_a_failing_render_is_a_500_and_the_server_lives_on(scene_files):
 
 
 def test_beyond_workers_and_queue_renders_get_503_with_retry_after(scene_files):
+    gate = threading.Event()  # admitted renders hold their slot until the test has seen the refusals
+
     def slow(settings: Settings) -> Service:
         service = Service.open(settings)
         render = service.model.render
 
-        def slow_render(*args, **kw):
-            time.sleep(0.4)
+        def gated_render(*args, **kw):
+            gate.wait(60)
             return render(*args, **kw)
 
-        service.model.render = slow_render
+        service.model.render = gated_render
         return service
 
     settings = _settings(scene_files, render_workers=1, render_queue=1)
@@ -96,10 +96,14 @@ def test_beyond_workers_and_queue_renders_get_503_with_retry_after(scene_files):
         threads = [threading.Thread(target=one) for _ in range(5)]
         for th in threads:
             th.start()
+        deadline = time.monotonic() + 60
+        while sum(isinstance(r, Busy) for r in results) < 3 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        gate.set()
         for th in threads:
-            th.join(30)
+            th.join(60)
         busy = [r for r in results if isinstance(r, Busy)]
-        assert len(results) == 5 and len(busy) >= 1 and len(results) - len(busy) >= 2, results
+        assert len(results) == 5 and len(busy) == 3, results  # one rendering, one queued, three refused
         assert all(b.status == 503 and b.retry_after_s == 1.0 and "queue is full" in b.detail for b in busy)
         rejected = [line for line in client.metrics().splitlines()
                     if line.startswith("edmcgs_renders_rejected_total ")]
@@ -135,14 +139,20 @@ def _cli(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
                           timeout=120, env=env)
 
 
-def test_cli_errors_are_one_line(scene_files, tmp_path):
+@pytest.fixture(scope="module")
+def aedat4(tmp_path_factory) -> str:
+    """A DVXplorer recording (320x240, no frames) written by dv-processing's writer."""
+    return str(write_dvxplorer(tmp_path_factory.mktemp("dvx") / "person.aedat4"))
+
+
+def test_cli_errors_are_one_line(scene_files, aedat4, tmp_path):
     rec, ckpt = scene_files
     missing = _cli("--replay", str(rec), "--checkpoint", str(tmp_path / "nope.ckpt"), "--port", "0")
     assert missing.returncode == 1
     assert "does not exist" in missing.stderr and "Traceback" not in missing.stderr
     no_ckpt = _cli("--replay", str(rec), "--port", "0")
     assert no_ckpt.returncode == 2 and "checkpoint is required" in no_ckpt.stderr
-    wrong_size = _cli("--replay", AEDAT4, "--checkpoint", str(ckpt), "--port", "0")
+    wrong_size = _cli("--replay", aedat4, "--checkpoint", str(ckpt), "--port", "0")
     assert wrong_size.returncode == 1
     assert "320x240" in wrong_size.stderr and "64x48" in wrong_size.stderr
     live = _cli("--live", "--checkpoint", str(ckpt), "--port", "0")  # no DAVIS on this machine
@@ -157,23 +167,23 @@ def test_missing_demo_says_how_to_serve_a_scene(monkeypatch, tmp_path):
 
 
 @pytest.fixture(scope="module")
-def aedat_checkpoint(tmp_path_factory):
+def aedat_checkpoint(tmp_path_factory, aedat4):
     """A checkpoint on the AEDAT4 file's own clock and resolution (its first 0.5 s)."""
-    first, _last = dv.io.MonoCameraRecording(AEDAT4).getTimeRange()
+    first, _last = dv.io.MonoCameraRecording(aedat4).getTimeRange()
     _rec, ckpt = build_scene(tmp_path_factory.mktemp("aedat"), width=320, height=240, duration_s=0.5,
                              anchor_every_s=0.1, event_rate=1000, init_points=2000, control_points=64,
                              t0_us=int(first))
     return int(first), ckpt
 
 
-def test_replays_a_real_aedat4_on_the_checkpoints_anchors(aedat_checkpoint):
+def test_replays_a_real_aedat4_on_the_checkpoints_anchors(aedat_checkpoint, aedat4):
     first, ckpt = aedat_checkpoint
-    reader = dv.io.MonoCameraRecording(AEDAT4)
+    reader = dv.io.MonoCameraRecording(aedat4)
     times = []
     while (batch := reader.getNextEventBatch()) is not None:
         times.append(batch.numpy()["timestamp"])
     times = np.concatenate(times)
-    srv = ServerProcess(["--replay", AEDAT4, "--checkpoint", str(ckpt), "--speed", "2"])
+    srv = ServerProcess(["--replay", aedat4, "--checkpoint", str(ckpt), "--speed", "2"])
     try:
         srv.wait_ready()
         with Client(srv.url) as client:

@@ -20,9 +20,11 @@ def test_state_cache_computes_once_for_concurrent_callers():
     cache = StateCache(2)
     calls = []
 
-    def compute():
+    def compute():  # holds the key until the five other callers wait on it (each counted as a hit)
         calls.append(1)
-        time.sleep(0.05)
+        deadline = time.monotonic() + 60
+        while cache.hits < 5 and time.monotonic() < deadline:
+            time.sleep(1e-3)
         return object()
 
     results = []
@@ -103,15 +105,14 @@ def test_accept_negotiation_and_pose_text():
 def test_arrivals_find_the_oldest_batch_new_to_a_frame():
     from edmcgs.server.live import Arrivals
 
-    arrivals = Arrivals(keep=3)
+    clock = iter(range(1_000, 10_000, 1_000))  # Unix µs of each arrival
+    arrivals = Arrivals(keep=3, clock=lambda: next(clock))
     for until in (100, 200, 300, 400):
         arrivals.record(until)
-        time.sleep(0.002)
-    at_300, at_400 = arrivals.first_after(250), arrivals.first_after(350)
-    assert at_300 is not None and at_400 is not None and at_300 < at_400
+    assert arrivals.first_after(250) == 3_000 and arrivals.first_after(350) == 4_000
     assert arrivals.first_after(400) is None  # nothing new since
     # Bounded: the batch complete until 100 is forgotten, the oldest kept one (200) answers instead.
-    assert arrivals.first_after(50) == arrivals.first_after(150) == arrivals.first_after(None) < at_300
+    assert arrivals.first_after(50) == arrivals.first_after(150) == arrivals.first_after(None) == 2_000
 
 
 def test_head_signal_wakes_waiters_from_another_thread():
@@ -121,16 +122,16 @@ def test_head_signal_wakes_waiters_from_another_thread():
 
     async def scenario():
         signal = HeadSignal(asyncio.get_running_loop())
-        t0 = time.perf_counter()
-        threading.Timer(0.05, signal.notify).start()
-        await signal.wait(5.0)
-        woke = time.perf_counter() - t0
-        t1 = time.perf_counter()
-        await signal.wait(0.05)  # nobody notifies: the timeout
-        return woke, time.perf_counter() - t1
+        waiting = asyncio.ensure_future(signal.wait(60.0))
+        await asyncio.sleep(0)  # the waiter is parked on the signal
+        notifier = threading.Thread(target=signal.notify)
+        notifier.start()
+        woke = await waiting
+        notifier.join()
+        timed_out = not await signal.wait(0.01)  # nobody notifies: the timeout
+        return woke, timed_out
 
-    woke, timed_out = asyncio.run(scenario())
-    assert woke < 2.0 and 0.04 < timed_out < 2.0
+    assert asyncio.run(scenario()) == (True, True)
 
 
 def test_to_uint8_rounds_clips_and_zeroes_non_finite_pixels():

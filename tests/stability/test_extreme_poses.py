@@ -2,9 +2,9 @@
 the camera inside Gaussians, grazing views (edge-on discs, a floor seen from just above it, splats far
 outside the frustum), and, through the model's render API, a camera inside the scene or facing away.
 
-Covered elsewhere: Gaussians behind the camera or on the near plane (tests/raster/test_rasterize.py::
-test_behind_the_camera_and_on_the_near_plane_are_culled_without_nan, tests/raster/test_rasterize_fast.py::
-test_behind_the_camera_and_on_the_near_plane) and fully culled scenes (test_empty_or_fully_culled_scene_is_
+Covered elsewhere: Gaussians behind the camera or at the near plane (tests/raster/test_rasterize.py and
+tests/raster/test_rasterize_fast.py, test_behind_the_camera_* and test_on_the_near_plane_*) and fully
+culled scenes (test_empty_or_fully_culled_scene_is_
 background in both files).
 """
 
