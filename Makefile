@@ -1,7 +1,7 @@
 # The two commands of the README, and the checks of CONTRIBUTING.md.
 PY := .venv/bin/python
 
-.PHONY: serve test lint bench demo
+.PHONY: serve test check lint lock bench demo
 
 serve:  ## set up, then serve the bundled demo scene on http://127.0.0.1:8000
 	scripts/bootstrap.sh
@@ -11,8 +11,15 @@ test:   ## set up, then run the whole test suite
 	scripts/bootstrap.sh --test
 	$(PY) -m pytest
 
+check:  ## the inner loop: everything but the slow end-to-end cases (real servers, the browser)
+	scripts/bootstrap.sh --test
+	$(PY) -m pytest -m "not slow" -q
+
 lint:
 	.venv/bin/ruff check .
+
+lock:   ## refresh requirements/constraints.txt to the newest versions pyproject.toml allows
+	scripts/lock.sh
 
 bench:  ## every benchmark, JSON into reports/bench/
 	mkdir -p reports/bench
