@@ -16,6 +16,14 @@ HTTP ``GET /render``
     ``HEADERS`` describe the render (``FrameMeta.headers`` / ``from_headers``). ``msgpack`` bodies
     are a frame map (below) without ``seq`` and ``dropped``.
 
+HTTP ``GET /scene``
+    A JSON map of the scene (span, anchors, camera, trajectory, what can be rendered now). Its
+    ``tau_sources`` says where tau(t), the anchor of each render (``anchor_us``), comes from: a list,
+    in time order, of maps ``{"source": <TauSource>, "t_min", "t_max", "t_us_min", "t_us_max"}``
+    (``TAU_SOURCE_KEYS``; inclusive bounds). Within the checkpoint's span its own anchors rule
+    (``"checkpoint"``: the windows it was trained on, however many frames the stream carries); a
+    stream's frames (``"stream"``) only where the checkpoint has no anchor.
+
 Websocket ``/stream``
     Client -> server: a subscription map (msgpack binary or JSON text), see ``Subscription``. It may
     be re-sent at any time, whole or in part (e.g. only ``{"pose": [...]}``); the fields sent replace
@@ -270,6 +278,21 @@ def pack(message: dict) -> bytes:
 def unpack(data: bytes) -> dict:
     """Decode a server message."""
     return msgpack.unpackb(data, raw=False)
+
+
+# --- scene --------------------------------------------------------------------------------------
+
+class TauSource(StrEnum):
+    """Where tau(t) comes from (the ``source`` of each entry of GET /scene's ``tau_sources``)."""
+
+    CHECKPOINT = "checkpoint"
+    """The checkpoint's own anchors (``anchors_us`` of GET /scene): the windows it was trained on."""
+    STREAM = "stream"
+    """The event stream's frames (a replay's or a camera's APS / RGB frames)."""
+
+
+TAU_SOURCE_KEYS = ("source", "t_min", "t_max", "t_us_min", "t_us_max")
+"""Keys of one entry of GET /scene's ``tau_sources``."""
 
 
 # --- errors -------------------------------------------------------------------------------------

@@ -13,6 +13,11 @@ with the scene's start. In every case
 and the stream time rendered for a scene time t is the most recent T <= the head with scene(T) = t:
 the newest events for that instant. The *head* is the ring's watermark: every event before it has
 arrived, so [tau, head) is a complete window.
+
+tau(t), the anchor whose events window [tau, t) drives the deformation, is decided by ``TauRule``
+alone: within the checkpoint's span its own anchors (the windows it was trained on), whatever frames
+the stream carries; a stream's frames only where the checkpoint has no anchor, which today renders
+nothing (outside the span the model has no state).
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from edmcgs.errors import WindowUnavailable
+from edmcgs.protocol import TauSource
 
 
 @dataclass(frozen=True)
@@ -103,6 +109,34 @@ class Span:
         return [(lo, hi)] if lo <= hi else []
 
 
+@dataclass(frozen=True)
+class TauRule:
+    """Where tau(t) comes from, by scene time: the one place that decides it.
+
+    A checkpoint was trained on the windows [tau, t) from its own anchors (``meta.anchors_us``, the
+    scene clock) to every time of its span, the last anchor's window running to the span's end; the
+    stream's frames (a replay's every APS frame, a camera's) may be denser or elsewhere. Within the
+    span the checkpoint's anchors rule, so that a replay of the checkpoint's own recording renders
+    what ``edmcgs eval`` scores; the stream's frames serve only where the checkpoint has no anchor,
+    outside its span, where nothing renders yet (the place online anchors will go).
+    """
+
+    checkpoint: Span
+    """The span the checkpoint's anchors cover (scene clock)."""
+    stream_frames: bool
+    """Whether the stream delivers frames (an anchor store is filled)."""
+
+    def source(self, scene_t: int) -> TauSource | None:
+        """Where tau comes from at ``scene_t``; None: no anchor rules there."""
+        if self.checkpoint.first_us <= int(scene_t) <= self.checkpoint.end_us:
+            return TauSource.CHECKPOINT
+        return TauSource.STREAM if self.stream_frames else None
+
+    def ranges(self) -> list[tuple[TauSource, int, int]]:
+        """The renderable scene times by tau source: (source, first µs, last µs inclusive), in order."""
+        return [(TauSource.CHECKPOINT, self.checkpoint.first_us, self.checkpoint.end_us)]
+
+
 def resolve(t_us: int | None, head_stream_us: int, timeline: Timeline, span: Span,
             anchor_stream: Callable[[int, int], int | None], fmt: Callable[[int], str] = str) -> Instant:
     """The instant rendered for scene time ``t_us`` (None: the head), or TimeNotRenderable saying why.
@@ -128,6 +162,11 @@ def resolve(t_us: int | None, head_stream_us: int, timeline: Timeline, span: Spa
     a_scene = t_us - (stream_t - a_stream) if a_stream is not None else None
     if a_scene is None or a_scene < span.first_us:
         raise TimeNotRenderable(f"{what}: no anchor frame of this pass of the stream precedes it yet")
+    if tl.period_us is not None and a_stream < tl.pass_start(stream_t):
+        # A looping stream restarts at the pass start: a window reaching before it would mix in the
+        # end of the previous pass.
+        raise TimeNotRenderable(f"{what}: its anchor at {fmt(a_scene)} precedes the start of the "
+                                f"looping stream's pass ({fmt(tl.scene_origin_us)})")
     return Instant(t_us, a_scene, (a_stream, stream_t))
 
 
@@ -164,7 +203,8 @@ def renderable(head_stream_us: int, timeline: Timeline, span: Span, anchors: np.
         return span.clip(first_anchor_from(s_floor), s_wm)
     current = span.clip(first_anchor_from(tl.scene_origin_us), s_wm)
     if p_wm - p_floor >= 2 * tl.period_us:
-        return span.clip(span.first_us, span.end_us)  # a whole earlier pass is retained
+        # A whole earlier pass is retained: every time whose anchor lies within a pass.
+        return span.clip(first_anchor_from(tl.scene_origin_us), span.end_us)
     previous = span.clip(first_anchor_from(s_floor), span.end_us)
     if current and previous and previous[0][0] <= current[0][1] + 1:
         return [(current[0][0], max(current[0][1], previous[0][1]))]

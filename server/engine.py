@@ -18,6 +18,7 @@ from edmcgs import protocol
 from edmcgs.errors import InvalidInputError, WindowUnavailable
 from edmcgs.geometry import Intrinsics
 from edmcgs.model.dynamic import EdMCGS
+from edmcgs.protocol import TauSource
 from edmcgs.sensor.buffer.anchors import AnchorStore
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.event_map import accumulate
@@ -42,7 +43,8 @@ class Engine:
     replay, at the first event for a camera).
 
     model: the loaded EdMCGS; ring: the event ring the ingest thread fills (without a sensor: an empty
-    one); anchors: the source's frames, or None to use the checkpoint's anchor times; cache_size:
+    one); anchors: the source's frames (None: it has none), tau only where the checkpoint has no
+    anchor (``tau_rule``, clock.TauRule); cache_size:
     deformed states kept; raster_threads: threads of the numba rasterizer per render (None: numba's
     default, all cores); playback: without a sensor, the clock that moves the head (playback.py).
     """
@@ -60,6 +62,7 @@ class Engine:
         self.first_us = int(self.scene_anchors[0])  # the Markov chain has no state before it
         self.end_us = int(self.meta.t_end_us)
         self.span = Span(self.first_us, self.end_us)
+        self.tau_rule = clock.TauRule(self.span, stream_frames=anchors is not None)
         # The numba rasterizer on a CPU; the torch one where the model lives on a GPU.
         self.fast = model.center.device.type == "cpu"
         self.raster_threads = raster_threads
@@ -97,13 +100,22 @@ class Engine:
             self._unavailable(str(exc))
 
     def _anchor_stream(self, stream_t: int, scene_t: int) -> int | None:
-        """tau on the stream clock: the source's frames when it has them, else the checkpoint's anchors."""
-        if self.anchors is not None:
+        """tau on the stream clock, from where ``tau_rule`` says: the checkpoint's anchors or the
+        stream's frames."""
+        source = self.tau_rule.source(scene_t)
+        if source is TauSource.CHECKPOINT:
+            return clock.scene_anchor_stream(self.scene_anchors, stream_t, scene_t)
+        if source is TauSource.STREAM and self.anchors is not None:
             try:
                 return self.anchors.tau(stream_t)
             except WindowUnavailable as exc:
                 raise TimeNotRenderable(str(exc)) from None
-        return clock.scene_anchor_stream(self.scene_anchors, stream_t, scene_t)
+        return None
+
+    def tau_ranges(self) -> list[dict]:
+        """GET /scene's ``tau_sources``: where tau comes from, by range of scene time (protocol.py)."""
+        return [{"source": source.value, **self.range_dict((lo, hi))}
+                for source, lo, hi in self.tau_rule.ranges()]
 
     # ------------------------------------------------------------------ what can be rendered
     def renderable(self) -> list[tuple[int, int]]:
@@ -112,13 +124,9 @@ class Engine:
         if head is None:
             return []
         stats = self.ring.stats()
-        return clock.renderable(head[0], self.timeline, self.span, self._scene_anchor_times(),
+        # Only the checkpoint's span renders, and tau comes from its anchors there (``tau_rule``).
+        return clock.renderable(head[0], self.timeline, self.span, self.scene_anchors,
                                 stats.oldest_us, bool(stats.overflowed or stats.expired))
-
-    def _scene_anchor_times(self) -> np.ndarray:
-        if self.anchors is None or self.timeline is None:
-            return self.scene_anchors
-        return np.unique([self.timeline.scene_of(int(a)) for a in self.anchors.times()]).astype(np.int64)
 
     def valid_range(self) -> dict | None:
         """The protocol's ``valid_range``: the most recent renderable interval."""

@@ -6,6 +6,9 @@ ingest thread, an empty one-slot ring, tau(t) from the checkpoint's anchors, the
 at once, and a playback clock looping over the span at ``speed`` as the head that GET /render without
 t and the websocket's live mode follow (playback.py). A checkpoint with an event branch needs its
 events: alone it is refused, naming the fix.
+
+With a sensor, tau(t) still comes from the checkpoint's anchors over its span (clock.TauRule): a
+source's frames are stored (the anchor store) but serve as tau only where the checkpoint has no anchor.
 """
 
 from __future__ import annotations
@@ -40,8 +43,9 @@ from edmcgs.server.settings import Settings
 log = logging.getLogger("edmcgs.server")
 
 ANCHOR_CAPACITY = 64
-"""Source frames kept for tau(t): each is a whole image (270 kB at 346x260 RGB), and a looping replay
-adds them again every pass. Times whose anchor was evicted answer 416 like evicted events."""
+"""Source frames kept: each is a whole image (270 kB at 346x260 RGB), and a looping replay adds them
+again every pass. They give tau(t) only where the checkpoint has no anchor (clock.TauRule); a time
+whose stream frame was evicted answers 416 like evicted events."""
 
 
 def invalid(param: str, message: str) -> InvalidInputError:
@@ -148,8 +152,8 @@ class Service:
             seconds = engine.warm_up()
             log.info("model %s on %s: %d Gaussians, warm-up %.1f s; source %s (%dx%d, %s)",
                      inputs.checkpoint, settings.device, len(model.gaussians), seconds, info.sensor,
-                     info.width, info.height, "frames as anchors" if anchors is not None
-                     else "checkpoint anchors")
+                     info.width, info.height, "tau from the checkpoint's anchors" + (
+                         " (its frames only where the checkpoint has none)" if anchors is not None else ""))
             return service
         except BaseException:
             source.close()
@@ -294,6 +298,7 @@ class Service:
             "stream_head_us": None if head is None else head[0],
             "renderable": engine.range_dict(ranges[-1]) if ranges else None,
             "renderable_ranges": [engine.range_dict(r) for r in ranges],
+            "tau_sources": engine.tau_ranges(),
             "source": None if info is None else {
                 "sensor": info.sensor, "live": info.live, "width": info.width, "height": info.height,
                 "has_frames": info.has_frames, "loop": self.inputs.loop,

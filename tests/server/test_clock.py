@@ -5,7 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from edmcgs.server.clock import Span, Timeline, TimeNotRenderable, playback_watermark, renderable, resolve
+from edmcgs.protocol import TauSource
+from edmcgs.server.clock import (
+    Span,
+    TauRule,
+    Timeline,
+    TimeNotRenderable,
+    playback_watermark,
+    renderable,
+    resolve,
+)
 
 T0 = 1_600_000_000_000_000
 ANCHORS = np.array([T0, T0 + 100_000, T0 + 200_000], dtype=np.int64)
@@ -58,6 +67,33 @@ def test_resolve_says_why_a_time_cannot_be_rendered():
         resolve(T0 + 150_000, T0 + 120_000, tl, SPAN, tau)
     with pytest.raises(TimeNotRenderable, match="no anchor frame"):
         resolve(T0 + 50_000, T0 + 120_000, tl, SPAN, lambda stream_t, scene_t: None)
+
+
+def test_tau_comes_from_the_checkpoint_over_its_span_whatever_frames_the_stream_has():
+    for frames in (False, True):
+        rule = TauRule(SPAN, stream_frames=frames)
+        for t in (T0, T0 + 230_000, SPAN.end_us):
+            assert rule.source(t) is TauSource.CHECKPOINT
+        assert rule.ranges() == [(TauSource.CHECKPOINT, T0, SPAN.end_us)]
+        # where the checkpoint has no anchor, only the stream's frames could give one
+        assert rule.source(SPAN.end_us + 1) is (TauSource.STREAM if frames else None)
+        assert rule.source(T0 - 1) is (TauSource.STREAM if frames else None)
+
+
+def test_a_window_never_reaches_back_into_the_previous_pass_of_a_loop():
+    """A recording starting after the checkpoint's first anchor: on a looping pass, times whose anchor
+    precedes the pass start have no complete window (it would hold the end of the previous pass)."""
+    start = T0 + 40_000  # the file begins 40 ms after the first anchor
+    period = SPAN.end_us + 1 - start
+    tl = Timeline(start, start, period)
+    head = start + period + 200_000  # second pass
+    with pytest.raises(TimeNotRenderable, match="precedes the start of the looping stream's pass"):
+        resolve(T0 + 60_000, head, tl, SPAN, tau)
+    inst = resolve(T0 + 150_000, head, tl, SPAN, tau)
+    assert inst.window == (T0 + period + 100_000, T0 + period + 150_000)
+    # a whole earlier pass retained: renderable from the first anchor inside a pass
+    assert renderable(start + 2 * period + 10, tl, SPAN, ANCHORS, start, dropped=False) == [
+        (T0 + 100_000, SPAN.end_us)]
 
 
 def test_renderable_without_a_loop_runs_from_the_first_retained_anchor_to_the_head():

@@ -27,7 +27,8 @@ WIDTH, HEIGHT = 64, 48
 def build_scene(folder: str | os.PathLike, *, width: int = 346, height: int = 260, duration_s: float = 2.0,
                 anchor_every_s: float = 0.25, event_rate: float = 300_000.0, init_points: int | None = None,
                 control_points: int | None = None, t0_us: int = 1_600_000_000_000_000, seed: int = 0,
-                config_overrides: dict | None = None) -> tuple[Path, Path]:
+                config_overrides: dict | None = None, frames_per_anchor: int = 1,
+                event_branch_seed: int | None = None) -> tuple[Path, Path]:
     """Write ``scene.h5`` (our recording) and ``scene.ckpt`` (an untrained EdMCGS of it) to ``folder``.
 
     The model uses the ``demo`` preset (the CPU-sized config the bundled demo is trained with: 6000
@@ -37,6 +38,12 @@ def build_scene(folder: str | os.PathLike, *, width: int = 346, height: int = 26
     Anchors are RGB frames of a few coloured discs drifting over a gradient, the camera slides 10 cm
     along x, events are uniform in space and time at ``event_rate`` per second with random polarity;
     times are Unix-like µs from ``t0_us`` (exercising the int64 clock). Returns (recording, checkpoint).
+
+    frames_per_anchor: the recording's frames (its ``anchors`` group, what a replay streams) come
+    ``frames_per_anchor`` times as often as the checkpoint's anchors, which are every
+    ``frames_per_anchor``-th of them (as ``--anchor-every N`` picks them; the rest are its held-out
+    frames). event_branch_seed: give the event branch non-trivial weights (as after training), so that
+    renders depend on the events window; None: the untrained branch (no effect).
     """
     from edmcgs.geometry import Intrinsics, Trajectory
     from edmcgs.model.checkpoint import save_checkpoint
@@ -52,7 +59,7 @@ def build_scene(folder: str | os.PathLike, *, width: int = 346, height: int = 26
     span = round(duration_s * 1e6)
     t_end = t0_us + span
 
-    anchor_t = t0_us + np.arange(0, span + 1, round(anchor_every_s * 1e6), dtype=np.int64)
+    frame_t = t0_us + np.arange(0, span + 1, round(anchor_every_s * 1e6 / frames_per_anchor), dtype=np.int64)
     traj_t = t0_us + np.arange(0, span + 1, 10_000, dtype=np.int64)
 
     def pose(t_us):
@@ -62,7 +69,7 @@ def build_scene(folder: str | os.PathLike, *, width: int = 346, height: int = 26
 
     yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
     images = []
-    for t in anchor_t:
+    for t in frame_t:
         s = (t - t0_us) / span
         img = np.stack([xx / width, yy / height, 0.5 + 0.0 * xx], axis=-1) * 0.6
         for k, colour in enumerate(((1, 0.2, 0.2), (0.2, 1, 0.2), (0.2, 0.3, 1))):
@@ -71,8 +78,8 @@ def build_scene(folder: str | os.PathLike, *, width: int = 346, height: int = 26
             disc = (xx - cx) ** 2 + (yy - cy) ** 2 < (0.12 * height) ** 2
             img[disc] = colour
         images.append((np.clip(img, 0, 1) * 255).astype(np.uint8))
-    anchor_images = np.stack(images)
-    anchor_poses = np.stack([pose(t) for t in anchor_t])
+    frame_images = np.stack(images)
+    frame_poses = np.stack([pose(t) for t in frame_t])
 
     n = int(event_rate * duration_s)
     events = Events(np.sort(rng.integers(t0_us, t_end + 1, n)).astype(np.int64),
@@ -81,7 +88,7 @@ def build_scene(folder: str | os.PathLike, *, width: int = 346, height: int = 26
     intr = Intrinsics(0.8 * width, 0.8 * width, (width - 1) / 2, (height - 1) / 2, width, height)
     traj_c2w = np.stack([pose(t) for t in traj_t])
     rec = Recording(width=width, height=height, events=events,
-                    anchors=Frames(anchor_t, anchor_images, anchor_poses),
+                    anchors=Frames(frame_t, frame_images, frame_poses),
                     intrinsics=np.array([intr.fx, intr.fy, intr.cx, intr.cy]),
                     trajectory_t_us=traj_t, trajectory_c2w=traj_c2w, contrast_threshold=0.2,
                     sensor="bench.serve synthetic", metadata={"scene": "bench.serve", "seed": seed})
@@ -91,10 +98,15 @@ def build_scene(folder: str | os.PathLike, *, width: int = 346, height: int = 26
     config = replace(config, init_points=init_points or config.init_points,
                      num_control_points=control_points or config.num_control_points,
                      **(config_overrides or {}))
-    model = EdMCGS.from_arrays(anchors_t_us=anchor_t, anchor_images=anchor_images, intrinsics=intr,
-                               anchor_poses=anchor_poses, t_end_us=t_end,
+    picked = slice(None, None, frames_per_anchor)
+    model = EdMCGS.from_arrays(anchors_t_us=frame_t[picked], anchor_images=frame_images[picked],
+                               intrinsics=intr, anchor_poses=frame_poses[picked], t_end_us=t_end,
                                trajectory=Trajectory(traj_t, traj_c2w), event_size=(width, height),
                                config=config)
+    if event_branch_seed is not None:
+        from tests.support.models import randomize_event_branch  # imports pytest: only when asked
+
+        randomize_event_branch(model, event_branch_seed)
     ckpt_path = folder / "scene.ckpt"
     save_checkpoint(model, ckpt_path)
     return Path(rec_path), ckpt_path

@@ -1,0 +1,148 @@
+"""Served as trained: ``edmcgs-serve --replay REC --checkpoint CKPT`` renders every held-out time of the
+checkpoint's own recording as ``edmcgs eval`` does, when the stream carries more frames than the
+checkpoint's anchors.
+
+The recording streams a frame every 40 ms (a 25 Hz APS camera); the checkpoint was built on every 5th
+(200 ms apart) and its event branch does something, so the window [tau, t) shows in the pixels. A
+render must take tau(t) from the checkpoint's anchors, the windows it was trained on, not from the
+stream's frames: every held-out frame lies on a stream frame, where the stream's rule would give an
+empty window.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from edmcgs import protocol
+from edmcgs.clients.client import Client
+from edmcgs.model.checkpoint import load_checkpoint
+from edmcgs.model.eval.evaluation import evaluate
+from edmcgs.model.eval.metrics import psnr
+from edmcgs.pipeline import training_data
+from edmcgs.sensor.event_map import accumulate
+from edmcgs.sensor.files.recording import read_recording
+from edmcgs.sensor.frames import Frames
+from edmcgs.server.encode import to_uint8
+from tests.support.server import HEIGHT, WIDTH, ServerProcess, build_scene
+
+FRAMES_PER_ANCHOR = 5
+SECOND_PASS_TO_MS = 500
+"""The replay loops: held-out times up to this (ms from the start) are rendered from its second pass."""
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """(recording, checkpoint): 1.12 s at 64x48, stream frames every 40 ms, checkpoint anchors every
+    200 ms (the last at 1.0 s: three held-out frames lie after it)."""
+    folder = tmp_path_factory.mktemp("served_as_trained")
+    return build_scene(folder, width=WIDTH, height=HEIGHT, duration_s=1.12, anchor_every_s=0.2,
+                       frames_per_anchor=FRAMES_PER_ANCHOR, event_rate=20_000, init_points=2000,
+                       control_points=64, event_branch_seed=0)
+
+
+def split_at_anchors(rec, anchors_us: np.ndarray):
+    """The recording as its checkpoint was trained on it: the frames at its anchors as anchors, every other
+    frame held out (what ``edmcgs eval`` scores)."""
+    frames = rec.anchors
+    is_anchor = np.isin(frames.t_us, anchors_us)
+    assert is_anchor.sum() == len(anchors_us)
+
+    def pick(mask):
+        return Frames(frames.t_us[mask], frames.images[mask], frames.poses[mask])
+
+    return replace(rec, anchors=pick(is_anchor), held_out=pick(~is_anchor))
+
+
+@pytest.fixture(scope="module")
+def offline(scene):
+    """What ``edmcgs eval`` computes (``evaluate``, fast rasterizer), with the images it scored."""
+    rec_path, ckpt = scene
+    model = load_checkpoint(ckpt)
+    rec = read_recording(rec_path)
+    data = training_data(split_at_anchors(rec, model.meta.anchors_us))
+    images = []
+    render = model.render
+
+    def keep(*args, **kwargs):
+        image = render(*args, **kwargs)
+        images.append(image.copy())
+        return image
+
+    model.render = keep  # evaluate renders each held-out frame once, in order
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as served (EDMCGS_TORCH_THREADS defaults to 1)
+    try:
+        rows = evaluate(model, data, fast=True)
+    finally:
+        torch.set_num_threads(threads)
+        del model.render
+    assert len(rows) == len(images) == len(data.held_out_t_us) == 29 - 6
+    return model, rec, data, rows, images
+
+
+@pytest.fixture(scope="module")
+def server(scene):
+    rec, ckpt = scene
+    srv = ServerProcess(["--replay", str(rec), "--checkpoint", str(ckpt), "--loop"])
+    try:
+        srv.wait_ready()
+        yield srv
+    finally:
+        srv.stop()
+
+
+def wait_for_second_pass(client: Client, to_us: int, timeout: float = 60.0) -> dict:
+    """Poll GET /scene until the looping replay's second pass has streamed scene time ``to_us``."""
+    deadline = time.monotonic() + timeout
+    while True:
+        scene = client.scene()
+        period = scene["source"]["period_us"]
+        if scene["stream_head_us"] is not None and scene["stream_head_us"] >= to_us + period:
+            return scene
+        assert time.monotonic() < deadline, f"the replay did not reach its second pass: {scene}"
+        time.sleep(0.05)
+
+
+def test_the_event_window_shows_in_the_pixels(offline):
+    """The test below can tell the two rules apart: the stream's rule (tau = t on a frame, no events)
+    renders another image than the checkpoint's."""
+    model, rec, data, rows, images = offline
+    row = rows[2]  # 120 ms: 120 ms of events since the checkpoint's anchor at 0
+    assert row.t_us - row.anchor_us == 120_000
+    stream_rule = model.render(model.deform(row.t_us, None), data.held_out_pose(row.index),
+                               model.meta.intrinsics)
+    assert np.abs(to_uint8(stream_rule).astype(int) - to_uint8(images[2])).max() > 10
+    emap = accumulate(rec.events.time_slice(row.anchor_us, row.t_us), WIDTH, HEIGHT)
+    assert np.abs(emap).sum() > 1000
+
+
+def test_replay_renders_every_held_out_time_as_edmcgs_eval_scores_it(server, scene, offline):
+    model, rec, data, rows, images = offline
+    first = int(model.meta.anchors_us[0])
+    with Client(server.url, timeout=30) as client:
+        info = wait_for_second_pass(client, first + SECOND_PASS_TO_MS * 1000)
+        assert info["anchors_us"] == model.meta.anchors_us.tolist()
+        assert len(rec.anchors) == 29 > len(info["anchors_us"]) == 6  # the stream has more frames
+        assert info["source"]["has_frames"] is True and info["source"]["loop"] is True
+        assert [set(entry) for entry in info["tau_sources"]] == [set(protocol.TAU_SOURCE_KEYS)]
+        assert info["tau_sources"] == [{"source": "checkpoint", "t_us_min": first,
+                                        "t_us_max": model.meta.t_end_us, "t_min": 0.0,
+                                        "t_max": (model.meta.t_end_us - first) / 1e6}]
+        for row, offline_image in zip(rows, images, strict=True):
+            pose = data.held_out_pose(row.index)
+            pixels, meta = client.render(t_us=row.t_us, pose=pose, format="msgpack")
+            assert meta.t_us == row.t_us
+            # tau from the checkpoint's anchors, never the stream frame the held-out time lies on
+            assert meta.anchor_us == row.anchor_us == model.tau(row.t_us)
+            assert meta.anchor_us in model.meta.anchors_us and meta.anchor_us < row.t_us
+            assert meta.events == len(rec.events.time_slice(row.anchor_us, row.t_us))
+            np.testing.assert_array_equal(pixels, to_uint8(offline_image),
+                                          err_msg=f"held-out frame {row.index} at {row.t_us} µs")
+            target = data.held_out_images[row.index].astype(np.float32) / 255.0
+            # The same pixels, so the same score, up to the uint8 rounding of the wire.
+            assert psnr(pixels / 255.0, target) == pytest.approx(row.psnr, abs=2e-3)
