@@ -11,8 +11,7 @@ import numpy as np
 
 from edmcgs.errors import EdmcgsError, InvalidInputError
 from edmcgs.model.eval.lpips import VGG_FILE
-from edmcgs.pipeline import training_data
-from edmcgs.sensor.files.recording import read_recording
+from edmcgs.pipeline import RecordingOptions, add_recording_arguments, open_recording, split_at, training_data
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -20,7 +19,8 @@ def main(argv: list[str] | None = None) -> int:
                                      description="Evaluate a checkpoint on held-out frames.")
     parser.add_argument("checkpoint", nargs="?", help="EdMCGS checkpoint")
     parser.add_argument("recording", nargs="?",
-                        help="the HDF5 recording it was trained on (with held-out frames)")
+                        help="the recording it was trained on (AEDAT4 or HDF5); the frames that are not the "
+                             "checkpoint's anchors are scored")
     parser.add_argument("--demo", action="store_true", help="evaluate the bundled demo scene")
     parser.add_argument("--csv", help="write one row per held-out frame here")
     parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
@@ -31,6 +31,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="LPIPS's weights/v0.1/vgg.pth (default: an installed lpips package's)")
     parser.add_argument("--reference-renderer", action="store_true",
                         help="render with the differentiable PyTorch rasterizer instead of the fast one")
+    add_recording_arguments(parser, split=False)
     args = parser.parse_args(argv)
     if args.demo == bool(args.checkpoint or args.recording) or (args.checkpoint and not args.recording):
         parser.error("give CHECKPOINT RECORDING, or --demo alone")
@@ -49,6 +50,8 @@ def _run(args) -> int:
     import torch
 
     from edmcgs.model.checkpoint import load_checkpoint
+    from edmcgs.model.eval.baselines import BASELINES, score_baselines
+    from edmcgs.model.eval.compare import Comparison
     from edmcgs.model.eval.evaluation import evaluate, summarize
     from edmcgs.model.eval.lpips import LPIPS, SKIPPED, find_weights
 
@@ -56,36 +59,47 @@ def _run(args) -> int:
         raise InvalidInputError(f"--threads must be >= 1, got {args.threads}")
     torch.set_num_threads(args.threads)
     model = load_checkpoint(args.checkpoint, device=args.device)
-    data = training_data(read_recording(args.recording))
-    if not np.array_equal(data.anchors_t_us, model.meta.anchors_us):
-        raise InvalidInputError("the recording's anchor times differ from the checkpoint's: "
-                                "evaluate on the recording the checkpoint was trained on")
+    rec = open_recording(args.recording, RecordingOptions.from_args(args))
+    if not np.array_equal(rec.anchors.t_us, model.meta.anchors_us):
+        rec = split_at(rec, model.meta.anchors_us)  # the split the checkpoint was trained with
+    data = training_data(rec)
     if data.event_size != (model.meta.event_width, model.meta.event_height):
         raise InvalidInputError(f"event resolution {data.event_size} differs from the checkpoint's "
                                 f"{(model.meta.event_width, model.meta.event_height)}")
     if data.held_out_t_us is None:
-        raise InvalidInputError("the recording has no held-out frames to evaluate on")
+        raise InvalidInputError("the recording has no frames besides the checkpoint's anchors to evaluate on")
     weights = find_weights(args.lpips_vgg, args.lpips_lin)
     lpips = None if weights is None else LPIPS.load(*weights).to(args.device)
     rows = evaluate(model, data, fast=not args.reference_renderer, lpips=lpips)
+    baselines = score_baselines(data, np.array([r.index for r in rows], dtype=np.int64))
+    comparison = Comparison({"model": rows, **baselines})
     skipped = data.held_out_t_us.size - len(rows)
     if args.csv:
         with open(args.csv, "w", newline="") as fh:
             writer = csv.writer(fh)
-            writer.writerow(["index", "t_us", "anchor_us", "events", "psnr", "ssim", "lpips"])
-            for r in rows:
+            writer.writerow(["index", "t_us", "anchor_us", "events", "psnr", "ssim", "lpips",
+                             "psnr_hold_last", "ssim_hold_last", "psnr_blend", "ssim_blend"])
+            for r, hold, blend in zip(rows, *baselines.values(), strict=True):
                 writer.writerow([r.index, r.t_us, r.anchor_us, r.events, f"{r.psnr:.4f}", f"{r.ssim:.5f}",
-                                 "" if r.lpips is None else f"{r.lpips:.5f}"])
+                                 "" if r.lpips is None else f"{r.lpips:.5f}", f"{hold.psnr:.4f}",
+                                 f"{hold.ssim:.5f}", f"{blend.psnr:.4f}", f"{blend.ssim:.5f}"])
     summary = summarize(rows)
-    print("| frame | t (ms from first anchor) | events | PSNR (dB) | SSIM |" + (" LPIPS |" if lpips else ""))
-    print("|---:|---:|---:|---:|---:|" + ("---:|" if lpips else ""))
+    hold, blend = baselines.values()
+    print("| frame | t (ms from first anchor) | events | PSNR (dB) | SSIM |" + (" LPIPS |" if lpips else "")
+          + " hold last: PSNR | blend: PSNR |")
+    print("|---:|---:|---:|---:|---:|" + ("---:|" if lpips else "") + "---:|---:|")
     t0 = model.meta.t_start_us
-    for r in rows:
+    for r, h, b in zip(rows, hold, blend, strict=True):
         print(f"| {r.index} | {(r.t_us - t0) / 1000:.1f} | {r.events} | {r.psnr:.2f} | {r.ssim:.4f} |"
-              + (f" {r.lpips:.4f} |" if lpips else ""))
+              + (f" {r.lpips:.4f} |" if lpips else "") + f" {h.psnr:.2f} | {b.psnr:.2f} |")
     print(f"| **mean** ({summary['frames']} frames) | | | **{summary['psnr']:.2f}** "
-          f"| **{summary['ssim']:.4f}** |" + (f" **{summary['lpips']:.4f}** |" if lpips else ""))
+          f"| **{summary['ssim']:.4f}** |" + (f" **{summary['lpips']:.4f}** |" if lpips else "")
+          + f" {np.mean([h.psnr for h in hold]):.2f} | {np.mean([b.psnr for b in blend]):.2f} |")
     print()
+    print(comparison.markdown())
+    print()
+    for line in comparison.losses("model", BASELINES):
+        print(f"WARNING: the {line}")
     if skipped:
         print(f"{skipped} held-out frame(s) outside the trained span were skipped")
     print(SKIPPED if lpips is None else f"LPIPS (VGG) from {weights[0]} and {weights[1]}")

@@ -1,23 +1,37 @@
 """From a recording to what the model trains on: the application layer's one adapter.
 
-Every command (``edmcgs train``, ``edmcgs eval``), the server and the benchmarks turn a recording into
-the model's plain arrays and config here; the model never sees the sensor's types, the sensor never the
-model's.
+Every command (``edmcgs train``, ``edmcgs eval``, ``edmcgs record``), the server and the benchmarks
+turn a recording into the model's plain arrays and config here; the model never sees the sensor's
+types, the sensor never the model's.
+
+Any recording the sensor layer reads comes in (``open_recording``: our HDF5 as stored; AEDAT4, DSEC
+and v2e files replayed into memory), with what the file cannot say given by the user: which frames are
+anchors (``--anchor-fps`` / ``--anchor-every``: the other frames become held-out ground truth), the
+camera (``--intrinsics fx,fy,cx,cy`` or a DV calibration file) and its poses (``--poses`` TUM file).
 """
 
 from __future__ import annotations
 
+import argparse
+import math
 import sys
+from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
-from edmcgs.errors import TrainingError
-from edmcgs.geometry import Intrinsics, Trajectory
+from edmcgs.errors import InvalidInputError, PoseError, TrainingError
+from edmcgs.geometry import Intrinsics, Trajectory, pose_from_quat, validate_pose
 from edmcgs.model.config import EdmcgsConfig, preset
 from edmcgs.model.motion.leanness import events_decision
 from edmcgs.model.train.data import TrainingData
 from edmcgs.sensor.event_map import accumulate
-from edmcgs.sensor.files.recording import Recording
+from edmcgs.sensor.files.record import read_source
+from edmcgs.sensor.files.recording import FORMAT_NAME, Recording, read_recording
+from edmcgs.sensor.frames import Frames
+from edmcgs.sensor.sources.hdf5 import SUPPORTED_LAYOUTS
+from edmcgs.sensor.sources.open import AEDAT_SUFFIXES, HDF5_SUFFIXES, open_source
+from edmcgs.sensor.sources.pacing import Pacing
 
 STRUCTURAL = ("events", "markov", "sh_degree", "num_control_points", "skin_k", "graph_k", "deform_width",
               "deform_depth", "pos_freqs", "time_freqs", "event_pos_freqs", "event_hidden")
@@ -85,3 +99,258 @@ def build_config(name: str, overrides: list[str], rec: Recording) -> EdmcgsConfi
         print(f"edmcgs train: {message}")
         cfg = cfg.replace(events=events)
     return cfg
+
+
+# ------------------------------------------------------------------ any recording in
+
+
+@dataclass(frozen=True)
+class RecordingOptions:
+    """What a user tells about a recording that its file may not say (the shared command-line flags)."""
+
+    anchor_fps: float | None = None
+    """Pick anchors at this rate among the frames; the others are held out."""
+    anchor_every: int | None = None
+    """Pick every N-th frame as an anchor (from the first); the others are held out."""
+    intrinsics: str | None = None
+    """``fx,fy,cx,cy`` in pixels, or a DV camera-calibration file (.json, or legacy .xml)."""
+    poses: str | None = None
+    """A TUM trajectory file (``t tx ty tz qx qy qz qw``, t in seconds on the recording's clock)."""
+    resolution: str | None = None
+    """``WIDTHxHEIGHT`` for HDF5 layouts that do not store it (DSEC, v2e)."""
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> RecordingOptions:
+        return cls(**{k: getattr(args, k, None) for k in cls.__dataclass_fields__})
+
+
+def add_recording_arguments(parser: argparse.ArgumentParser, *, split: bool = True,
+                            resolution: bool = True) -> None:
+    """The flags of ``RecordingOptions`` (``split=False``: without the anchor choice; ``resolution=False``
+    for a parser that has its own ``--resolution``)."""
+    if split:
+        group = parser.add_mutually_exclusive_group()
+        group.add_argument("--anchor-fps", type=float, metavar="F",
+                           help="use frames at about F per second as anchors, the rest as held-out "
+                                "ground truth")
+        group.add_argument("--anchor-every", type=int, metavar="N",
+                           help="use every N-th frame as an anchor, the rest as held-out ground truth")
+    parser.add_argument("--intrinsics", metavar="FX,FY,CX,CY|CALIB.json",
+                        help="the camera: pixels, or a DV camera-calibration file (default: the recording's)")
+    parser.add_argument("--poses", metavar="TRAJ.txt",
+                        help="camera poses, TUM format: t tx ty tz qx qy qz qw (default: the recording's, "
+                             "else a static camera)")
+    if resolution:
+        parser.add_argument("--resolution", metavar="WxH",
+                            help="HDF5 layouts without one (DSEC, v2e), e.g. 640x480")
+
+
+def open_recording(path: str | Path, options: RecordingOptions = RecordingOptions(), *,
+                   progress: bool = False) -> Recording:
+    """The recording at ``path`` in any format the sensor layer reads, with ``options`` applied."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if not path.is_file():
+        raise InvalidInputError(f"{path}: no such file")
+    if suffix not in AEDAT_SUFFIXES + HDF5_SUFFIXES:
+        raise InvalidInputError(f"{path}: not a recording this tool reads (a {suffix or 'suffix-less'} "
+                                f"file); expected AEDAT4 (.aedat4) or HDF5 (.h5, .hdf5: {FORMAT_NAME}, "
+                                + ", ".join(layout.split(" (")[0] for layout in SUPPORTED_LAYOUTS) + ")")
+    if suffix in HDF5_SUFFIXES and _is_ours(path):
+        rec = read_recording(path)
+    else:
+        with open_source(path, pacing=Pacing(factor=0), resolution=_resolution(options.resolution)) as src:
+            rec = read_source(src, progress=progress, source_name=path.name)
+        dropped = rec.metadata.get("source_stats", {}).get("dropped", 0)
+        if dropped:
+            print(f"note: {dropped} invalid events of {path.name} were dropped: "
+                  f"{rec.metadata['source_stats']}", file=sys.stderr)
+    if options.intrinsics is not None:
+        rec = replace(rec, intrinsics=_intrinsics(options.intrinsics, rec.width, rec.height))
+    if options.poses is not None:
+        t_us, c2w = read_tum(options.poses)
+        span = rec.t_range_us
+        if span is not None and (t_us[-1] < span[0] or t_us[0] > span[1]):
+            raise InvalidInputError(f"{options.poses}: its times {t_us[0]}..{t_us[-1]} µs miss the "
+                                    f"recording's {span[0]}..{span[1]} µs (TUM times are seconds on the "
+                                    "recording's clock)")
+        anchors = Frames(rec.anchors.t_us, rec.anchors.images)  # poses come from the trajectory
+        held = None if rec.held_out is None else Frames(rec.held_out.t_us, rec.held_out.images)
+        rec = replace(rec, anchors=anchors, held_out=held, trajectory_t_us=t_us, trajectory_c2w=c2w)
+    if options.anchor_fps is not None or options.anchor_every is not None:
+        rec = split_frames(rec, fps=options.anchor_fps, every=options.anchor_every)
+    return rec
+
+
+def _is_ours(path: Path) -> bool:
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            return f.attrs.get("format") == FORMAT_NAME
+    except OSError:
+        return True  # not HDF5 at all: read_recording says so, naming the file
+
+
+def _resolution(text: str | None) -> tuple[int, int] | None:
+    if text is None:
+        return None
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InvalidInputError(f"--resolution must look like 640x480, got {text!r}") from None
+    return w, h
+
+
+def all_frames(rec: Recording) -> Frames:
+    """Anchors and held-out frames together, in time order."""
+    parts = [f for f in (rec.anchors, rec.held_out) if f is not None and len(f)]
+    if len(parts) < 2:
+        return parts[0] if parts else rec.anchors
+    t = np.concatenate([f.t_us for f in parts])
+    order = np.argsort(t, kind="stable")
+    poses = None  # poses for some frames only: the trajectory decides
+    if all(f.poses is not None for f in parts):
+        poses = np.concatenate([f.poses for f in parts])[order]
+    if np.any(np.diff(t[order]) <= 0):
+        raise InvalidInputError("two frames of the recording share a timestamp")
+    return Frames(t[order], np.concatenate([f.images for f in parts])[order], poses)
+
+
+def split_frames(rec: Recording, *, fps: float | None = None, every: int | None = None) -> Recording:
+    """Every frame of ``rec`` (anchors and held-out alike) re-split: anchors every ``every``-th frame, or
+    the frame nearest each tick of a ``fps`` clock started at the first frame; the rest held out."""
+    frames = all_frames(rec)
+    n = len(frames)
+    if n == 0:
+        raise InvalidInputError("the recording has no frames to choose anchors among")
+    if (fps is None) == (every is None):
+        raise InvalidInputError("give one of --anchor-fps and --anchor-every")
+    if every is not None:
+        if isinstance(every, bool) or every < 1:
+            raise InvalidInputError(f"--anchor-every must be a positive integer, got {every}")
+        picked = np.arange(0, n, every)
+    else:
+        if not (math.isfinite(fps) and fps > 0):
+            raise InvalidInputError(f"--anchor-fps must be a positive number, got {fps}")
+        t = frames.t_us
+        ticks = np.arange(t[0], t[-1] + 1, 1e6 / fps)
+        right = np.clip(np.searchsorted(t, ticks), 0, n - 1)
+        left = np.clip(right - 1, 0, n - 1)
+        picked = np.unique(np.where(np.abs(t[left] - ticks) <= np.abs(t[right] - ticks), left, right))
+    return split_at(rec, frames.t_us[picked], frames=frames)
+
+
+def split_at(rec: Recording, anchors_us: np.ndarray, *, frames: Frames | None = None) -> Recording:
+    """``rec`` with the frames at ``anchors_us`` as anchors and every other frame held out (a checkpoint's
+    anchor times give back the split it was trained with)."""
+    frames = all_frames(rec) if frames is None else frames
+    anchors_us = np.asarray(anchors_us, dtype=np.int64)
+    is_anchor = np.isin(frames.t_us, anchors_us)
+    if int(is_anchor.sum()) != len(anchors_us):
+        missing = np.setdiff1d(anchors_us, frames.t_us)
+        raise InvalidInputError(f"the recording has no frames at {len(missing)} of the anchor times "
+                                f"(first: {missing[:3].tolist()} µs): it is not the recording they came from")
+
+    def pick(mask):
+        return Frames(frames.t_us[mask], frames.images[mask],
+                      None if frames.poses is None else frames.poses[mask])
+
+    held = pick(~is_anchor)
+    return replace(rec, anchors=pick(is_anchor), held_out=held if len(held) else None)
+
+
+def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """A TUM trajectory (``t tx ty tz qx qy qz qw`` per line, ``#`` comments, t in seconds) as
+    (int64 [T] µs, float64 [T, 4, 4] camera-to-world, OpenCV axes)."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InvalidInputError(f"{path}: cannot read the trajectory: {exc}") from exc
+    rows = []
+    for number, line in enumerate(text.splitlines(), 1):
+        line = line.split("#")[0].strip()
+        if not line:
+            continue
+        try:
+            values = [float(v) for v in line.replace(",", " ").split()]
+        except ValueError:
+            values = []
+        if len(values) != 8 or not all(math.isfinite(v) for v in values):
+            raise InvalidInputError(f"{path}:{number}: expected 8 numbers 't tx ty tz qx qy qz qw', "
+                                    f"got {line!r}")
+        rows.append(values)
+    if not rows:
+        raise InvalidInputError(f"{path}: no poses in the trajectory file")
+    data = np.array(rows)
+    t_us = np.rint(data[:, 0] * 1e6).astype(np.int64)
+    if np.any(np.diff(t_us) <= 0):
+        raise InvalidInputError(f"{path}: times must be strictly increasing (to the microsecond)")
+    try:
+        c2w = np.stack([validate_pose(pose_from_quat(r[1:4], [r[7], r[4], r[5], r[6]]),  # TUM: x y z w
+                                      name=f"{path} pose {i}") for i, r in enumerate(data)])
+    except PoseError as exc:
+        raise InvalidInputError(str(exc)) from exc
+    return t_us, c2w
+
+
+def _intrinsics(text: str, width: int, height: int) -> np.ndarray:
+    """fx, fy, cx, cy from ``fx,fy,cx,cy`` or a DV calibration file (refusing a lens it cannot model)."""
+    if Path(text).suffix.lower() not in (".json", ".xml"):
+        try:
+            k = np.array([float(v) for v in text.split(",")])
+        except ValueError:
+            k = np.zeros(0)
+        if k.shape != (4,) or not np.isfinite(k).all() or k[0] <= 0 or k[1] <= 0:
+            raise InvalidInputError(f"--intrinsics must be fx,fy,cx,cy (pixels, fx and fy > 0) or a DV "
+                                    f"calibration file (.json, .xml), got {text!r}")
+        return k
+    import dv_processing as dv
+
+    try:
+        calibrations = dv.camera.CalibrationSet.LoadFromFile(text)
+        cameras = calibrations.getCameraList()
+        camera = calibrations.getCameraCalibration(cameras[0]) if cameras else None
+    except (RuntimeError, ValueError, IndexError) as exc:
+        raise InvalidInputError(f"{text}: not a readable DV camera calibration: {exc}") from exc
+    if camera is None:
+        raise InvalidInputError(f"{text}: the calibration file holds no camera")
+    if tuple(camera.resolution) != (width, height):
+        raise InvalidInputError(f"{text}: calibrated at {tuple(camera.resolution)}, the recording is "
+                                f"{(width, height)}")
+    shift = _distortion_px(camera, width, height)
+    if shift > 0.5:
+        raise InvalidInputError(f"{text}: its lens distortion ({camera.distortionModel}) moves pixels by up "
+                                f"to {shift:.1f} px, which a pinhole model does not undo; undistort the "
+                                "recording first, or give --intrinsics fx,fy,cx,cy to accept the error")
+    (fx, fy), (cx, cy) = camera.focalLength, camera.principalPoint
+    return np.array([fx, fy, cx, cy], dtype=np.float64)
+
+
+def _distortion_px(camera, width: int, height: int) -> float:
+    """Largest displacement (px) the calibration's lens distortion gives a point of the image border."""
+    (fx, fy), (cx, cy) = camera.focalLength, camera.principalPoint
+    d = np.zeros(5)
+    d[:len(camera.distortion)] = list(camera.distortion)[:5]
+    u = np.concatenate([np.linspace(0, width - 1, 32), np.linspace(0, width - 1, 32), np.zeros(32),
+                        np.full(32, width - 1.0)])
+    v = np.concatenate([np.zeros(32), np.full(32, height - 1.0), np.linspace(0, height - 1, 32),
+                        np.linspace(0, height - 1, 32)])
+    x, y = (u - cx) / fx, (v - cy) / fy
+    r2 = x * x + y * y
+    name = str(camera.distortionModel).rsplit(".", 1)[-1]
+    if name == "RADIAL_TANGENTIAL":  # OpenCV order: k1, k2, p1, p2, k3
+        k1, k2, p1, p2, k3 = d
+        radial = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    elif name == "EQUIDISTANT":  # Kannala-Brandt: k1..k4
+        r = np.sqrt(r2)
+        theta = np.arctan(r)
+        theta_d = theta * (1 + d[0] * theta**2 + d[1] * theta**4 + d[2] * theta**6 + d[3] * theta**8)
+        scale = np.where(r > 1e-12, theta_d / np.maximum(r, 1e-12), 1.0)
+        xd, yd = x * scale, y * scale
+    else:
+        return 0.0
+    return float(np.max(np.hypot((xd - x) * fx, (yd - y) * fy)))

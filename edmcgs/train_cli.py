@@ -9,13 +9,19 @@ from pathlib import Path
 
 from edmcgs.errors import EdmcgsError, InvalidInputError
 from edmcgs.model.config import PRESETS
-from edmcgs.pipeline import STRUCTURAL, build_config, training_data
-from edmcgs.sensor.files.recording import read_recording
+from edmcgs.pipeline import (
+    STRUCTURAL,
+    RecordingOptions,
+    add_recording_arguments,
+    build_config,
+    open_recording,
+    training_data,
+)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="edmcgs train", description="Train EdMCGS on a recording.")
-    parser.add_argument("recording", help="HDF5 recording (edmcgs format) with anchors and events")
+    parser.add_argument("recording", help="the recording: AEDAT4, or HDF5 (edmcgs, DSEC, v2e)")
     parser.add_argument("-o", "--output", required=True, help="checkpoint to write (atomically)")
     parser.add_argument("--config", default="demo", choices=sorted(PRESETS), help="preset (default: demo)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -27,6 +33,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="torch CPU threads (default 1: on a CPU shared with other work, OpenMP threads "
                              "that spin-wait for each other are many times slower than one thread)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_recording_arguments(parser)
     args = parser.parse_args(argv)
     try:
         return _run(args)
@@ -40,13 +47,20 @@ def _run(args) -> int:
 
     from edmcgs.model.checkpoint import load_checkpoint, read_checkpoint
     from edmcgs.model.dynamic import EdMCGS
-    from edmcgs.model.eval.evaluation import evaluate, summarize
+    from edmcgs.model.eval.baselines import BASELINES, score_baselines
+    from edmcgs.model.eval.compare import Comparison
+    from edmcgs.model.eval.evaluation import evaluate
     from edmcgs.model.train.trainer import Trainer, write_history_csv
 
     if args.threads < 1:
         raise InvalidInputError(f"--threads must be >= 1, got {args.threads}")
     torch.set_num_threads(args.threads)
-    rec = read_recording(args.recording)
+    rec = open_recording(args.recording, RecordingOptions.from_args(args), progress=not args.quiet)
+    if rec.trajectory_t_us is None and rec.anchors.poses is None:
+        print("no camera poses in the recording: a static camera (give --poses TRAJ.txt for a moving one)")
+    if rec.held_out is None or not len(rec.held_out):
+        print(f"{len(rec.anchors)} anchors and no held-out frames (--anchor-fps F or --anchor-every N keeps "
+              "the frames between anchors as held-out ground truth)")
     data = training_data(rec)
     out = Path(args.output)
     train_state = None
@@ -77,9 +91,14 @@ def _run(args) -> int:
     if not data.evaluable().size:
         print(f"{written}; the recording has no held-out frames to score it on")
         return 0
-    summary = summarize(evaluate(trainer.model, data))
-    print(f"{written}; held-out PSNR {summary['psnr']:.2f} dB, SSIM {summary['ssim']:.4f} "
-          f"over {summary['frames']} frames")
+    comparison = Comparison({"model": evaluate(trainer.model, data), **score_baselines(data)})
+    summary = comparison.summary()
+    model = summary.pop("model")
+    baselines = ", ".join(f"{name}: {s['psnr']:.2f} dB / {s['ssim']:.4f}" for name, s in summary.items())
+    print(f"{written}; held-out PSNR {model['psnr']:.2f} dB, SSIM {model['ssim']:.4f} over {model['frames']} "
+          f"frames; {baselines}")
+    for line in comparison.losses("model", BASELINES):
+        print(f"WARNING: the {line}")
     return 0
 
 

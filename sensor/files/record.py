@@ -19,7 +19,9 @@ from tqdm import tqdm
 
 from edmcgs.atomic import atomic_output
 from edmcgs.errors import EdmcgsError, InvalidInputError, RecordingError
-from edmcgs.sensor.files.recording import RecordingWriter
+from edmcgs.sensor.events import Events
+from edmcgs.sensor.files.recording import Recording, RecordingWriter
+from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.sources.base import EventSource, SensorBatch, StreamInfo
 from edmcgs.sensor.sources.dv_bridge import dv_error_text, event_store, image_frame, imu_samples
 from edmcgs.sensor.sources.open import AEDAT_SUFFIXES, HDF5_SUFFIXES, open_source
@@ -88,7 +90,44 @@ class Hdf5Output:
         self._writer.abort(exc)
 
 
-def _output(path: Path, info: StreamInfo, frames: bool):
+class MemoryOutput:
+    """Batches -> a ``Recording`` in memory (``read_source``): events, and frames as anchors."""
+
+    def __init__(self, info: StreamInfo, *, frames: bool = True) -> None:
+        if frames and info.has_frames and info.frame_size != (info.width, info.height):
+            raise RecordingError(f"the source's frames are {info.frame_size} but its events "
+                                 f"{(info.width, info.height)}; a recording needs one resolution")
+        self._info, self._frames = info, frames and info.has_frames
+        self._events: list[Events] = []
+        self._anchors: list[Frames] = []
+        self.recording: Recording | None = None
+
+    def write(self, batch: SensorBatch) -> None:
+        self._events.append(batch.events)
+        if self._frames and batch.frames is not None:
+            self._anchors.append(batch.frames)
+
+    def finish(self, metadata: dict) -> None:
+        info = self._info
+        anchors = Frames.concat(self._anchors) if self._anchors else Frames.empty(info.height, info.width)
+        self.recording = Recording(width=info.width, height=info.height, events=Events.concat(self._events),
+                                   anchors=anchors, sensor=info.sensor, metadata=metadata)
+
+    def abort(self, exc: BaseException) -> None:
+        self._events, self._anchors = [], []
+
+
+def read_source(source: EventSource, *, progress: bool = False, source_name: str = "") -> Recording:
+    """A whole replay in memory (never paced: read as fast as it decodes); what the source dropped
+    is in ``metadata["source_stats"]``."""
+    out = MemoryOutput(source.info)
+    record(source, out, progress=progress, source_name=source_name)
+    return out.recording
+
+
+def _output(path: Path | MemoryOutput, info: StreamInfo, frames: bool):
+    if isinstance(path, MemoryOutput):
+        return path
     suffix = path.suffix.lower()
     if suffix in AEDAT_SUFFIXES:
         return AedatOutput(path, info, frames=frames)
@@ -98,8 +137,8 @@ def _output(path: Path, info: StreamInfo, frames: bool):
         f"output {path}: expected a name ending in {', '.join(AEDAT_SUFFIXES + HDF5_SUFFIXES)}")
 
 
-def record(source: EventSource, output: Path, *, duration_s: float | None = None, frames: bool = True,
-           progress: bool = True, source_name: str = "") -> dict:
+def record(source: EventSource, output: Path | MemoryOutput, *, duration_s: float | None = None,
+           frames: bool = True, progress: bool = True, source_name: str = "") -> dict:
     """Copy ``source`` to ``output`` until its end, ``duration_s`` of stream time (counted from the first
     event), or Ctrl-C.
 
@@ -112,7 +151,8 @@ def record(source: EventSource, output: Path, *, duration_s: float | None = None
     interrupted = False
     total = duration_s if duration_s is not None else (
         (info.t_range_us[1] - info.t_range_us[0]) / 1e6 if info.t_range_us else None)
-    bar = tqdm(total=total, unit="s", desc=f"recording {output.name}", disable=not progress,
+    bar = tqdm(total=total, unit="s", desc=f"reading {source_name or 'the source'}"
+               if isinstance(output, MemoryOutput) else f"recording {output.name}", disable=not progress,
                bar_format="{l_bar}{bar}| {n:.2f}/{total_fmt} s [{elapsed}<{remaining}{postfix}]")
     shown = 0.0
     try:

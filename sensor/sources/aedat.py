@@ -4,7 +4,8 @@ dv-processing reads the file in ``edmcgs.sensor.sources.aedat_decoder``, a child
 can spin forever on a corrupt packet while holding the GIL. A child that sends nothing for ``stall_s``
 seconds is killed and the replay fails with a ``ReplayFormatError`` naming the file; closing the
 replay kills the child whatever it is doing. Trigger and other streams are skipped. Files are read
-forward packet by packet (never whole).
+forward packet by packet (never whole). As with any ``multiprocessing`` code, a script that replays
+AEDAT4 must guard its entry point with ``if __name__ == "__main__":``.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from edmcgs.sensor.sources.replay import Chunk, Replay
 
 # A fresh interpreter: forking a process that runs torch and numba thread pools is not safe.
 _CONTEXT = multiprocessing.get_context("spawn")
-_STARTUP_S = 60.0  # a fresh child's imports, on a loaded machine, before its first message
+_STARTUP_S = 60.0  # a fresh child's imports, on a loaded machine, before its hello
 
 
 class AedatReplay(Replay):
@@ -45,7 +46,6 @@ class AedatReplay(Replay):
         self._lock = threading.Lock()
         self._process = self._conn = None
         self._busy = False  # the child is in the middle of a read
-        self._started = False  # the child has not spoken yet
         info = self._exchange("open")[1]
         if not info["has_events"]:
             self.close()
@@ -64,22 +64,24 @@ class AedatReplay(Replay):
         process.start()
         child_conn.close()
         with self._lock:
-            self._process, self._conn, self._started = process, conn, True
+            self._process, self._conn = process, conn
+        self._exchange("start the decoder", patience=_STARTUP_S)  # its hello
 
-    def _exchange(self, doing: str, command: tuple | None = None) -> tuple:
-        """Send ``command`` (if any), then the child's next message. A stall, a crash, a reported
-        failure or a close from another thread is a ReplayFormatError."""
+    def _exchange(self, doing: str, command: tuple | None = None, *, patience: float | None = None) -> tuple:
+        """Send ``command`` (if any), then the child's next message within ``patience`` seconds (default
+        ``stall_s``). A stall, a crash, a reported failure or a close from another thread is a
+        ReplayFormatError."""
         if self._conn is None:
             self._start()
-        conn, process, patience = self._conn, self._process, self.stall_s + _STARTUP_S * self._started
-        self._started = False
+        conn, process = self._conn, self._process
+        patience = self.stall_s if patience is None else patience
         try:
             if command is not None:
                 conn.send(command)
             message = conn.recv() if conn.poll(patience) else ("stalled",)
         except (EOFError, OSError, AttributeError):  # the pipe closed (AttributeError: by close())
             message = ("closed",) if self.closed else ("crashed",)
-        if message[0] not in ("info", "chunk", "end"):
+        if message[0] not in ("hello", "info", "chunk", "end"):
             self._kill()
         if message[0] == "stalled":
             raise ReplayFormatError(f"{self.path}: the decoder stalled for {self.stall_s:g} s while trying "

@@ -4,7 +4,8 @@ It runs in a child process because dv-processing's LZ4 decoder can spin forever 
 while holding the GIL: in the server's process that would stop HTTP, health and shutdown. The parent
 (``edmcgs.sensor.sources.aedat``) kills a child that stays silent too long.
 
-Messages on the pipe, child to parent: ``("info", dict)`` once, then per ``("read", begin_us)`` command
+Messages on the pipe, child to parent: ``("hello",)`` once its imports are done, ``("info", dict)``
+once the file is open, then per ``("read", begin_us)`` command
 a run of ``("chunk", t, x, y, p, frames, imu, horizon_us)`` closed by ``("end",)``; any dv failure is
 ``("error", what, text)`` and ends the child. Frames travel as ``[(t_us, uint8 [H, W, C]), ...]``.
 """
@@ -33,6 +34,7 @@ def _call(what: str, fn):
 def serve(path: str, conn) -> None:
     """Child entry point: open ``path``, send its info, then answer read commands until told to stop."""
     try:
+        conn.send(("hello",))
         rec = _call("open", lambda: dv.io.MonoCameraRecording(path))
         conn.send(("info", _info(rec)))
         if not rec.isEventStreamAvailable():
@@ -54,11 +56,27 @@ def _info(rec) -> dict:
     info = {"streams": list(rec.getStreamNames()), "has_events": has_events}
     if has_events:
         has_frames = bool(rec.isFrameStreamAvailable())
+        first, last = (int(v) for v in _call("read the time range", rec.getTimeRange))
         info.update(resolution=tuple(int(v) for v in rec.getEventResolution()), sensor=rec.getCameraName(),
                     has_frames=has_frames, has_imu=bool(rec.isImuStreamAvailable()),
-                    t_range=tuple(int(v) for v in _call("read the time range", rec.getTimeRange)),
+                    t_range=(min(first, *_first_items(rec)), last),
                     frame_size=tuple(int(v) for v in rec.getFrameResolution()) if has_frames else None)
     return info
+
+
+def _first_items(rec) -> list[int]:
+    """The time of each stream's first item: a frame's timestamp (mid-exposure) may precede the range
+    the file's table states, and a replay must start at the earliest item of any stream."""
+    times = []
+    store = _call("read events", rec.getNextEventBatch)
+    if store is not None and len(store):
+        times.append(int(store_columns(store)[0][0]))
+    if rec.isFrameStreamAvailable() and (frame := _call("read a frame", rec.getNextFrame)) is not None:
+        times.append(int(frame.timestamp))
+    if rec.isImuStreamAvailable() and (imu := _call("read IMU samples", rec.getNextImuBatch)):
+        times.append(int(imu[0].timestamp))
+    _call("rewind", rec.resetSequentialRead)
+    return times
 
 
 def _chunks(rec, begin_us: int):

@@ -147,7 +147,7 @@ def test_bad_aedat_files_give_clear_errors(tmp_path, dvxplorer_path):
 
 def test_closing_a_replay_stops_its_stalled_decoder_from_another_thread(tmp_path, dvxplorer_path):
     corrupt = bytearray(dvxplorer_path.read_bytes())
-    corrupt[2000:2200] = bytes(b ^ 0xFF for b in corrupt[2000:2200])  # a spinning packet, as above
+    corrupt[300_000:300_200] = bytes(b ^ 0xFF for b in corrupt[300_000:300_200])  # a packet mid-file spins
     (tmp_path / "spin.aedat4").write_bytes(bytes(corrupt))
     replay = AedatReplay(tmp_path / "spin.aedat4", Pacing(factor=0), stall_s=600)
     errors = []
@@ -163,3 +163,16 @@ def test_closing_a_replay_stops_its_stalled_decoder_from_another_thread(tmp_path
     replay.close()  # whatever the decoder is doing
     thread.join(60)
     assert not thread.is_alive() and len(errors) == 1 and "closed" in errors[0], errors
+
+
+def test_a_replay_starts_at_the_first_frame_when_it_precedes_the_first_event(tmp_path):
+    ev = make_events(2_000, 64, 48, t0=1_700_000_000_100_000, rate_hz=1e5)
+    first_frame = ev.t_start - 30_000  # an APS frame stamped mid-exposure, before any event
+    t_f = np.array([first_frame, ev.t_start + 5_000, ev.t_end - 10], np.int64)
+    frames = Frames(t_f, np.random.default_rng(4).integers(0, 256, (3, 48, 64, 1), dtype=np.uint8))
+    path = write_aedat(tmp_path / "f0.aedat4", ev, frames, 64, 48)
+    with AedatReplay(path, Pacing(factor=0)) as src:
+        assert src.info.t_range_us[0] == first_frame
+        _, ev2, fr2 = _drain(src)
+        assert src.stats.dropped == 0
+    assert fr2 == frames and ev2 == ev  # nothing lost, the first frame included

@@ -12,7 +12,6 @@ empty window.
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -23,10 +22,9 @@ from edmcgs.clients.client import Client
 from edmcgs.model.checkpoint import load_checkpoint
 from edmcgs.model.eval.evaluation import evaluate
 from edmcgs.model.eval.metrics import psnr
-from edmcgs.pipeline import training_data
+from edmcgs.pipeline import split_at, training_data
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.files.recording import read_recording
-from edmcgs.sensor.frames import Frames
 from edmcgs.server.encode import to_uint8
 from tests.support.server import HEIGHT, WIDTH, ServerProcess, build_scene
 
@@ -45,26 +43,13 @@ def scene(tmp_path_factory):
                        control_points=64, event_branch_seed=0)
 
 
-def split_at_anchors(rec, anchors_us: np.ndarray):
-    """The recording as its checkpoint was trained on it: the frames at its anchors as anchors, every other
-    frame held out (what ``edmcgs eval`` scores)."""
-    frames = rec.anchors
-    is_anchor = np.isin(frames.t_us, anchors_us)
-    assert is_anchor.sum() == len(anchors_us)
-
-    def pick(mask):
-        return Frames(frames.t_us[mask], frames.images[mask], frames.poses[mask])
-
-    return replace(rec, anchors=pick(is_anchor), held_out=pick(~is_anchor))
-
-
 @pytest.fixture(scope="module")
 def offline(scene):
     """What ``edmcgs eval`` computes (``evaluate``, fast rasterizer), with the images it scored."""
     rec_path, ckpt = scene
     model = load_checkpoint(ckpt)
     rec = read_recording(rec_path)
-    data = training_data(split_at_anchors(rec, model.meta.anchors_us))
+    data = training_data(split_at(rec, model.meta.anchors_us))  # what edmcgs eval scores
     images = []
     render = model.render
 

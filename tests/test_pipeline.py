@@ -1,0 +1,188 @@
+"""Any recording in, no code: the anchor split, intrinsics, poses and formats of ``edmcgs.pipeline``, the
+baselines every score stands beside, and train / eval on an AEDAT4 written by dv-processing."""
+
+import csv
+
+import numpy as np
+import pytest
+
+from edmcgs.cli import main
+from edmcgs.errors import InvalidInputError
+from edmcgs.model.eval.baselines import BASELINES, baseline_image, score_baselines
+from edmcgs.model.eval.compare import Comparison
+from edmcgs.model.eval.evaluation import FrameScore
+from edmcgs.pipeline import RecordingOptions, open_recording, read_tum, split_at, split_frames, training_data
+from edmcgs.sensor.files.recording import Recording, write_recording
+from edmcgs.sensor.frames import Frames
+from edmcgs.synth.esim import simulate_frames
+from tests.support import tiny_scene
+from tests.support.recordings import write_aedat
+
+FRAME_US = 8_000  # a 125 Hz APS camera over the tiny scene's 200 ms
+TINY = ["init_points=400", "num_control_points=16", "deform_width=32", "deform_depth=2", "iterations=4",
+        "substeps=4", "max_pair_steps=4", "eval_every=0", "checkpoint_every=0"]
+
+
+def _frames(t_us, channels=1):
+    return np.stack([tiny_scene.to_uint8(tiny_scene.image(int(t), channels=channels)) for t in t_us])
+
+
+@pytest.fixture(scope="module")
+def aps(tmp_path_factory):
+    """(AEDAT4 path, frame times): every frame of a DAVIS-like camera, events from the simulator."""
+    t = tiny_scene.T0 + np.arange(0, 200_001, FRAME_US, dtype=np.int64)
+    fine = tiny_scene.T0 + np.arange(0, 200_001, 1_000, dtype=np.int64)
+    events = simulate_frames(fine, np.stack([tiny_scene.image(int(ti)) for ti in fine]))
+    path = tmp_path_factory.mktemp("aps") / "square.aedat4"
+    return write_aedat(path, events, Frames(t, _frames(t)), tiny_scene.W, tiny_scene.H), t
+
+
+def _recording(n=26, held=()):
+    t = tiny_scene.T0 + FRAME_US * np.arange(n, dtype=np.int64)
+    frames = Frames(t, _frames(t))
+    held_frames = None
+    if held:
+        h = tiny_scene.T0 + np.asarray(held, dtype=np.int64)
+        held_frames = Frames(h, _frames(h))
+    events = simulate_frames(t, frames.images / 255.0)
+    return Recording(width=tiny_scene.W, height=tiny_scene.H, events=events, anchors=frames,
+                     held_out=held_frames)
+
+
+def test_anchor_split_by_count_or_rate_keeps_every_other_frame_held_out():
+    rec = _recording(26)
+    every = split_frames(rec, every=5)
+    assert every.anchors.t_us.tolist() == rec.anchors.t_us[::5].tolist()
+    assert len(every.held_out) == 26 - 6 and not np.isin(every.held_out.t_us, every.anchors.t_us).any()
+    by_rate = split_frames(rec, fps=1e6 / (5 * FRAME_US))  # the same ticks as every 5th
+    assert by_rate.anchors == every.anchors and by_rate.held_out == every.held_out
+    again = split_at(every, every.anchors.t_us)  # a checkpoint's anchor times give the split back
+    assert again.anchors == every.anchors and again.held_out == every.held_out
+    jittered = split_frames(rec, fps=1e6 / (5 * FRAME_US + 100))  # ticks drift: the nearest frame each
+    assert len(jittered.anchors) in (5, 6) and jittered.anchors.t_us[0] == rec.anchors.t_us[0]
+    with pytest.raises(InvalidInputError, match="no frames at 1 of the anchor times"):
+        split_at(rec, [int(rec.anchors.t_us[0]) + 1])
+    with pytest.raises(InvalidInputError, match="anchor-every"):
+        split_frames(rec, every=0)
+    with pytest.raises(InvalidInputError, match="anchor-fps"):
+        split_frames(rec, fps=float("nan"))
+
+
+def test_a_split_merges_stored_held_out_frames_in_time_order():
+    rec = _recording(6, held=(4_000, 12_000))
+    split = split_frames(rec, every=2)
+    everything = np.sort(np.concatenate([rec.anchors.t_us, rec.held_out.t_us]))
+    assert split.anchors.t_us.tolist() == everything[::2].tolist()
+    assert sorted([*split.anchors.t_us, *split.held_out.t_us]) == everything.tolist()
+
+
+def test_baselines_hold_and_blend_the_neighbouring_anchors():
+    data = training_data(split_frames(_recording(11), every=5))
+    a0, a1 = data.anchors_t_us[:2]
+    img0, img1 = (data.anchor_images[i].astype(np.float32) / 255 for i in (0, 1))
+    hold, tau = baseline_image(data, int(a0) + 3 * FRAME_US, BASELINES[0])
+    assert tau == a0 and np.array_equal(hold, img0)
+    mid, _ = baseline_image(data, int((a0 + a1) // 2), BASELINES[1])
+    np.testing.assert_allclose(mid, 0.5 * (img0 + img1), atol=1e-6)
+    last, tau = baseline_image(data, int(data.anchors_t_us[-1]) + 1, BASELINES[1])
+    assert tau == data.anchors_t_us[-1] and np.array_equal(last, data.anchor_images[-1] / np.float32(255))
+    scores = score_baselines(data)
+    assert set(scores) == set(BASELINES) and all(len(v) == 8 for v in scores.values())
+    assert np.mean([r.psnr for r in scores[BASELINES[1]]]) > np.mean([r.psnr for r in scores[BASELINES[0]]])
+
+
+def test_a_comparison_names_the_baselines_a_method_loses_to():
+    def rows(psnr):
+        return [FrameScore(i, 1000 * i, 0, 0, p, 0.5) for i, p in enumerate(psnr)]
+
+    comparison = Comparison({"model": rows([20, 22]), "hold": rows([25, 25]), "blend": rows([19, 20])})
+    assert comparison.losses("model", ("hold", "blend")) == ["model loses to hold by 4.00 dB PSNR"]
+    assert "| model | 21.00 |" in comparison.markdown()
+    with pytest.raises(ValueError, match="same frames"):
+        Comparison({"model": rows([1, 2]), "hold": rows([1])})
+
+
+def test_train_and_eval_an_aedat4_with_a_split(aps, tmp_path, capsys):
+    path, t = aps
+    ckpt = tmp_path / "square.ckpt"
+    intrinsics = f"40,40,{(tiny_scene.W - 1) / 2},{(tiny_scene.H - 1) / 2}"
+    args = ["train", str(path), "-o", str(ckpt), "--anchor-every", "5", "--intrinsics", intrinsics, "--quiet"]
+    assert main(args + [a for s in TINY for a in ("--set", s)]) == 0
+    out = capsys.readouterr().out
+    assert "a static camera" in out and "hold last anchor:" in out and "blend of neighbouring anchors:" in out
+    out_csv = tmp_path / "eval.csv"
+    assert main(["eval", str(ckpt), str(path), "--csv", str(out_csv)]) == 0  # the checkpoint's own split
+    rows = list(csv.DictReader(out_csv.open()))
+    assert len(rows) == len(t) - len(t[::5]) and {int(r["t_us"]) for r in rows} == set(t) - set(t[::5])
+    # its baselines are the ones the trainer's last line scored, on the same frames
+    data = training_data(split_frames(open_recording(path), every=5))
+    hold = score_baselines(data)[BASELINES[0]]
+    assert [float(r["psnr_hold_last"]) for r in rows] == pytest.approx([h.psnr for h in hold], abs=1e-4)
+    printed = capsys.readouterr().out
+    assert "| hold last anchor |" in printed and "| blend of neighbouring anchors |" in printed
+
+
+def test_intrinsics_given_or_from_a_dv_calibration_and_distortion_refused(tmp_path):
+    import dv_processing as dv
+
+    rec_path = write_recording(tmp_path / "r.h5", _recording(4))
+    got = open_recording(rec_path, RecordingOptions(intrinsics="41,42,23.5,15.5")).intrinsics
+    assert got.tolist() == [41, 42, 23.5, 15.5]
+    with pytest.raises(InvalidInputError, match="fx,fy,cx,cy"):
+        open_recording(rec_path, RecordingOptions(intrinsics="41,42,23.5"))
+
+    def calibration(name, distortion):
+        cam = dv.camera.calibrations.CameraCalibration(
+            "C0", "left", True, (tiny_scene.W, tiny_scene.H), (23.5, 15.5), (40.0, 41.0), distortion,
+            dv.camera.DistortionModel.RADIAL_TANGENTIAL, dv.kinematics.Transformationf(), None)
+        calibrations = dv.camera.CalibrationSet()
+        calibrations.addCameraCalibration(cam)
+        calibrations.writeToFile(str(tmp_path / name))
+        return str(tmp_path / name)
+
+    sharp = calibration("sharp.json", [0.0, 0.0, 0.0, 0.0, 0.0])
+    got = open_recording(rec_path, RecordingOptions(intrinsics=sharp)).intrinsics
+    assert got.tolist() == [40, 41, 23.5, 15.5]
+    barrel = calibration("barrel.json", [-0.3, 0.1, 0.0, 0.0, 0.0])
+    with pytest.raises(InvalidInputError, match=r"lens distortion .* moves pixels by up to"):
+        open_recording(rec_path, RecordingOptions(intrinsics=barrel))
+
+
+def test_tum_poses_become_the_trajectory(tmp_path):
+    rec_path = write_recording(tmp_path / "r.h5", _recording(4))
+    t0 = tiny_scene.T0 / 1e6
+    traj = tmp_path / "traj.txt"
+    traj.write_text(f"# t tx ty tz qx qy qz qw\n{t0:.6f} 0 0 0 0 0 0 1\n"
+                    f"{t0 + 0.05:.6f} 1 0 0 0 0.7071068 0 0.7071068\n")
+    t_us, c2w = read_tum(traj)
+    assert t_us.tolist() == [tiny_scene.T0, tiny_scene.T0 + 50_000]
+    np.testing.assert_allclose(c2w[1, :3, :3], [[0, 0, 1], [0, 1, 0], [-1, 0, 0]], atol=1e-6)  # 90° about y
+    rec = open_recording(rec_path, RecordingOptions(poses=str(traj)))
+    assert rec.trajectory_t_us.tolist() == t_us.tolist() and rec.anchors.poses is None
+    traj.write_text(f"{t0} 0 0 0 0 0 0\n")
+    with pytest.raises(InvalidInputError, match=r"traj.txt:1: expected 8 numbers"):
+        read_tum(traj)
+    traj.write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n")
+    with pytest.raises(InvalidInputError, match="miss the recording's"):
+        open_recording(rec_path, RecordingOptions(poses=str(traj)))
+
+
+def test_unreadable_formats_name_what_was_found_and_what_is_read(tmp_path):
+    (tmp_path / "notes.txt").write_text("hello")
+    with pytest.raises(InvalidInputError, match=r"a \.txt file\); expected AEDAT4 .*DSEC"):
+        open_recording(tmp_path / "notes.txt")
+    with pytest.raises(InvalidInputError, match="no such file"):
+        open_recording(tmp_path / "missing.aedat4")
+
+
+def test_record_stores_the_split_for_train_and_eval(aps, tmp_path, capsys):
+    path, t = aps
+    out = tmp_path / "split.h5"
+    fps = str(1e6 / (5 * FRAME_US))
+    assert main(["record", str(path), "-o", str(out), "--anchor-fps", fps, "--quiet"]) == 0
+    assert f"{len(t[::5])} anchors, {len(t) - len(t[::5])} held-out frames" in capsys.readouterr().out
+    rec = open_recording(out)
+    assert rec.anchors.t_us.tolist() == t[::5].tolist() and len(rec.held_out) == len(t) - len(t[::5])
+    with pytest.raises(SystemExit):
+        main(["record", str(path), "-o", str(tmp_path / "x.aedat4"), "--anchor-every", "5"])
+    assert "our HDF5 format" in capsys.readouterr().err
