@@ -27,6 +27,7 @@ import numba
 import torch
 from tqdm import tqdm
 
+from bench.report.baselines import baseline_rows
 from bench.report.data import scene_recordings
 from bench.report.lean import event_branch_ms, grey_recording, lean_rows, median_threshold, refrozen
 from bench.report.lean import section as lean_section
@@ -131,8 +132,8 @@ def collect(s: ReportSettings, cache: Path, *, device: str, progress: bool) -> d
     resolution = {"recording_s": span_us / 1e6, "recording_us": span_us * 2.0**-24,
                   "day_ms": DAY_US * 2.0**-24 / 1000}
     lean, lean_context = collect_lean(s, recs, run, cache, fps, progress=progress)
-    return {"runs": runs, "knobs": knobs, "context": context, "stability": stability,
-            "time_resolution": resolution, "lean": lean, "lean_context": lean_context}
+    return {"runs": runs, "baselines": baseline_rows(recs, runs), "knobs": knobs, "context": context,
+            "stability": stability, "time_resolution": resolution, "lean": lean, "lean_context": lean_context}
 
 
 def collect_lean(s: ReportSettings, recs: dict, run, cache: Path, fps: float, *,
@@ -176,6 +177,7 @@ def write_outputs(out: Path, s: ReportSettings, r: dict, *, command: str, minute
                "nonfinite_steps")
     table = [{k: run[k] for k in columns} for run in runs]
     write_csv(out / "ablation.csv", table)
+    write_csv(out / "baselines.csv", r["baselines"])
     write_csv(out / "training_curves.csv", curves)
     write_csv(out / "held_out_frames.csv", frames)
     write_csv(out / "render_knobs.csv", r["knobs"])
@@ -186,11 +188,13 @@ def write_outputs(out: Path, s: ReportSettings, r: dict, *, command: str, minute
     render_knobs(r["knobs"], out / "render_knobs.png")
     machine = (f"{os.cpu_count()} CPUs ({threads} thread(s) used, load average {os.getloadavg()[0]:.1f} at "
                f"the end), torch {torch.__version__}")
-    text = summary(settings=s, command=command, machine=machine, minutes=minutes, runs=runs, knobs=r["knobs"],
+    text = summary(settings=s, command=command, machine=machine, minutes=minutes, runs=runs,
+                   baselines=r["baselines"], knobs=r["knobs"],
                    knob_context=r["context"], stability=r["stability"], tests=TEST_CASES,
                    time_resolution=r["time_resolution"], lean=lean_section(r["lean"], r["lean_context"]))
     (out / "summary.md").write_text(text)
     payload = {"settings": s.__dict__, "command": command, "minutes": minutes, "ablation": table,
+               "baselines": r["baselines"],
                "curves": curves, "render_knobs": r["knobs"], "render_context": r["context"],
                "stability": r["stability"], "time_resolution": r["time_resolution"], "lean": r["lean"],
                "lean_context": r["lean_context"]}

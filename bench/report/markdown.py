@@ -10,6 +10,7 @@ from edmcgs.model.eval.lpips import SKIPPED as LPIPS_SKIPPED
 
 FILES = {
     "ablation.csv": "final held-out PSNR / SSIM of every run (scene, rate, variant), with training time",
+    "baselines.csv": "hold the last anchor / blend the neighbouring anchors (no model) on the same frames",
     "training_curves.csv": "held-out PSNR / SSIM at the evaluation steps of every run, by training seconds",
     "held_out_frames.csv": "per held-out frame of every run: time since its anchor, events, PSNR, SSIM",
     "render_knobs.csv": "the fast path's knob sweep: times, error against the float64 reference and truth",
@@ -31,7 +32,7 @@ def _paper_cell(fps: float, variant: str) -> str:
     return "—" if p is None else f"{p[0]:.2f} / {p[1]:.4f} / {p[2]:.4f}"
 
 
-def ablation_table(runs: list[dict], settings: ReportSettings) -> list[str]:
+def ablation_table(runs: list[dict], settings: ReportSettings, baselines: list[dict]) -> list[str]:
     rates = sorted({r["fps"] for r in runs})
     cols = [f"{f:g} fps PSNR | SSIM | Δ PSNR vs full | paper {f:g} fps PSNR / SSIM / LPIPS" for f in rates]
     lines = ["| variant | " + " | ".join(cols) + " |", "|---|" + "---:|---:|---:|---:|" * len(rates)]
@@ -43,6 +44,14 @@ def ablation_table(runs: list[dict], settings: ReportSettings) -> list[str]:
             delta = "" if v == "full" or not full else f"{_mean(sel, 'psnr') - _mean(full, 'psnr'):+.2f}"
             cells += [f"{_mean(sel, 'psnr'):.2f}", f"{_mean(sel, 'ssim'):.4f}", delta, _paper_cell(fps, v)]
         lines.append(f"| {VARIANTS[v][1]} | " + " | ".join(cells) + " |")
+    for name in dict.fromkeys(b["baseline"] for b in baselines):
+        cells = []
+        for fps in rates:
+            sel = [b for b in baselines if b["baseline"] == name and b["fps"] == fps]
+            full = [r for r in runs if r["variant"] == "full" and r["fps"] == fps]
+            delta = f"{_mean(sel, 'psnr') - _mean(full, 'psnr'):+.2f}" if full and sel else ""
+            cells += [f"{_mean(sel, 'psnr'):.2f}", f"{_mean(sel, 'ssim'):.4f}", delta, "—"]
+        lines.append(f"| {name} (no model) | " + " | ".join(cells) + " |")
     return lines
 
 
@@ -94,8 +103,8 @@ def stability_table(rows: list[dict], tests: list[tuple[str, str, str]]) -> list
 
 
 def summary(*, settings: ReportSettings, command: str, machine: str, minutes: float, runs: list[dict],
-            knobs: list[dict], knob_context: dict, stability: list[dict], tests: list[tuple[str, str, str]],
-            time_resolution: dict, lean: list[str]) -> str:
+            baselines: list[dict], knobs: list[dict], knob_context: dict, stability: list[dict],
+            tests: list[tuple[str, str, str]], time_resolution: dict, lean: list[str]) -> str:
     s, c, tr = settings, knob_context, time_resolution
     if s.name == "small":
         scale = ("a smoke-scale run: far from converged and not comparable with the paper's numbers "
@@ -116,9 +125,10 @@ def summary(*, settings: ReportSettings, command: str, machine: str, minutes: fl
         f"fps, preset `{s.preset}` ({train_scale}), {s.iterations} training steps per run: {scale}.", "",
         "## 1. Ablations", "",
         "Held-out PSNR / SSIM averaged over the scenes (every ground-truth frame between the anchors), "
+        "the trivial baselines on the same frames (a method that does not beat them has not worked), and "
         "beside the paper's reported averages for context only: theirs are on their own data "
         f"({PAPER_TRAINING}); the paper reports only the full model and w/o Markov at 10 fps.", "",
-        *ablation_table(runs, s), "", "![ablations](ablation.png)", "", *per_run_table(runs), "",
+        *ablation_table(runs, s, baselines), "", "![ablations](ablation.png)", "", *per_run_table(runs), "",
         "LPIPS (VGG): scored on the weights found on disk." if any(r.get("lpips") is not None for r in runs)
         else f"{LPIPS_SKIPPED}.", "",
         "## 2. Error against training time", "",
