@@ -2,7 +2,7 @@
 
     .venv/bin/python -m bench.sensor [--json PATH] [--quick]
 
-Keys (targets from issue 3): ring_ingest_mev_s >= 20 (million events/s pushed into the ring in
+Keys (targets): ring_ingest_mev_s >= 20 (million events/s pushed into the ring in
 10k-event batches, about 10 ms of a busy DAVIS346), accumulate_1m_ms <= 5 (I_E of a 1M-event window at
 346x260), h5_replay_mev_s >= 10 (our HDF5 replayed at factor 0), ring_peak_mb (RSS growth of a fresh
 process whose ring is filled several times over: bounded by 13 bytes x capacity). Timings are medians

@@ -2,7 +2,7 @@
 
     .venv/bin/python -m bench.serve [--json PATH] [--checkpoint CKPT --replay REC | --built] [--size WxH]
 
-Keys (targets of issue 6, on the demo scene at 346x260):
+Keys (targets, on the demo scene at 346x260):
     render_p50_ms            GET /render, one client, the event branch included      <= 25
     render_rps_4_clients     four concurrent clients, each with its own pose          >= 60
     render_p99_ms_4_clients  the same, 99th percentile latency                        <= 150

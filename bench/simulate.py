@@ -2,7 +2,7 @@
 
     .venv/bin/python -m bench.simulate [--json PATH] [--quick]
 
-Keys (targets from issue 4): sim_mpix_s >= 20 (million pixel-samples per second through
+Keys (targets): sim_mpix_s >= 20 (million pixel-samples per second through
 ``EventSimulator.step``: RGB float frame in, time-ordered events out, on the jumping jack's renders at
 346x260 one millisecond apart, i.e. a frame in <= 5 ms), synth_small_s <= 60 (seconds to build the
 small ``jumpingjack`` dataset at 5 fps, as ``edmcgs synth jumpingjack --fps 5`` does, without the

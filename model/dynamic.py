@@ -3,7 +3,7 @@
 At a query time t, control point j moves by
 
     delta_mu_j(t) = f_theta(gamma(sg(mu_j)), gamma(t))  +  s * g_phi(gamma(mu_j), m_j(t))
-                    (RGB prior)                            (event transition, from I_E over [tau(t), t])
+                    (RGB prior)                            (event transition, from I_E over [tau(t), t))
 
 and linear blend skinning carries the Gaussians along. ``s`` is the warm-in scale (1 after training).
 This module holds the state and the inference API; training lives in ``edmcgs.model.train.trainer``.
@@ -192,7 +192,7 @@ class EdMCGS(nn.Module):
                        static: bool = False) -> tuple[Tensor, Tensor, Tensor | None]:
         """Control-point transforms at normalised time ``t``.
 
-        event_map: Tensor  # [He, We] float32 signed polarity sum over [tau(t), t], or None (empty)
+        event_map: Tensor  # [He, We] float32 signed polarity sum over [tau(t), t), or None (empty)
         ev_w2c: Tensor     # [4, 4] event camera world-to-camera at t (needed by local sampling)
         static: the identity motion (warm-up of the canonical set)
         returns (translations [M, 3], rotations [M, 4] unit, event displacement [M, 3] or None)

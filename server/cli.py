@@ -59,8 +59,8 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     # Before torch and numba start their OpenMP pools: waiting threads sleep instead of spinning. On a
     # small shared CPU, spinning workers of two pools (torch's, numba's) and two render threads starve
-    # each other: the deformation ran 10-30x slower with the default (measured, 2 cores). An explicit
-    # OMP_WAIT_POLICY in the environment wins.
+    # each other, and the deformation slows by an order of magnitude. An explicit OMP_WAIT_POLICY in the
+    # environment wins.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     import uvicorn
 

@@ -2,7 +2,7 @@
 
 Each row says what it checks and what came out; ``ok`` is whether the stated check held. The fast cases
 live in ``tests/stability`` (and a few in other areas' tests); ``TEST_CASES`` lists them so that the
-report's table shows where every case of issue 7 is checked.
+report's table shows where every stability case is checked.
 """
 
 from __future__ import annotations

@@ -1,8 +1,9 @@
 """The anchor store: the RGB/APS frames with their timestamps, answering tau(t) = last anchor <= t.
 
-The event map for time t accumulates events over [tau(t), t] (paper, section 3.3), so every query
-needs the anchor at or before t. The store keeps the newest ``capacity`` anchors; asking for one that
-was evicted raises ``WindowUnavailable`` instead of silently answering with a later anchor.
+The event map for time t accumulates events over the half-open [tau(t), t) (paper, section 3.3: an
+event at t belongs to the next window), so every query needs the anchor at or before t. The store
+keeps the newest ``capacity`` anchors; asking for one that was evicted raises ``WindowUnavailable``
+instead of silently answering with a later anchor.
 """
 
 from __future__ import annotations
