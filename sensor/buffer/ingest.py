@@ -7,7 +7,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 
-from edmcgs.errors import DeviceDisconnected, EdmcgsError
+from edmcgs.errors import DeviceDisconnected, EdmcgsError, SensorError
 from edmcgs.sensor.buffer.anchors import AnchorStore
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.sources.base import EventSource, SensorBatch
@@ -48,10 +48,15 @@ class Ingest:
         return self._thread is not None and self._thread.is_alive()
 
     def _run_guarded(self) -> None:
+        # Any failure, of any type, ends the thread with ``error`` set: /healthz reports its reason
+        # instead of a bare "stopped" (a corrupt timestamp raised OverflowError in the pacing).
         try:
             self.run()
         except EdmcgsError as exc:
             self.error = exc
+        except Exception as exc:  # reported through error, not swallowed
+            self.error = SensorError(f"the event source failed: {type(exc).__name__}: {exc}")
+            self.error.__cause__ = exc
 
     def run(self) -> None:
         """The loop itself (runs in the caller's thread when called directly)."""

@@ -7,7 +7,11 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from edmcgs.errors import InvalidInputError
+from edmcgs.errors import InvalidInputError, ReplayFormatError
+
+MAX_DELAY_S = 86_400.0
+"""A replay never waits longer than a day for its next batch: a longer gap is a corrupt timestamp
+(time.sleep raised OverflowError on one, killing the ingest thread)."""
 
 
 @dataclass(frozen=True)
@@ -57,6 +61,9 @@ class Pacer:
             return
         wall0, t0 = self._origin
         delay = wall0 + (int(t_us) - t0) / 1e6 / self.factor - self._clock()
+        if not math.isfinite(delay) or delay > MAX_DELAY_S:
+            raise ReplayFormatError(f"timestamp {int(t_us)} µs is {delay:.3g} s ahead of the replay's "
+                                    f"clock (started at {t0} µs): a corrupt timestamp")
         if delay > 0:
             self._sleep(delay)
             self.slept_s += delay

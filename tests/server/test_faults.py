@@ -1,0 +1,69 @@
+"""Fault cases of issue 17, one test each (unit level: no server process unless stated)."""
+
+from __future__ import annotations
+
+import types
+
+import numpy as np
+import pytest
+
+from edmcgs.errors import EdmcgsError, ReplayFormatError
+from edmcgs.sensor.buffer.ingest import Ingest
+from edmcgs.sensor.buffer.ring import EventRingBuffer
+from edmcgs.sensor.sources.pacing import Pacer
+from edmcgs.server.service import Service
+
+
+class _Failing:
+    """A source whose read raises an arbitrary (non-edmcgs) exception."""
+
+    def __init__(self, exc: BaseException):
+        self.exc = exc
+
+    def read(self):
+        raise self.exc
+
+
+def _health_of(ingest: Ingest) -> dict:
+    stub = types.SimpleNamespace(ingest=ingest, source=object(), ring=EventRingBuffer(4),
+                                 engine=types.SimpleNamespace(head=lambda: None),
+                                 settings=types.SimpleNamespace(device="cpu"), started_unix=0.0)
+    return Service.health(stub)[1]
+
+
+@pytest.mark.parametrize("exc", [OverflowError("timestamp too large to convert to C _PyTime_t"),
+                                 ValueError("boom"), ZeroDivisionError("x")])
+def test_issue17_3_any_ingest_exception_reaches_healthz(exc):
+    ingest = Ingest(_Failing(exc), EventRingBuffer(16), reconnect=False).start()
+    ingest.stop(timeout=5)
+    assert isinstance(ingest.error, EdmcgsError)
+    details = _health_of(ingest)
+    assert details["source"] == "error"
+    assert type(exc).__name__ in details["source_error"] and str(exc) in details["source_error"]
+
+
+def test_issue17_3_corrupt_timestamp_is_a_clear_pacing_error():
+    now = [0.0]
+    pacer = Pacer(1.0, clock=lambda: now[0], sleep=lambda s: None)
+    pacer.wait_until(1_600_000_000_000_000)
+    with pytest.raises(ReplayFormatError, match="corrupt timestamp"):
+        pacer.wait_until(np.iinfo(np.int64).max)
+
+
+@pytest.mark.parametrize("kwargs", [{"device": "banana"}, {"device": "cuda:99"}, {"ring_events": 10**12}])
+def test_issue17_9_settings_refuse_missing_devices_and_huge_rings(kwargs):
+    from pydantic import ValidationError
+
+    from edmcgs.server.settings import Settings
+
+    with pytest.raises(ValidationError) as info:
+        Settings(**kwargs)
+    assert any(w in str(info.value) for w in ("available", "memory", "unknown torch device"))
+
+
+def test_issue17_9_serve_cli_says_one_line(capsys):
+    from edmcgs.server.cli import main
+
+    assert main(["--device", "banana"]) == 2
+    err = capsys.readouterr().err
+    assert "device" in err and "Traceback" not in err
