@@ -21,6 +21,8 @@ Writes are atomic (a temporary file in the same folder, fsynced, then renamed ov
 from __future__ import annotations
 
 import os
+import pickle
+import re
 from pathlib import Path
 
 import numpy as np
@@ -95,8 +97,15 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
         raise CheckpointError(f"checkpoint {str(path)!r} does not exist")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises RuntimeError, EOFError, UnpicklingError, zipfile errors ...
-        raise CheckpointError(f"checkpoint {str(path)!r} is truncated or not a torch file: {exc}") from exc
+    except pickle.UnpicklingError as exc:
+        # torch's message advises re-running with weights_only=False, i.e. executing the file's code:
+        # never repeat that advice. Name the offending global (first line of torch's message) only.
+        raise CheckpointError(f"checkpoint {str(path)!r} refers to code or objects an EdMCGS checkpoint "
+                              f"never contains ({_unsafe_reason(exc)}); it was not loaded. Use a checkpoint "
+                              "written by edmcgs train") from None
+    except Exception as exc:  # torch raises RuntimeError, EOFError, zipfile errors ...
+        raise CheckpointError(f"checkpoint {str(path)!r} is truncated or not a torch file: "
+                              f"{_first_line(exc)}") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointError(f"{str(path)!r} is not an EdMCGS checkpoint (no format {FORMAT!r})")
     version = payload.get("version")
@@ -109,6 +118,19 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
         if not isinstance(payload.get(key), dict):
             raise CheckpointError(f"{str(path)!r}: missing section {key!r}")
     return payload
+
+
+def _first_line(exc: BaseException) -> str:
+    """The first line of an exception's message, without torch's advice about ``weights_only``."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    lines = [ln for ln in lines if "weights_only" not in ln and "pickle" not in ln.lower()[:12]]
+    first = lines[0] if lines else type(exc).__name__
+    return first.split(". ")[0][:200]
+
+
+def _unsafe_reason(exc: BaseException) -> str:
+    found = re.search(r"(?:Unsupported global|GLOBAL|global):? *([\w.]+)", str(exc))
+    return f"global {found.group(1)}" if found else "an unsupported pickle instruction"
 
 
 def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu") -> EdMCGS:
