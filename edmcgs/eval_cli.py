@@ -50,6 +50,7 @@ def _run(args) -> int:
     import torch
 
     from edmcgs.model.checkpoint import load_checkpoint
+    from edmcgs.model.devices import check_device
     from edmcgs.model.eval.baselines import BASELINES, score_baselines
     from edmcgs.model.eval.compare import Comparison
     from edmcgs.model.eval.evaluation import evaluate, summarize
@@ -58,6 +59,7 @@ def _run(args) -> int:
     if args.threads < 1:
         raise InvalidInputError(f"--threads must be >= 1, got {args.threads}")
     torch.set_num_threads(args.threads)
+    check_device(args.device)
     model = load_checkpoint(args.checkpoint, device=args.device)
     rec = open_recording(args.recording, RecordingOptions.from_args(args))
     if not np.array_equal(rec.anchors.t_us, model.meta.anchors_us):

@@ -46,6 +46,7 @@ def _run(args) -> int:
     import torch
 
     from edmcgs.model.checkpoint import load_checkpoint, read_checkpoint
+    from edmcgs.model.devices import check_device
     from edmcgs.model.dynamic import EdMCGS
     from edmcgs.model.eval.baselines import BASELINES, score_baselines
     from edmcgs.model.eval.compare import Comparison
@@ -55,6 +56,7 @@ def _run(args) -> int:
     if args.threads < 1:
         raise InvalidInputError(f"--threads must be >= 1, got {args.threads}")
     torch.set_num_threads(args.threads)
+    check_device(args.device)
     rec = open_recording(args.recording, RecordingOptions.from_args(args), progress=not args.quiet)
     if rec.trajectory_t_us is None and rec.anchors.poses is None:
         print("no camera poses in the recording: a static camera (give --poses TRAJ.txt for a moving one)")

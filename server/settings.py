@@ -7,8 +7,26 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pydantic import Field, SecretStr, model_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+RING_BYTES_PER_EVENT = 13
+"""t int64, x and y uint16, p int8: the ring's arrays (sensor/buffer/ring.py)."""
+
+
+def _memory_bytes() -> int:
+    """Physical memory of the machine (or its cgroup limit when lower)."""
+    import os
+
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    try:
+        with open("/sys/fs/cgroup/memory.max") as f:
+            limit = f.read().strip()
+        if limit.isdigit():
+            total = min(total, int(limit))
+    except OSError:
+        pass
+    return total
 
 
 class Settings(BaseSettings):
@@ -49,6 +67,28 @@ class Settings(BaseSettings):
     raster_threads: int | None = Field(None, gt=0, description="Threads of the numba rasterizer per render; "
                                        "none: every core (on a 2-core CPU, 2 per render beat 1 at one and at "
                                        "four clients: bench.serve render p50 20 vs 27 ms).")
+
+    @field_validator("device")
+    @classmethod
+    def _device_available(cls, value: str) -> str:
+        from edmcgs.errors import InvalidInputError
+        from edmcgs.model.devices import check_device
+
+        try:
+            return check_device(value)
+        except InvalidInputError as exc:
+            raise ValueError(str(exc)) from None
+
+    @field_validator("ring_events")
+    @classmethod
+    def _ring_fits(cls, value: int) -> int:
+        need = value * RING_BYTES_PER_EVENT
+        budget = _memory_bytes() // 4
+        if need > budget:
+            raise ValueError(f"a ring of {value} events needs {need / 2**30:.1f} GiB, more than a quarter "
+                             f"of this machine's memory ({budget / 2**30:.1f} GiB); at most "
+                             f"{budget // RING_BYTES_PER_EVENT} events")
+        return value
 
     @model_validator(mode="after")
     def _one_source(self) -> Settings:
