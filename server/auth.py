@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import hmac
+import re
+from urllib.parse import unquote_plus
 
 from edmcgs.server.errors import Unauthorized
 
@@ -25,3 +27,25 @@ def check_token(expected: str | None, authorization: str | None, query_token: st
     # Constant-time comparison: the token must not leak through response timing.
     if not hmac.compare_digest(given.encode(), expected.encode()):
         raise Unauthorized("wrong bearer token")
+
+
+_QUERY = re.compile(r"\?([^\s\"#]*)")
+SECRET_PARAMS = ("token",)
+
+
+def redact_query(text: str) -> str:
+    """``text`` with the value of every query parameter whose *decoded* name is a secret (``token``,
+    ``tok%65n``, ``%74oken`` ...) replaced by ``***``."""
+    if "?" not in text:
+        return text
+
+    def pairs(match: re.Match) -> str:
+        out = []
+        for pair in match.group(1).split("&"):
+            name, eq, _value = pair.partition("=")
+            if unquote_plus(name).strip().lower() in SECRET_PARAMS:
+                pair = f"{name}{eq}***" if eq else pair
+            out.append(pair)
+        return "?" + "&".join(out)
+
+    return _QUERY.sub(pairs, text)

@@ -16,13 +16,13 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import re
 import sys
 
 from pydantic import ValidationError
 
 from edmcgs import __version__
 from edmcgs.errors import EdmcgsError
+from edmcgs.server.auth import redact_query
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -44,14 +44,14 @@ def _parser() -> argparse.ArgumentParser:
 
 
 class _RedactToken(logging.Filter):
-    """Keep ``?token=`` out of the access log."""
-
-    pattern = re.compile(r"(token=)[^&\s\"]+")
+    """Keep the token out of the access log, however its name is spelled (``?tok%65n=``): the query is
+    redacted by its decoded names, the ones the middleware authenticates with."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         if record.args:
-            record.args = tuple(self.pattern.sub(r"\1***", a) if isinstance(a, str) else a
-                                for a in record.args)
+            record.args = tuple(redact_query(a) if isinstance(a, str) else a for a in record.args)
+        if isinstance(record.msg, str):
+            record.msg = redact_query(record.msg)
         return True
 
 
