@@ -113,13 +113,46 @@ class ProtocolError(ValueError):
         self.detail = detail
 
 
+MAX_POSE_TEXT = 4096
+"""Longest ``pose`` query value (characters): 16 numbers at full float64 precision take about 400."""
+
+
+def json_depth(text: str) -> int:
+    """How deeply the arrays and objects of JSON ``text`` nest, counted without parsing it (so that a
+    deeply nested input is refused before the recursive parser sees it); brackets inside strings are
+    skipped."""
+    depth = deepest = 0
+    in_string = escaped = False
+    for ch in text:
+        if in_string:
+            if escaped:
+                escaped = False
+            elif ch == "\\":
+                escaped = True
+            elif ch == '"':
+                in_string = False
+        elif ch == '"':
+            in_string = True
+        elif ch in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif ch in "]}":
+            depth -= 1
+    return deepest
+
+
 def parse_pose_text(text: str) -> list[float]:
     """Parse the ``pose`` query value: numbers separated by commas (or a JSON array) -> list of floats.
 
     Only the syntax is checked here (16 or 7 finite numbers); the server checks the geometry.
     """
     raw = text.strip()
+    if len(raw) > MAX_POSE_TEXT:
+        raise ProtocolError("pose", f"pose is {len(raw)} characters long; 16 numbers fit in {MAX_POSE_TEXT}")
     if raw.startswith("["):
+        if json_depth(raw) > 2:
+            raise ProtocolError("pose", "pose must be a flat JSON array of 16 or 7 numbers, or a 4x4 "
+                                        "nested one (nested deeper than 2)")
         try:
             values = json.loads(raw)
         except ValueError as exc:

@@ -81,3 +81,48 @@ def test_issue17_10_token_redacted_by_its_decoded_name(query):
     _RedactToken().filter(record)
     line = record.getMessage()
     assert "s3cret" not in line and "***" in line
+
+
+# ----------------------------------------------------------------------------- an app around a stub
+
+
+class StubService:
+    """What the routes and middleware touch before a render; renders are never reached here."""
+
+    def __init__(self, settings):
+        from edmcgs.server.render_pool import RenderPool
+        from edmcgs.server.service import Metrics
+
+        self.settings = settings
+        self.metrics = Metrics()
+        self.pool = RenderPool(settings.render_workers, settings.render_queue)
+
+    def start(self, loop):
+        pass
+
+    def close(self):
+        self.pool.close()
+
+    def health(self):
+        return True, {"ready": True}
+
+    def size(self, width, height):
+        return 8, 8
+
+
+@pytest.fixture
+def stub_client():
+    from fastapi.testclient import TestClient
+
+    from edmcgs.server.app import create_app
+    from edmcgs.server.settings import Settings
+
+    with TestClient(create_app(Settings(), service_factory=StubService)) as client:
+        yield client
+
+
+@pytest.mark.parametrize("pose", ["[" * 1500, "[" * 1500 + "]" * 1500, "1," * 5000, "[[[1]]]"])
+def test_issue17_4_deep_or_huge_pose_is_a_422_naming_pose(stub_client, pose):
+    response = stub_client.get("/render", params={"pose": pose})
+    assert response.status_code == 422
+    assert response.json()["param"] == "pose"
