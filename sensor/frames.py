@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from edmcgs.errors import InvalidInputError
+from edmcgs.geometry import validate_pose
 
 
 class Frames:
@@ -48,10 +49,8 @@ class Frames:
             poses = np.asarray(poses, dtype=np.float64)
             if poses.shape != (len(t_us), 4, 4):
                 raise InvalidInputError(f"frames poses must be [{len(t_us)}, 4, 4], got {poses.shape}")
-            if not np.isfinite(poses).all():
-                raise InvalidInputError("frames poses contain NaN or Inf")
-            if not np.allclose(poses[:, 3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
-                raise InvalidInputError("frames poses must be rigid 4x4 matrices with last row [0, 0, 0, 1]")
+            for i, pose in enumerate(poses):  # checked only: the stored values stay as given
+                validate_pose(pose, name=f"frames pose {i}")
         self._set(t_us, images, poses)
 
     def _set(self, t_us, images, poses) -> None:
