@@ -238,7 +238,7 @@ class EdMCGS(nn.Module):
                ev_c2w: np.ndarray | None = None) -> GaussianState:
         """The Gaussians at absolute time ``t_us`` driven by the events since the last anchor.
 
-        event_map: [event_height, event_width] float32 signed polarity sum over [tau(t_us), t_us]
+        event_map: [event_height, event_width] float32 signed polarity sum over [tau(t_us), t_us)
                    (None or all-zero: an empty window); ignored when the model has no event branch.
         ev_c2w: [4, 4] event-camera c2w at t_us (default: the checkpoint's trajectory at t_us).
         At an anchor time the window is empty: the event map is not read and the result is the anchor
