@@ -7,11 +7,8 @@ import argparse
 import csv
 import sys
 
-import numpy as np
-
 from edmcgs.errors import EdmcgsError, InvalidInputError
-from edmcgs.model.eval.lpips import VGG_FILE
-from edmcgs.pipeline import RecordingOptions, add_recording_arguments, open_recording, split_at, training_data
+from edmcgs.options import RecordingOptions, add_recording_arguments
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -26,7 +23,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     parser.add_argument("--lpips-vgg", metavar="PTH",
-                        help=f"torchvision's VGG-16 weights ({VGG_FILE}; default: torch's hub cache)")
+                        help="torchvision's VGG-16 weights (vgg16-397923af.pth; default: torch's hub cache)")
     parser.add_argument("--lpips-lin", metavar="PTH",
                         help="LPIPS's weights/v0.1/vgg.pth (default: an installed lpips package's)")
     parser.add_argument("--reference-renderer", action="store_true",
@@ -47,6 +44,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args) -> int:
+    import numpy as np
     import torch
 
     from edmcgs.model.checkpoint import load_checkpoint
@@ -55,6 +53,7 @@ def _run(args) -> int:
     from edmcgs.model.eval.compare import Comparison
     from edmcgs.model.eval.evaluation import evaluate, summarize
     from edmcgs.model.eval.lpips import LPIPS, SKIPPED, find_weights
+    from edmcgs.pipeline import open_recording, split_at, training_data
 
     if args.threads < 1:
         raise InvalidInputError(f"--threads must be >= 1, got {args.threads}")

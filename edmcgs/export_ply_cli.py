@@ -13,7 +13,6 @@ import sys
 from pathlib import Path
 
 from edmcgs.errors import EdmcgsError, InvalidInputError
-from edmcgs.pipeline import RecordingOptions, open_recording, training_data
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -42,6 +41,8 @@ def _run(args) -> int:
 
     from edmcgs.model.checkpoint import load_checkpoint
     from edmcgs.model.ply import write_ply
+    from edmcgs.options import RecordingOptions
+    from edmcgs.pipeline import open_recording, training_data
 
     model = load_checkpoint(args.checkpoint)
     meta = model.meta

@@ -12,10 +12,9 @@ camera (``--intrinsics fx,fy,cx,cy`` or a DV calibration file) and its poses (``
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +24,7 @@ from edmcgs.geometry import Intrinsics, Trajectory, pose_from_quat, validate_pos
 from edmcgs.model.config import EdmcgsConfig, preset
 from edmcgs.model.motion.leanness import events_decision
 from edmcgs.model.train.data import TrainingData
+from edmcgs.options import RecordingOptions
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.files.record import read_source
 from edmcgs.sensor.files.recording import FORMAT_NAME, Recording, read_recording
@@ -104,51 +104,11 @@ def build_config(name: str, overrides: list[str], rec: Recording) -> EdmcgsConfi
 # ------------------------------------------------------------------ any recording in
 
 
-@dataclass(frozen=True)
-class RecordingOptions:
-    """What a user tells about a recording that its file may not say (the shared command-line flags)."""
-
-    anchor_fps: float | None = None
-    """Pick anchors at this rate among the frames; the others are held out."""
-    anchor_every: int | None = None
-    """Pick every N-th frame as an anchor (from the first); the others are held out."""
-    intrinsics: str | None = None
-    """``fx,fy,cx,cy`` in pixels, or a DV camera-calibration file (.json, or legacy .xml)."""
-    poses: str | None = None
-    """A TUM trajectory file (``t tx ty tz qx qy qz qw``, t in seconds on the recording's clock)."""
-    resolution: str | None = None
-    """``WIDTHxHEIGHT`` for HDF5 layouts that do not store it (DSEC, v2e)."""
-
-    @classmethod
-    def from_args(cls, args: argparse.Namespace) -> RecordingOptions:
-        return cls(**{k: getattr(args, k, None) for k in cls.__dataclass_fields__})
-
-
-def add_recording_arguments(parser: argparse.ArgumentParser, *, split: bool = True,
-                            resolution: bool = True) -> None:
-    """The flags of ``RecordingOptions`` (``split=False``: without the anchor choice; ``resolution=False``
-    for a parser that has its own ``--resolution``)."""
-    if split:
-        group = parser.add_mutually_exclusive_group()
-        group.add_argument("--anchor-fps", type=float, metavar="F",
-                           help="use frames at about F per second as anchors, the rest as held-out "
-                                "ground truth")
-        group.add_argument("--anchor-every", type=int, metavar="N",
-                           help="use every N-th frame as an anchor, the rest as held-out ground truth")
-    parser.add_argument("--intrinsics", metavar="FX,FY,CX,CY|CALIB.json",
-                        help="the camera: pixels, or a DV camera-calibration file (default: the recording's)")
-    parser.add_argument("--poses", metavar="TRAJ.txt",
-                        help="camera poses, TUM format: t tx ty tz qx qy qz qw (default: the recording's, "
-                             "else a static camera)")
-    if resolution:
-        parser.add_argument("--resolution", metavar="WxH",
-                            help="HDF5 layouts without one (DSEC, v2e), e.g. 640x480")
-
-
-def open_recording(path: str | Path, options: RecordingOptions = RecordingOptions(), *,
+def open_recording(path: str | Path, options: RecordingOptions | None = None, *,
                    progress: bool = False) -> Recording:
     """The recording at ``path`` in any format the sensor layer reads, with ``options`` applied."""
     path = Path(path)
+    options = RecordingOptions() if options is None else options
     suffix = path.suffix.lower()
     if not path.is_file():
         raise InvalidInputError(f"{path}: no such file")

@@ -7,7 +7,7 @@ from __future__ import annotations
 import sys
 
 from edmcgs.errors import EdmcgsError
-from edmcgs.pipeline import RecordingOptions, add_recording_arguments, open_recording
+from edmcgs.options import RecordingOptions, add_recording_arguments
 from edmcgs.sensor.files import record
 from edmcgs.sensor.files.recording import write_recording
 from edmcgs.sensor.sources.open import HDF5_SUFFIXES
@@ -26,6 +26,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("the anchor split, intrinsics and poses are stored in our HDF5 format: give -o OUT.h5")
     if args.output.exists() and not args.force:
         parser.error(f"{args.output} exists (use --force to replace it)")
+    from edmcgs.pipeline import open_recording
+
     try:
         rec = open_recording(args.source, options, progress=not args.quiet)
         write_recording(args.output, rec)

@@ -9,14 +9,7 @@ from pathlib import Path
 
 from edmcgs.errors import EdmcgsError, InvalidInputError
 from edmcgs.model.config import PRESETS
-from edmcgs.pipeline import (
-    STRUCTURAL,
-    RecordingOptions,
-    add_recording_arguments,
-    build_config,
-    open_recording,
-    training_data,
-)
+from edmcgs.options import RecordingOptions, add_recording_arguments
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -52,6 +45,7 @@ def _run(args) -> int:
     from edmcgs.model.eval.compare import Comparison
     from edmcgs.model.eval.evaluation import evaluate
     from edmcgs.model.train.trainer import Trainer, write_history_csv
+    from edmcgs.pipeline import STRUCTURAL, build_config, open_recording, training_data
 
     if args.threads < 1:
         raise InvalidInputError(f"--threads must be >= 1, got {args.threads}")

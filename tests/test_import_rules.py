@@ -11,7 +11,7 @@ FOLDERS = {"edmcgs": "edmcgs", "sensor": "edmcgs.sensor", "model": "edmcgs.model
 BASE = ("edmcgs.errors", "edmcgs.atomic", "edmcgs.geometry")
 """Shared by every layer: the error tree, atomic file output and the camera / pose / quaternion maths."""
 PROTOCOL = "edmcgs.protocol"
-APPLICATION = ("edmcgs.pipeline", "edmcgs.cli", "edmcgs.train_cli", "edmcgs.eval_cli",
+APPLICATION = ("edmcgs.pipeline", "edmcgs.options", "edmcgs.cli", "edmcgs.train_cli", "edmcgs.eval_cli",
                "edmcgs.record_cli", "edmcgs.export_ply_cli")
 CLI_MODULES = ("edmcgs.cli", "edmcgs.train_cli", "edmcgs.eval_cli", "edmcgs.record_cli",
                "edmcgs.export_ply_cli", "edmcgs.server.cli")

@@ -186,3 +186,15 @@ def test_record_stores_the_split_for_train_and_eval(aps, tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["record", str(path), "-o", str(tmp_path / "x.aedat4"), "--anchor-every", "5"])
     assert "our HDF5 format" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["train", "eval", "export-ply"])
+def test_help_is_instant_no_torch_before_the_arguments_parse(command):
+    import subprocess
+    import sys
+
+    code = (f"import sys\nfrom edmcgs.cli import main\ntry:\n    main([{command!r}, '--help'])\n"
+            "except SystemExit:\n    pass\nassert 'torch' not in sys.modules, 'torch imported for --help'")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "usage: edmcgs" in done.stdout
