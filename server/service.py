@@ -148,6 +148,7 @@ class Service:
             if info.t_range_us is not None:
                 engine.timeline = replay_timeline(info.t_range_us, meta.t_start_us, meta.t_end_us,
                                                   inputs.loop)
+                retain_passes(ring, engine.timeline)
             service = cls(settings, inputs, model, source, ring, anchors, engine)
             seconds = engine.warm_up()
             log.info("model %s on %s: %d Gaussians, warm-up %.1f s; source %s (%dx%d, %s)",
@@ -318,7 +319,7 @@ class Service:
 
         def dropped() -> dict[str, float]:
             s = ring.stats()
-            return {"overflow": s.overflowed, "expired": s.expired, "late": s.late,
+            return {"overflow": s.overflowed, "late": s.late,
                     "invalid": 0 if self.source is None else self.source.stats.dropped}
 
         add(Gauge("edmcgs_up", "1 when the service is ready (model loaded, source delivering).",
@@ -326,8 +327,11 @@ class Service:
         add(CallbackCounter("edmcgs_events_ingested_total", "Events offered to the ring buffer.",
                             lambda: ring.stats().pushed))
         add(CallbackCounter("edmcgs_events_dropped_total",
-                            "Events dropped: ring overflow (oldest first), expired, late (behind the "
+                            "Events dropped: ring overflow (oldest first), late (behind the "
                             "watermark), invalid (rejected by the source's validation).", dropped, "reason"))
+        add(CallbackCounter("edmcgs_events_expired_total",
+                            "Events aged out of the ring's retention (a looping replay keeps two passes): "
+                            "older than any render can use, so not dropped.", lambda: ring.stats().expired))
         add(Gauge("edmcgs_ring_events", "Events held in the ring buffer.", lambda: len(ring)))
         add(Gauge("edmcgs_ring_capacity_events", "Capacity of the ring buffer.", lambda: ring.capacity))
         add(Gauge("edmcgs_ring_fill_ratio", "Ring buffer fill (0..1).", lambda: ring.stats().fill))
@@ -340,6 +344,14 @@ class Service:
         add(Gauge("edmcgs_renders_in_flight", "Renders running or waiting for a worker.",
                   lambda: self.pool.in_flight))
         add(Gauge("edmcgs_stream_clients", "Open websocket streams.", lambda: self.metrics.stream_clients))
+
+
+def retain_passes(ring: EventRingBuffer, timeline: Timeline) -> None:
+    """A looping replay keeps two passes of events and expires older ones: a render's window lies within
+    one pass, and two retained passes keep the whole span renderable (clock.renderable). Without it the
+    older passes filled the ring and overflowed it, continuously."""
+    if timeline.period_us is not None:
+        ring.retention_us = 2 * int(timeline.period_us) + 1
 
 
 def replay_timeline(t_range_us: tuple[int, int], scene_start_us: int, scene_end_us: int,

@@ -126,3 +126,31 @@ def test_issue17_4_deep_or_huge_pose_is_a_422_naming_pose(stub_client, pose):
     response = stub_client.get("/render", params={"pose": pose})
     assert response.status_code == 422
     assert response.json()["param"] == "pose"
+
+
+def test_issue17_14_a_looping_replay_never_overflows_and_keeps_the_span_renderable():
+    from edmcgs.sensor.events import Events
+    from edmcgs.server import clock
+    from edmcgs.server.service import retain_passes
+
+    period, per_pass, t0 = 2_000_000, 30_000, 1_600_000_000_000_000
+    ring = EventRingBuffer(4 * per_pass)  # room for 4 passes: a loop used to fill it, then overflow forever
+    timeline = clock.Timeline(t0, t0, period)
+    retain_passes(ring, timeline)
+    rng = np.random.default_rng(0)
+    anchors = t0 + np.arange(0, period, 250_000, dtype=np.int64)
+    span = clock.Span(int(anchors[0]), t0 + period - 1)
+    for k in range(12):  # twelve passes, in 5 ms batches as a replay pushes them
+        t = np.sort(rng.integers(0, period, per_pass)) + t0 + k * period
+        for lo in range(0, period, 5_000):
+            sel = (t >= t0 + k * period + lo) & (t < t0 + k * period + lo + 5_000)
+            n = int(sel.sum())
+            ring.push(Events(t[sel], np.zeros(n, np.uint16), np.zeros(n, np.uint16), np.ones(n, np.int8)),
+                      complete_until_us=t0 + k * period + lo + 5_000)
+        stats = ring.stats()
+        assert stats.overflowed == 0
+        if k >= 2:
+            ranges = clock.renderable(stats.watermark_us, timeline, span, anchors, stats.oldest_us,
+                                      bool(stats.overflowed or stats.expired))
+            assert ranges == [(span.first_us, span.end_us)], (k, ranges)
+    assert ring.stats().expired > 0 and len(ring) <= 3 * per_pass
