@@ -200,8 +200,20 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _joined_pose(argv: list[str]) -> list[str]:
+    """``--pose -0.15,0,...`` as ``--pose=-0.15,0,...``: argparse takes a value starting with a minus
+    sign for an option unless it is a single number."""
+    out, args = [], iter(argv)
+    for arg in args:
+        if arg == "--pose" and (value := next(args, None)) is not None:
+            out.append(f"--pose={value}")
+        else:
+            out.append(arg)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    args = _parser().parse_args(_joined_pose(sys.argv[1:] if argv is None else argv))
     try:
         pose = None if args.pose is None else protocol.parse_pose_text(args.pose)
         with Client(args.url, args.token) as client:

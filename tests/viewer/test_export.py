@@ -95,3 +95,11 @@ def test_mp4_writer_round_trip_pads_odd_sizes(tmp_path):
 def test_open_writer_refuses_other_suffixes(tmp_path):
     with pytest.raises(InvalidInputError, match=r"out must end in \.gif or \.mp4"):
         open_writer(tmp_path / "a.avi", fps=10)
+
+
+def test_a_pose_starting_with_a_minus_sign_is_a_value_not_an_option():
+    from edmcgs.clients.export import _joined_pose, _parser
+
+    argv = _joined_pose(["out.gif", "--pose", "-0.15,0,0,1,0,0,0", "--fps", "5"])
+    args = _parser().parse_args(argv)
+    assert args.pose == "-0.15,0,0,1,0,0,0" and args.fps == 5
