@@ -30,7 +30,7 @@ from edmcgs.sensor.files.record import read_source
 from edmcgs.sensor.files.recording import FORMAT_NAME, Recording, read_recording
 from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.sources.hdf5 import SUPPORTED_LAYOUTS
-from edmcgs.sensor.sources.open import AEDAT_SUFFIXES, HDF5_SUFFIXES, open_source
+from edmcgs.sensor.sources.open import AEDAT_SUFFIXES, HDF5_SUFFIXES, open_source, parse_resolution
 from edmcgs.sensor.sources.pacing import Pacing
 
 STRUCTURAL = ("events", "markov", "sh_degree", "num_control_points", "skin_k", "graph_k", "deform_width",
@@ -119,7 +119,8 @@ def open_recording(path: str | Path, options: RecordingOptions | None = None, *,
     if suffix in HDF5_SUFFIXES and _is_ours(path):
         rec = read_recording(path)
     else:
-        with open_source(path, pacing=Pacing(factor=0), resolution=_resolution(options.resolution)) as src:
+        resolution = parse_resolution(options.resolution)
+        with open_source(path, pacing=Pacing(factor=0), resolution=resolution) as src:
             rec = read_source(src, progress=progress, source_name=path.name)
         dropped = rec.metadata.get("source_stats", {}).get("dropped", 0)
         if dropped:
@@ -150,16 +151,6 @@ def _is_ours(path: Path) -> bool:
             return f.attrs.get("format") == FORMAT_NAME
     except OSError:
         return True  # not HDF5 at all: read_recording says so, naming the file
-
-
-def _resolution(text: str | None) -> tuple[int, int] | None:
-    if text is None:
-        return None
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise InvalidInputError(f"--resolution must look like 640x480, got {text!r}") from None
-    return w, h
 
 
 def all_frames(rec: Recording) -> Frames:

@@ -24,7 +24,7 @@ from edmcgs.sensor.files.recording import Recording, RecordingWriter
 from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.sources.base import EventSource, SensorBatch, StreamInfo
 from edmcgs.sensor.sources.dv_bridge import dv_error_text, event_store, image_frame, imu_samples
-from edmcgs.sensor.sources.open import AEDAT_SUFFIXES, HDF5_SUFFIXES, open_source
+from edmcgs.sensor.sources.open import AEDAT_SUFFIXES, HDF5_SUFFIXES, open_source, parse_resolution
 from edmcgs.sensor.sources.pacing import Pacing
 
 
@@ -219,16 +219,6 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _resolution(text: str | None) -> tuple[int, int] | None:
-    if text is None:
-        return None
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise InvalidInputError(f"--resolution must look like 640x480, got {text!r}") from None
-    return w, h
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
@@ -243,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         pacing = Pacing(factor=args.factor, start_offset_us=round(args.start * 1e6))
         source = open_source(args.source, live=args.live, serial=args.serial, pacing=pacing,
-                             resolution=_resolution(args.resolution))
+                             resolution=parse_resolution(args.resolution))
         with source:
             summary = record(source, args.output, duration_s=args.duration, frames=not args.no_frames,
                              progress=not args.quiet, source_name=args.source or "live")

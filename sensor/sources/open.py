@@ -13,6 +13,17 @@ AEDAT_SUFFIXES = (".aedat4",)
 HDF5_SUFFIXES = (".h5", ".hdf5")
 
 
+def parse_resolution(text: str | None) -> tuple[int, int] | None:
+    """``WIDTHxHEIGHT`` (a ``--resolution`` flag) as (width, height); None passes through."""
+    if text is None:
+        return None
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InvalidInputError(f"--resolution must look like 640x480, got {text!r}") from None
+    return w, h
+
+
 def open_source(path: str | os.PathLike | None = None, *, live: bool = False, serial: str | None = None,
                 pacing: Pacing | None = None, resolution: tuple[int, int] | None = None) -> EventSource:
     """``live=True``: the DAVIS on USB (``serial`` picks one). Otherwise a replay of ``path``, chosen
