@@ -196,7 +196,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--height", type=int, help="frame height (default: the event camera's)")
     p.add_argument("--jobs", type=int, default=2, help="renders in flight (default: 2)")
     p.add_argument("--max-frames", type=int, default=3000, help="refuse longer sweeps (default: 3000)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--force", action="store_true", help="replace OUT if it exists")
     return p
 
 
@@ -213,7 +214,10 @@ def _joined_pose(argv: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(_joined_pose(sys.argv[1:] if argv is None else argv))
+    parser = _parser()
+    args = parser.parse_args(_joined_pose(sys.argv[1:] if argv is None else argv))
+    if args.out.exists() and not args.force:
+        parser.error(f"{args.out} exists (use --force to replace it)")
     try:
         pose = None if args.pose is None else protocol.parse_pose_text(args.pose)
         with Client(args.url, args.token) as client:

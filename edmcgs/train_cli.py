@@ -25,7 +25,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=1,
                         help="torch CPU threads (default 1: on a CPU shared with other work, OpenMP threads "
                              "that spin-wait for each other are many times slower than one thread)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_recording_arguments(parser)
     args = parser.parse_args(argv)
     try:

@@ -215,7 +215,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--resolution", help="HDF5 layouts without one (DSEC, v2e): WIDTHxHEIGHT, e.g. 640x480")
     p.add_argument("--no-frames", action="store_true", help="record events only")
     p.add_argument("--force", action="store_true", help="replace OUTPUT if it exists")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     return p
 
 

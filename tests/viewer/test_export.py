@@ -103,3 +103,13 @@ def test_a_pose_starting_with_a_minus_sign_is_a_value_not_an_option():
     argv = _joined_pose(["out.gif", "--pose", "-0.15,0,0,1,0,0,0", "--fps", "5"])
     args = _parser().parse_args(argv)
     assert args.pose == "-0.15,0,0,1,0,0,0" and args.fps == 5
+
+
+def test_export_refuses_to_overwrite_without_force(tmp_path, capsys):
+    from edmcgs.clients.export import main
+
+    out = tmp_path / "kept.gif"
+    out.write_bytes(b"a user's file")
+    with pytest.raises(SystemExit):
+        main([str(out), "--url", "http://127.0.0.1:9"])
+    assert "use --force" in capsys.readouterr().err and out.read_bytes() == b"a user's file"
