@@ -92,7 +92,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     app = create_app(settings, service_factory=lambda _settings: service)
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=args.log_level,
-                            ws_max_size=1 << 20, timeout_graceful_shutdown=3)
+                            ws_max_size=1 << 20, timeout_graceful_shutdown=3,
+                            limit_concurrency=settings.max_connections)
     server = uvicorn.Server(config)
     try:
         server.run()

@@ -94,6 +94,7 @@ class Metrics:
                                           "Websocket frames dropped because the client read slower than "
                                           "they were rendered (latest wins)."))
         self.stream_clients = 0
+        self.streams_refused = 0
 
 
 @dataclass(frozen=True)
@@ -115,7 +116,7 @@ class Service:
         self.model, self.source, self.ring, self.anchors, self.engine = model, source, ring, anchors, engine
         self.metrics = Metrics()
         self.arrivals = Arrivals()
-        self.pool = RenderPool(settings.render_workers, settings.render_queue)
+        self.pool = RenderPool(settings.render_workers, settings.render_queue, settings.stream_workers)
         self.signal: HeadSignal | None = None
         self.ingest: Ingest | None = None
         self.started_unix = time.time()
@@ -344,6 +345,10 @@ class Service:
         add(Gauge("edmcgs_renders_in_flight", "Renders running or waiting for a worker.",
                   lambda: self.pool.in_flight))
         add(Gauge("edmcgs_stream_clients", "Open websocket streams.", lambda: self.metrics.stream_clients))
+        add(CallbackCounter("edmcgs_streams_refused_total", "Websocket streams refused: max_streams open.",
+                            lambda: self.metrics.streams_refused))
+        add(Gauge("edmcgs_stream_renders_in_flight", "Stream frames rendering or waiting for a worker.",
+                  lambda: self.pool.stream_in_flight))
 
 
 def retain_passes(ring: EventRingBuffer, timeline: Timeline) -> None:

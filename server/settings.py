@@ -52,6 +52,13 @@ class Settings(BaseSettings):
     render_workers: int = Field(2, gt=0, description="Renders running at once (threads of the render pool).")
     render_queue: int = Field(8, ge=0, description="Renders waiting for a worker before GET /render "
                                                    "answers 503 with Retry-After.")
+    stream_workers: int = Field(1, gt=0, le=64, description="Threads rendering websocket frames, shared by "
+                                "every stream and apart from GET /render's workers and queue (a stream "
+                                "never takes a single render's slot).")
+    max_streams: int = Field(16, ge=0, le=10_000, description="Open websocket streams at most; one more is "
+                             "answered with an error message and close code 1013 (try again later).")
+    max_connections: int = Field(256, gt=0, le=100_000, description="Concurrent connections and requests "
+                                 "at most (uvicorn's limit_concurrency); beyond it HTTP answers 503.")
     stream_max_fps: float = Field(60.0, gt=0, description="Highest frame rate one websocket may ask for.")
     replay_batch_us: int = Field(5_000, gt=0, description="Recording time per replay batch pushed to the "
                                                           "ring (µs): the latency a replay adds.")

@@ -28,12 +28,14 @@ from starlette.websockets import WebSocketDisconnect
 from edmcgs import protocol
 from edmcgs.errors import EdmcgsError, WindowUnavailable
 from edmcgs.geometry import parse_pose
-from edmcgs.server.errors import body_of
+from edmcgs.server.errors import Busy, body_of
 from edmcgs.server.service import Service, invalid
 
 router = APIRouter()
 log = logging.getLogger("edmcgs.server")
 
+CLOSE_TRY_AGAIN_LATER = 1013
+"""Close code when the stream limit (``max_streams``) is reached, after a ``busy`` error message."""
 LIVE_IDLE_S = 0.5  # live mode re-checks its subscription at least this often while no events arrive
 
 
@@ -175,8 +177,8 @@ class StreamSession:
             if self.changed.is_set():
                 continue  # a new subscription while waiting: render what is asked now
             try:
-                frame = await self.service.pool.run(partial(
-                    self.service.render_frame, t_us, self.pose, *self.size, sub.format), wait=True)
+                frame = await self.service.pool.run_stream(partial(
+                    self.service.render_frame, t_us, self.pose, *self.size, sub.format))
             except WindowUnavailable as exc:
                 if sub.mode == "live":
                     # The head is outside the trained span, or before this pass's first anchor: wait
@@ -238,6 +240,16 @@ async def stream(ws: WebSocket) -> None:
     """See the module docstring and ``edmcgs/protocol.py`` for the messages."""
     service: Service = ws.app.state.service
     await ws.accept()
+    limit = service.settings.max_streams
+    if service.metrics.stream_clients >= limit:
+        service.metrics.streams_refused += 1
+        busy = Busy(retry_after_s=1)
+        message = body_of(busy) | {"detail": f"the server already serves {limit} streams (its limit); "
+                                             "retry later"}
+        with contextlib.suppress(RuntimeError, WebSocketDisconnect):
+            await ws.send_bytes(protocol.pack(message))
+            await ws.close(code=CLOSE_TRY_AGAIN_LATER, reason="too many streams")
+        return
     service.metrics.stream_clients += 1
     t0 = time.perf_counter()
     try:

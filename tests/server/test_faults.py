@@ -154,3 +154,66 @@ def test_issue17_14_a_looping_replay_never_overflows_and_keeps_the_span_renderab
                                       bool(stats.overflowed or stats.expired))
             assert ranges == [(span.first_us, span.end_us)], (k, ranges)
     assert ring.stats().expired > 0 and len(ring) <= 3 * per_pass
+
+
+def test_issue17_2_streams_never_take_a_single_render_slot():
+    import asyncio
+    import threading
+
+    from edmcgs.server.render_pool import RenderPool
+
+    async def scenario():
+        pool = RenderPool(workers=2, queue=8, stream_workers=1)
+        release = threading.Event()
+        streams = [asyncio.create_task(pool.run_stream(release.wait)) for _ in range(10)]
+        await asyncio.sleep(0.05)
+        try:
+            # Ten streams hold frames in flight: a single render still gets a worker at once.
+            assert await asyncio.wait_for(pool.run(lambda: "rendered"), 5) == "rendered"
+            assert pool.rejected == 0 and pool.stream_in_flight == 10
+        finally:
+            release.set()
+            await asyncio.gather(*streams)
+            pool.close()
+
+    asyncio.run(scenario())
+
+
+def test_issue17_2_streams_beyond_the_limit_get_busy_and_1013():
+    from fastapi.testclient import TestClient
+    from starlette.websockets import WebSocketDisconnect
+
+    from edmcgs import protocol
+    from edmcgs.server.app import create_app
+    from edmcgs.server.settings import Settings
+
+    app = create_app(Settings(max_streams=0), service_factory=StubService)
+    with TestClient(app) as client, client.websocket_connect("/stream") as ws:
+        message = protocol.unpack(ws.receive_bytes())
+        assert message["type"] == "error" and message["error"] == "busy"
+        with pytest.raises(WebSocketDisconnect) as info:
+            ws.receive_bytes()
+        assert info.value.code == 1013
+
+
+def test_issue17_2_connections_are_capped(monkeypatch):
+    import uvicorn
+
+    from edmcgs.server import cli
+
+    seen = {}
+
+    class FakeServer:
+        started = True
+
+        def __init__(self, config):
+            seen["limit"] = config.limit_concurrency
+
+        def run(self):
+            pass
+
+    monkeypatch.setattr(uvicorn, "Server", FakeServer)
+    monkeypatch.setattr("edmcgs.server.service.Service.open", lambda settings: StubService(settings))
+    monkeypatch.setenv("EDMCGS_MAX_CONNECTIONS", "77")
+    assert cli.main([]) == 0
+    assert seen["limit"] == 77
