@@ -20,6 +20,7 @@ Writes are atomic (a temporary file in the same folder, fsynced, then renamed ov
 
 from __future__ import annotations
 
+import hashlib
 import os
 import pickle
 import re
@@ -85,6 +86,7 @@ def save_checkpoint(model: EdMCGS, path: str | os.PathLike, *, train_state: dict
         "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
         "train_state": train_state,
     }
+    payload["checksum"] = checksum(payload)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_output(path, CheckpointError) as tmp:
         torch.save(payload, tmp)
@@ -117,6 +119,15 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
     for key in ("meta", "sizes", "state_dict"):
         if not isinstance(payload.get(key), dict):
             raise CheckpointError(f"{str(path)!r}: missing section {key!r}")
+    stored = payload.get("checksum")
+    if stored is not None:  # files written before checksums have none
+        if not isinstance(stored, str) or stored != checksum(payload):
+            raise CheckpointError(f"{str(path)!r} is damaged: its checksum does not match its contents "
+                                  "(a flipped bit, a partial copy); use another copy")
+    try:
+        validate(payload)
+    except CheckpointError as exc:
+        raise CheckpointError(f"{str(path)!r}: {exc}") from None
     return payload
 
 
@@ -131,6 +142,131 @@ def _first_line(exc: BaseException) -> str:
 def _unsafe_reason(exc: BaseException) -> str:
     found = re.search(r"(?:Unsupported global|GLOBAL|global):? *([\w.]+)", str(exc))
     return f"global {found.group(1)}" if found else "an unsupported pickle instruction"
+
+
+MAX_CAMERA_SIDE = 16_384
+"""Largest camera or event-map side a checkpoint may state (px): a corrupt size must not allocate."""
+MAX_CAMERA_PIXELS = 64 * 2**20
+MAX_GAUSSIANS = 50_000_000
+MAX_CONTROL_POINTS = 1_000_000
+INDEX_TENSORS = ("control.graph", "control.bind")
+"""Integer tensors that index the control points: every value in [0, num_control_points)."""
+
+
+def checksum(payload: dict) -> str:
+    """SHA-256 over meta, sizes and state_dict (tensors by dtype, shape and bytes; the rest by repr)."""
+    h = hashlib.sha256()
+
+    def walk(obj) -> None:
+        if isinstance(obj, torch.Tensor):
+            t = obj.detach().cpu().contiguous()
+            h.update(f"T{t.dtype}{tuple(t.shape)}".encode())
+            h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+        elif isinstance(obj, dict):
+            h.update(b"{")
+            for key in sorted(obj, key=repr):
+                h.update(repr(key).encode())
+                walk(obj[key])
+            h.update(b"}")
+        elif isinstance(obj, list | tuple):
+            h.update(b"[")
+            for item in obj:
+                walk(item)
+            h.update(b"]")
+        else:
+            h.update(repr(obj).encode())
+
+    walk({k: payload.get(k) for k in ("meta", "sizes", "state_dict")})
+    return h.hexdigest()
+
+
+def _int(value, name: str, lo: int, hi: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise CheckpointError(f"{name} must be an integer, got {type(value).__name__}")
+    if not lo <= value <= hi:
+        raise CheckpointError(f"{name}={value} is outside [{lo}, {hi}]")
+    return value
+
+
+def _float(value, name: str, *, positive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
+        raise CheckpointError(f"{name} must be a finite number, got {value!r}"[:200])
+    if positive and value <= 0:
+        raise CheckpointError(f"{name} must be > 0, got {value!r}")
+    return float(value)
+
+
+def _times(value, name: str, *, min_len: int = 1) -> np.ndarray:
+    if not isinstance(value, torch.Tensor) or value.dtype != torch.int64 or value.dim() != 1:
+        got = value.dtype if isinstance(value, torch.Tensor) else type(value).__name__
+        raise CheckpointError(f"{name} must be a 1-D int64 tensor, got {got}")
+    if value.numel() < min_len:
+        raise CheckpointError(f"{name} is empty")
+    t = value.numpy()
+    if len(t) > 1 and not bool(np.all(np.diff(t) > 0)):
+        raise CheckpointError(f"{name} is not strictly increasing")
+    return t
+
+
+def validate(payload: dict) -> None:
+    """Check every field of a checkpoint's payload (types, shapes, ranges, index bounds, camera size caps,
+    time order) before anything is built from it; CheckpointError in one line naming the field."""
+    m, sizes, state = payload["meta"], payload["sizes"], payload["state_dict"]
+    for key in ("t_start_us", "t_end_us", "anchors_us", "intrinsics", "event_width", "event_height",
+                "trajectory", "channels", "config", "has_event_branch"):
+        if key not in m:
+            raise CheckpointError(f"meta.{key} is missing")
+    t0 = _int(m["t_start_us"], "meta.t_start_us", -(2**62), 2**62)
+    t1 = _int(m["t_end_us"], "meta.t_end_us", -(2**62), 2**62)
+    if t1 <= t0:
+        raise CheckpointError(f"meta.t_end_us ({t1}) is not after meta.t_start_us ({t0})")
+    anchors = _times(m["anchors_us"], "meta.anchors_us")
+    if anchors[0] < t0 or anchors[-1] > t1:
+        raise CheckpointError(f"meta.anchors_us [{anchors[0]}, {anchors[-1]}] leave the span [{t0}, {t1}]")
+    intr = m["intrinsics"]
+    if not isinstance(intr, dict):
+        raise CheckpointError("meta.intrinsics must be a map")
+    for key in ("fx", "fy", "cx", "cy"):
+        _float(intr.get(key), f"meta.intrinsics.{key}", positive=key in ("fx", "fy"))
+    for prefix, w_key, h_key, src in (("meta.intrinsics.", "width", "height", intr),
+                                      ("meta.", "event_width", "event_height", m)):
+        w = _int(src.get(w_key), prefix + w_key, 1, MAX_CAMERA_SIDE)
+        h = _int(src.get(h_key), prefix + h_key, 1, MAX_CAMERA_SIDE)
+        if w * h > MAX_CAMERA_PIXELS:
+            raise CheckpointError(f"{prefix}{w_key}x{h_key} = {w}x{h} exceeds {MAX_CAMERA_PIXELS} pixels")
+    traj = m["trajectory"]
+    if traj is not None:
+        if not isinstance(traj, dict):
+            raise CheckpointError("meta.trajectory must be a map or None")
+        tt = _times(traj.get("t_us"), "meta.trajectory.t_us")
+        c2w = traj.get("c2w")
+        if (not isinstance(c2w, torch.Tensor) or not c2w.is_floating_point()
+                or tuple(c2w.shape) != (len(tt), 4, 4)):
+            raise CheckpointError(f"meta.trajectory.c2w must be a float tensor [{len(tt)}, 4, 4]")
+        if not bool(torch.isfinite(c2w).all()):
+            raise CheckpointError("meta.trajectory.c2w contains NaN or Inf")
+    _int(m["channels"], "meta.channels", 1, 3)
+    if m["channels"] == 2:
+        raise CheckpointError("meta.channels must be 1 or 3")
+    if not isinstance(m["has_event_branch"], bool):
+        raise CheckpointError("meta.has_event_branch must be true or false")
+    if not isinstance(m["config"], dict):
+        raise CheckpointError("meta.config must be a map")
+    n = _int(sizes.get("num_gaussians"), "sizes.num_gaussians", 1, MAX_GAUSSIANS)
+    mcp = _int(sizes.get("num_control_points"), "sizes.num_control_points", 1, MAX_CONTROL_POINTS)
+    del n
+    for key in INDEX_TENSORS:
+        value = state.get(key)
+        if isinstance(value, torch.Tensor):
+            if value.is_floating_point() or value.dtype == torch.bool:
+                raise CheckpointError(f"state_dict[{key!r}] must be an integer tensor")
+            if value.numel() and (int(value.min()) < 0 or int(value.max()) >= mcp):
+                raise CheckpointError(f"state_dict[{key!r}] indexes outside [0, {mcp}) control points")
+    train_state = payload.get("train_state")
+    if train_state is not None:
+        if not isinstance(train_state, dict):
+            raise CheckpointError("train_state must be a map or None")
+        _int(train_state.get("step"), "train_state.step", 0, 2**40)
 
 
 def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu") -> EdMCGS:

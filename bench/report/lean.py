@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from bench.report.render import pick_frame
-from edmcgs.model.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
+from edmcgs.model.checkpoint import checksum, load_checkpoint, read_checkpoint, save_checkpoint
 from edmcgs.model.config import EdmcgsConfig
 from edmcgs.model.dynamic import background_color
 from edmcgs.model.eval.metrics import psnr
@@ -70,6 +70,7 @@ def full_twin_payload(payload: dict, trajectory) -> dict:
     if meta["trajectory"] is not None and len(meta["trajectory"]["t_us"]) < len(trajectory.t_us):
         meta["trajectory"] = {"t_us": torch.from_numpy(np.asarray(trajectory.t_us, np.int64).copy()),
                               "c2w": torch.from_numpy(np.asarray(trajectory.c2w, np.float64).copy())}
+    twin["checksum"] = checksum(twin)  # a new checkpoint: its own checksum
     return twin
 
 

@@ -8,7 +8,14 @@ import pytest
 import torch
 
 from edmcgs.errors import CheckpointError, InvalidInputError
-from edmcgs.model.checkpoint import FORMAT, VERSION, load_checkpoint, read_checkpoint, save_checkpoint
+from edmcgs.model.checkpoint import (
+    FORMAT,
+    VERSION,
+    checksum,
+    load_checkpoint,
+    read_checkpoint,
+    save_checkpoint,
+)
 from edmcgs.model.motion.event_branch import FIELD
 from edmcgs.model.train.trainer import Trainer
 from tests.support import tiny_scene
@@ -168,6 +175,10 @@ def test_checkpoint_errors(tmp_path):
         load_checkpoint(tmp_path / "newer.ckpt")
     payload["version"] = VERSION
     payload["state_dict"]["gaussians.means"] = payload["state_dict"]["gaussians.means"][:5]
+    torch.save(payload, tmp_path / "inconsistent.ckpt")
+    with pytest.raises(CheckpointError, match="checksum"):  # edited after writing: the checksum says so
+        load_checkpoint(tmp_path / "inconsistent.ckpt")
+    payload["checksum"] = checksum(payload)  # written that way: the shape check says so
     torch.save(payload, tmp_path / "inconsistent.ckpt")
     with pytest.raises(CheckpointError, match="shape"):
         load_checkpoint(tmp_path / "inconsistent.ckpt")
