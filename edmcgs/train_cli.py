@@ -35,6 +35,33 @@ def main(argv: list[str] | None = None) -> int:
         return 1
 
 
+def check_resume_fits(model, data, path) -> None:
+    """InvalidInputError unless the checkpoint at ``path`` was trained on this recording's anchors, camera
+    and event maps (``--resume`` would otherwise overwrite it, then fail)."""
+    import numpy as np
+
+    meta = model.meta
+    problems = []
+    if not np.array_equal(np.asarray(meta.anchors_us), np.asarray(data.anchors_t_us)):
+        problems.append(f"anchors ({len(meta.anchors_us)} in the checkpoint, {len(data.anchors_t_us)} in the "
+                        "recording, or at other times)")
+    if (meta.intrinsics.width, meta.intrinsics.height) != (data.intrinsics.width, data.intrinsics.height):
+        problems.append(f"camera {meta.intrinsics.width}x{meta.intrinsics.height} vs "
+                        f"{data.intrinsics.width}x{data.intrinsics.height}")
+    if data.event_size is not None and tuple(data.event_size) != (meta.event_width, meta.event_height):
+        problems.append(f"event maps {meta.event_width}x{meta.event_height} vs "
+                        f"{data.event_size[0]}x{data.event_size[1]}")
+    channels = 1 if data.anchor_images.ndim == 3 else int(data.anchor_images.shape[-1])
+    if channels != meta.channels:
+        problems.append(f"{meta.channels} vs {channels} colour channels")
+    if int(data.t_end_us) != int(meta.t_end_us):
+        problems.append(f"span end {meta.t_end_us} vs {data.t_end_us} µs")
+    if problems:
+        raise InvalidInputError(f"--resume: {path} was not trained on this recording "
+                                f"({'; '.join(problems)}); it was left as it is. Train to another --output, "
+                                "or give its recording")
+
+
 def _run(args) -> int:
     import torch
 
@@ -63,6 +90,7 @@ def _run(args) -> int:
     if args.resume and out.exists():
         payload = read_checkpoint(out)
         model = load_checkpoint(out)
+        check_resume_fits(model, data, out)  # before anything is written over it
         cfg = model.config.with_overrides(args.overrides)
         changed = [k for k in STRUCTURAL if getattr(cfg, k) != getattr(model.config, k)]
         if changed:

@@ -63,3 +63,18 @@ def test_eval_rejects_a_foreign_checkpoint(recording, tmp_path, capsys):
     bad.write_bytes(b"not a checkpoint")
     assert main(["eval", str(bad), str(recording)]) == 1
     assert "checkpoint" in capsys.readouterr().err
+
+
+def test_issue17_7_resume_on_another_recording_fails_before_writing(recording, tmp_path, capsys):
+    from edmcgs.model.checkpoint import save_checkpoint
+    from tests.support.models import build
+
+    other, _ = build(anchors_ms=(0, 80, 200))  # another split: other anchors
+    ckpt = tmp_path / "other.ckpt"
+    save_checkpoint(other, ckpt)
+    before = ckpt.read_bytes()
+    assert main(["train", str(recording), "-o", str(ckpt), "--quiet", "--resume",
+                 "--set", "iterations=2"]) == 1
+    err = capsys.readouterr().err
+    assert "was not trained on this recording" in err and "Traceback" not in err
+    assert ckpt.read_bytes() == before
