@@ -243,6 +243,8 @@ class Subscription:
         """A copy with the fields of ``message`` applied, validated; raises ProtocolError."""
         if not isinstance(message, dict):
             raise ProtocolError(None, "a subscription must be a map (msgpack map or JSON object)")
+        if not all(isinstance(k, str) for k in message):
+            raise ProtocolError(None, "subscription field names must be strings")
         known = {f.name for f in fields(self)}
         unknown = sorted(set(message) - known)
         if unknown:
@@ -250,6 +252,16 @@ class Subscription:
                                             f"known: {', '.join(sorted(known))}")
         values = asdict(self) | message
         return _validated(values)
+
+
+LIMITS = {"t0": 1e9, "t1": 1e9, "t0_us": 2**62, "t1_us": 2**62, "fps": 1e4, "speed": 1e6,
+          "width": 2**20, "height": 2**20}
+"""Largest magnitude of each numeric subscription field: beyond any clock or image (the server's own
+limits are tighter); a value past it is refused before any arithmetic can overflow."""
+MAX_MESSAGE_BYTES = 64 * 1024
+"""Largest websocket message the server parses (a subscription is a few hundred bytes)."""
+MAX_MESSAGE_DEPTH = 4
+"""Deepest nesting of a websocket message (a subscription's 4x4 pose is 3 deep)."""
 
 
 def _number(values: dict, name: str, *, integer: bool = False, positive: bool = False,
@@ -260,9 +272,14 @@ def _number(values: dict, name: str, *, integer: bool = False, positive: bool = 
             return None
         raise ProtocolError(name, f"{name} is required")
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise ProtocolError(name, f"{name} must be a number, got {v!r}")
+        raise ProtocolError(name, f"{name} must be a number, got {type(v).__name__}")
+    limit = LIMITS.get(name, 2**62)
+    if isinstance(v, int) and abs(v) > limit:
+        raise ProtocolError(name, f"{name} is out of range (|{name}| <= {limit:g})")
     if not math.isfinite(v):
         raise ProtocolError(name, f"{name} must be finite, got {v!r}")
+    if abs(v) > limit:
+        raise ProtocolError(name, f"{name}={v:g} is out of range (|{name}| <= {limit:g})")
     if integer:
         if float(v) != int(v):
             raise ProtocolError(name, f"{name} must be an integer, got {v!r}")
@@ -294,13 +311,29 @@ def _validated(values: dict) -> Subscription:
 
 def decode_message(data: bytes | str) -> Any:
     """A websocket message: msgpack when binary, JSON when text; raises ProtocolError."""
+    if data is None or len(data) > MAX_MESSAGE_BYTES:
+        raise ProtocolError(None, f"message is empty or longer than {MAX_MESSAGE_BYTES} bytes")
     try:
         if isinstance(data, str):
+            if json_depth(data) > MAX_MESSAGE_DEPTH:
+                raise ProtocolError(None, f"message nests deeper than {MAX_MESSAGE_DEPTH}")
             return json.loads(data)
-        return msgpack.unpackb(data, raw=False)
-    except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError) as exc:
+        message = msgpack.unpackb(data, raw=False)
+        if _depth(message, MAX_MESSAGE_DEPTH + 1) > MAX_MESSAGE_DEPTH:
+            raise ProtocolError(None, f"message nests deeper than {MAX_MESSAGE_DEPTH}")
+        return message
+    except (ValueError, TypeError, RecursionError, msgpack.ExtraData, msgpack.FormatError,
+            msgpack.StackError) as exc:
         kind = "JSON" if isinstance(data, str) else "msgpack"
         raise ProtocolError(None, f"message is not valid {kind}: {exc}") from None
+
+
+def _depth(obj: Any, cap: int) -> int:
+    """Nesting depth of decoded containers, counted up to ``cap`` (no deeper recursion)."""
+    if cap <= 0 or not isinstance(obj, dict | list | tuple):
+        return 0
+    items = obj.values() if isinstance(obj, dict) else obj
+    return 1 + max((_depth(v, cap - 1) for v in items), default=0)
 
 
 def pack(message: dict) -> bytes:

@@ -36,6 +36,10 @@ log = logging.getLogger("edmcgs.server")
 
 CLOSE_TRY_AGAIN_LATER = 1013
 """Close code when the stream limit (``max_streams``) is reached, after a ``busy`` error message."""
+CLOSE_INTERNAL_ERROR = 1011
+"""Close code when the stream itself failed, after an ``error`` message saying how."""
+MIN_FPS = 0.01
+"""Slowest frame rate a stream may ask for (a sweep's step is speed / fps)."""
 LIVE_IDLE_S = 0.5  # live mode re-checks its subscription at least this often while no events arrive
 
 
@@ -76,6 +80,7 @@ class StreamSession:
         self.wake = asyncio.Event()
         self.seq = 0
         self.dropped = 0
+        self.failure: BaseException | None = None  # what ended the session, when not the client
 
     async def run(self) -> None:
         tasks = [asyncio.create_task(c) for c in (self._receive(), self._produce(), self._send())]
@@ -85,6 +90,7 @@ class StreamSession:
                 exc = task.exception()
                 if exc is not None and not isinstance(exc, WebSocketDisconnect):
                     log.warning("websocket stream ended by %s: %s", type(exc).__name__, exc)
+                    self.failure = exc
         finally:
             for task in tasks:
                 task.cancel()
@@ -101,6 +107,10 @@ class StreamSession:
                 self._apply(protocol.decode_message(raw))
             except (protocol.ProtocolError, EdmcgsError) as exc:
                 self._control(body_of(exc))
+            except Exception as exc:  # an input no check foresaw: still an answer, never a silent close
+                log.warning("websocket message refused by %s: %s", type(exc).__name__, exc)
+                self._control(protocol.ErrorBody(protocol.ErrorCode.INVALID_INPUT, "the message could not "
+                                                 f"be applied ({type(exc).__name__})").to_message())
             else:
                 self._control({"type": "subscribed", "subscription": self.sub.to_message()})
 
@@ -111,6 +121,8 @@ class StreamSession:
         pose = None if sub.pose is None else parse_pose(sub.pose, name="pose")
         size = self.service.size(sub.width, sub.height)
         limit = self.service.settings.stream_max_fps
+        if sub.fps < MIN_FPS:
+            raise invalid("fps", f"fps={sub.fps:g} is below the minimum of {MIN_FPS:g}")
         if sub.fps > limit:
             raise invalid("fps", f"fps={sub.fps:g} exceeds the server's limit of {limit:g}")
         engine = self.service.engine
@@ -252,10 +264,17 @@ async def stream(ws: WebSocket) -> None:
         return
     service.metrics.stream_clients += 1
     t0 = time.perf_counter()
+    session = StreamSession(ws, service)
     try:
-        await StreamSession(ws, service).run()
+        await session.run()
     finally:
         service.metrics.stream_clients -= 1
-        with contextlib.suppress(RuntimeError, WebSocketDisconnect):  # the client is already gone
-            await ws.close()
+        with contextlib.suppress(Exception):  # the client may already be gone
+            if session.failure is not None:  # say why, then close with 1011 (internal error)
+                body = protocol.ErrorBody(protocol.ErrorCode.RENDER_FAILED, "the stream failed: "
+                                          f"{type(session.failure).__name__}: {session.failure}"[:300])
+                await ws.send_bytes(protocol.pack(body.to_message()))
+                await ws.close(code=CLOSE_INTERNAL_ERROR, reason="stream failed")
+            else:
+                await ws.close()
         log.debug("stream closed after %.1f s", time.perf_counter() - t0)

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import asyncio
+import functools
 import types
 
+import msgpack
 import numpy as np
 import pytest
 
@@ -96,6 +99,11 @@ class StubService:
         self.settings = settings
         self.metrics = Metrics()
         self.pool = RenderPool(settings.render_workers, settings.render_queue)
+        self.signal = types.SimpleNamespace(wait=lambda timeout: asyncio.sleep(timeout))
+        t0 = 1_600_000_000_000_000
+        self.engine = types.SimpleNamespace(
+            head=lambda: None, first_us=t0, end_us=t0 + 2_000_000,
+            t_us_of_seconds=lambda t: t0 + round(t * 1e6), seconds_of=lambda t_us: (t_us - t0) / 1e6)
 
     def start(self, loop):
         pass
@@ -217,3 +225,29 @@ def test_issue17_2_connections_are_capped(monkeypatch):
     monkeypatch.setenv("EDMCGS_MAX_CONNECTIONS", "77")
     assert cli.main([]) == 0
     assert seen["limit"] == 77
+
+
+WS_CASES = {
+    "mixed_keys": lambda: msgpack.packb({b"fps": 5, "mode": "live"}, use_bin_type=True),
+    "400_digit_int": lambda: '{"t0_us": ' + "9" * 400 + "}",
+    "t0_1e30": lambda: '{"mode": "sweep", "t0": 1e30}',
+    "t0_us_1e30": lambda: '{"mode": "sweep", "t0_us": 1e30}',
+    "speed_1e308": lambda: '{"mode": "sweep", "speed": 1e308}',
+    "fps_tiny": lambda: '{"mode": "sweep", "fps": 1e-300}',
+    "deep_json": lambda: "[" * 5000 + "]" * 5000,
+    "deep_msgpack": lambda: msgpack.packb(functools.reduce(lambda a, _: [a], range(500), 1)),
+    "huge": lambda: '{"pose": [' + ",".join(["1"] * 40000) + "]}",
+}
+
+
+@pytest.mark.parametrize("case", sorted(WS_CASES))
+def test_issue17_5_bad_websocket_messages_get_an_error_and_the_stream_lives_on(stub_client, case):
+    from edmcgs import protocol
+
+    with stub_client.websocket_connect("/stream") as ws:
+        data = WS_CASES[case]()
+        ws.send_bytes(data) if isinstance(data, bytes) else ws.send_text(data)
+        answer = protocol.unpack(ws.receive_bytes())
+        assert answer["type"] == "error" and answer["error"] == "invalid_input", answer
+        ws.send_text('{"fps": 5}')
+        assert protocol.unpack(ws.receive_bytes())["type"] == "subscribed"
