@@ -30,6 +30,28 @@ wants `Authorization: Bearer <token>` (or `?token=`).
 """
 
 
+def _openapi(app: FastAPI, settings: Settings) -> dict:
+    """FastAPI's schema with this server's own limits (the size caps come from the settings) and, with
+    a token, the bearer scheme (so /docs can authorize its requests)."""
+    if app.openapi_schema is None:
+        from fastapi.openapi.utils import get_openapi
+
+        schema = get_openapi(title=app.title, version=app.version, description=app.description,
+                             routes=app.routes)
+        caps = {"width": settings.max_width, "height": settings.max_height}
+        for param in schema["paths"]["/render"]["get"].get("parameters", []):
+            if param["name"] in caps:
+                for option in param["schema"].get("anyOf", [param["schema"]]):
+                    if option.get("type") == "integer":
+                        option["maximum"] = caps[param["name"]]
+        if settings.token is not None:
+            schema.setdefault("components", {})["securitySchemes"] = {
+                "bearer": {"type": "http", "scheme": "bearer"}}
+            schema["security"] = [{"bearer": []}]
+        app.openapi_schema = schema
+    return app.openapi_schema
+
+
 def create_app(settings: Settings | None = None, *, service_factory=Service.open) -> FastAPI:
     """The service as an ASGI app. ``settings``: default ``Settings()`` (the environment).
 
@@ -52,10 +74,15 @@ def create_app(settings: Settings | None = None, *, service_factory=Service.open
     app = FastAPI(title="edmcgs", version="0.1.0", description=DESCRIPTION, lifespan=lifespan)
     app.state.settings = settings
     token = settings.token.get_secret_value() if settings.token is not None else None
-    app.add_middleware(AccessMiddleware, token=token)
+    open_paths = {"/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"}  # the schema, not data
+    if settings.open_probes:
+        open_paths |= {"/healthz", "/metrics"}
+    app.add_middleware(AccessMiddleware, token=token, allowed_hosts=settings.host_allowlist,
+                       open_paths=frozenset(open_paths))
     errors.install(app)
     for module in (render, scene, health, stream):
-        app.include_router(module.router)
+        app.include_router(module.router, responses=render.AUTH_ERRORS)
+    app.openapi = lambda: _openapi(app, settings)
     viewer = files("edmcgs.clients") / "viewer"
     if viewer.is_dir() and (viewer / "index.html").is_file():
         # The browser viewer: static files only, mounted last so the API routes take precedence.

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import time
-from urllib.parse import parse_qs
+from urllib.parse import parse_qs, urlsplit
 
+from fastapi.responses import JSONResponse
+
+from edmcgs.protocol import ErrorBody, ErrorCode
 from edmcgs.server.auth import check_token
 from edmcgs.server.errors import Unauthorized, response_of
 
@@ -15,16 +18,28 @@ class AccessMiddleware:
     with code 1008 before the handshake completes (HTTP 403). Then count and time HTTP requests.
     """
 
-    def __init__(self, app, token: str | None):
+    def __init__(self, app, token: str | None, *, allowed_hosts: list[str] | None = None,
+                 open_paths: frozenset[str] = frozenset()):
         self.app = app
         self.token = token
+        self.allowed_hosts = None if allowed_hosts is None else {h.lower() for h in allowed_hosts}
+        self.open_paths = open_paths
 
     async def __call__(self, scope, receive, send):
         kind = scope["type"]
         if kind not in ("http", "websocket"):
             await self.app(scope, receive, send)
             return
-        if self.token is not None:
+        refused = self._foreign(scope)
+        if refused is not None:
+            if kind == "websocket":
+                await send({"type": "websocket.close", "code": 1008, "reason": refused[:120]})
+            else:
+                body = ErrorBody(ErrorCode.INVALID_INPUT, refused, "host").to_message()
+                await JSONResponse(body, status_code=421)(scope, receive, send)
+                _record(scope, 421, 0.0)
+            return
+        if self.token is not None and scope.get("path") not in self.open_paths:
             try:
                 check_token(self.token, _header(scope, b"authorization"), _query_token(scope))
             except Unauthorized as exc:
@@ -50,6 +65,33 @@ class AccessMiddleware:
             await self.app(scope, receive, send_wrapper)
         finally:
             _record(scope, status, time.perf_counter() - t0)
+
+
+    def _foreign(self, scope) -> str | None:
+        """Why a request comes from a foreign site (DNS rebinding: a Host not ours; a web page's
+        websocket: an Origin not ours), or None. Only with ``allowed_hosts`` (loopback by default)."""
+        if self.allowed_hosts is None or "*" in self.allowed_hosts:
+            return None
+        host = _hostname(_header(scope, b"host"))
+        if host is None or host not in self.allowed_hosts:
+            return (f"Host {host!r} is not one this server answers to (EDMCGS_ALLOWED_HOSTS); "
+                    "a DNS-rebinding page is refused")
+        origin = _header(scope, b"origin")
+        if origin is not None:
+            origin_host = _hostname(urlsplit(origin).netloc) if "://" in origin else None
+            if origin_host is None or origin_host not in self.allowed_hosts:
+                return f"Origin {origin[:60]!r} is not allowed (EDMCGS_ALLOWED_HOSTS)"
+        return None
+
+
+def _hostname(netloc: str | None) -> str | None:
+    """The host name of a Host header or an origin's netloc, lowercase, without port or brackets."""
+    if not netloc:
+        return None
+    netloc = netloc.strip().lower()
+    if netloc.startswith("["):
+        return netloc[1:netloc.find("]")] if "]" in netloc else None
+    return netloc.rsplit(":", 1)[0] if netloc.count(":") == 1 else netloc
 
 
 def _record(scope, status: int, seconds: float) -> None:

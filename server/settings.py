@@ -10,6 +10,7 @@ from pathlib import Path
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+LOOPBACK = ("127.0.0.1", "localhost", "::1")
 RING_BYTES_PER_EVENT = 13
 """t int64, x and y uint16, p int8: the ring's arrays (sensor/buffer/ring.py)."""
 
@@ -47,6 +48,13 @@ class Settings(BaseSettings):
     device: str = Field("cpu", description="Torch device of the model: 'cpu', 'cuda', 'cuda:1' ...")
     token: SecretStr | None = Field(None, description="When set, every route and the websocket require "
                                                       "'Authorization: Bearer <token>'.")
+    allowed_hosts: list[str] | None = Field(None, description="Host names the service answers to (Host "
+                                            "header; a websocket's or a browser's Origin too): a DNS-"
+                                            "rebinding page or another site's websocket is refused. None: "
+                                            "the loopback names when bound to loopback, any host otherwise; "
+                                            "['*']: any.")
+    open_probes: bool = Field(False, description="Serve /healthz and /metrics without the token (for "
+                                                  "probes and scrapers); every other route still wants it.")
     max_width: int = Field(1920, gt=0, description="Largest width a client may ask for (px).")
     max_height: int = Field(1920, gt=0, description="Largest height a client may ask for (px).")
     render_workers: int = Field(2, gt=0, description="Renders running at once (threads of the render pool).")
@@ -104,6 +112,15 @@ class Settings(BaseSettings):
         if (self.live or self.replay is not None) and self.checkpoint is None:
             raise ValueError("a checkpoint is required with replay or live (the model of that scene)")
         return self  # a checkpoint alone: Service.open checks that it has no event branch
+
+    @property
+    def host_allowlist(self) -> list[str] | None:
+        """The Host / Origin names to accept (None: any)."""
+        if self.allowed_hosts is not None:
+            return self.allowed_hosts
+        if self.host in LOOPBACK:
+            return ["127.0.0.1", "localhost", "::1"]
+        return None
 
     @property
     def uses_demo(self) -> bool:

@@ -27,13 +27,36 @@ POSE_DOC = ("Camera-to-world pose, OpenCV convention (x right, y down, z forward
 SIZE_DOC = "Output {} in pixels (default: the camera's; one side alone keeps the aspect ratio; capped)."
 FORMAT_DOC = "png (default), jpeg, or msgpack (a frame map with raw uint8 pixels); else from Accept."
 
-ERRORS = {
-    401: {"description": "missing or wrong bearer token"},
-    416: {"description": "t cannot be rendered now; the body's valid_range says what can"},
-    422: {"description": "a malformed parameter; the body's param names it"},
-    500: {"description": "the render failed; the service lives on"},
-    503: {"description": "render queue full (Retry-After) or not ready"},
+ERROR_SCHEMA = {
+    "type": "object", "title": "ErrorBody", "required": ["type", "error", "detail"],
+    "properties": {
+        "type": {"type": "string", "enum": ["error"]},
+        "error": {"type": "string", "enum": [c.value for c in protocol.ErrorCode]},
+        "detail": {"type": "string"},
+        "param": {"type": ["string", "null"]},
+        "valid_range": {"anyOf": [{"type": "null"}, {
+            "type": "object", "required": ["t_min", "t_max", "t_us_min", "t_us_max"],
+            "properties": {"t_min": {"type": "number"}, "t_max": {"type": "number"},
+                           "t_us_min": {"type": "integer"}, "t_us_max": {"type": "integer"}}}]},
+    },
 }
+"""The error body of every route (``protocol.ErrorBody``), as JSON Schema."""
+
+
+def error(description: str) -> dict:
+    return {"description": description, "content": {"application/json": {"schema": ERROR_SCHEMA}}}
+
+
+ERRORS = {
+    401: error("missing or wrong bearer token"),
+    416: error("t cannot be rendered now; the body's valid_range says what can"),
+    421: error("a Host or Origin this server does not answer to (EDMCGS_ALLOWED_HOSTS)"),
+    422: error("a malformed parameter; the body's param names it"),
+    500: error("the render failed; the service lives on"),
+    503: error("render queue full (Retry-After) or not ready"),
+}
+AUTH_ERRORS = {401: ERRORS[401], 421: ERRORS[421], 500: ERRORS[500]}
+"""What any route may answer besides its own."""
 
 
 def parse_time(service: Service, t: float | None, t_us: int | None) -> int | None:
@@ -64,13 +87,19 @@ def get_service(request: Request) -> Service:
 ServiceDep = Annotated[Service, Depends(get_service)]
 
 
-def scene_time(service: ServiceDep, t: Annotated[float | None, Query(description=T_DOC)] = None,
-               t_us: Annotated[int | None, Query(description=T_US_DOC)] = None) -> int | None:
+MAX_T_S = MAX_T_US / 1e6 / 2
+
+
+def scene_time(service: ServiceDep,
+               t: Annotated[float | None, Query(description=T_DOC, ge=-MAX_T_S, le=MAX_T_S)] = None,
+               t_us: Annotated[int | None, Query(description=T_US_DOC, ge=-MAX_T_US, le=MAX_T_US)] = None,
+               ) -> int | None:
     """The query's time as scene µs (None: the head)."""
     return parse_time(service, t, t_us)
 
 
-def pose_query(pose: Annotated[str | None, Query(description=POSE_DOC)] = None):
+def pose_query(pose: Annotated[str | None, Query(description=POSE_DOC,
+                                                max_length=protocol.MAX_POSE_TEXT)] = None):
     """The query's pose, c2w float64 [4, 4], or None."""
     return parse_pose_param(pose)
 
@@ -83,8 +112,8 @@ async def render(
     service: ServiceDep,
     scene_t: Annotated[int | None, Depends(scene_time)],
     c2w: Annotated[object, Depends(pose_query)],
-    width: Annotated[int | None, Query(description=SIZE_DOC.format("width"))] = None,
-    height: Annotated[int | None, Query(description=SIZE_DOC.format("height"))] = None,
+    width: Annotated[int | None, Query(description=SIZE_DOC.format("width"), ge=1)] = None,
+    height: Annotated[int | None, Query(description=SIZE_DOC.format("height"), ge=1)] = None,
     format: Annotated[Literal["png", "jpeg", "msgpack"] | None, Query(description=FORMAT_DOC)] = None,
     accept: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> Response:

@@ -15,6 +15,7 @@ from edmcgs.sensor.buffer.ingest import Ingest
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.sources.pacing import Pacer
 from edmcgs.server.service import Service
+from edmcgs.server.settings import LOOPBACK
 
 
 class _Failing:
@@ -125,7 +126,9 @@ def stub_client():
     from edmcgs.server.app import create_app
     from edmcgs.server.settings import Settings
 
-    with TestClient(create_app(Settings(), service_factory=StubService)) as client:
+    # The loopback allowlist, plus the name TestClient's websockets always send as their Host.
+    app = create_app(Settings(allowed_hosts=[*LOOPBACK, "testserver"]), service_factory=StubService)
+    with TestClient(app, base_url="http://127.0.0.1:8000") as client:
         yield client
 
 
@@ -195,7 +198,7 @@ def test_issue17_2_streams_beyond_the_limit_get_busy_and_1013():
     from edmcgs.server.app import create_app
     from edmcgs.server.settings import Settings
 
-    app = create_app(Settings(max_streams=0), service_factory=StubService)
+    app = create_app(Settings(max_streams=0, allowed_hosts=["*"]), service_factory=StubService)
     with TestClient(app) as client, client.websocket_connect("/stream") as ws:
         message = protocol.unpack(ws.receive_bytes())
         assert message["type"] == "error" and message["error"] == "busy"
@@ -251,3 +254,88 @@ def test_issue17_5_bad_websocket_messages_get_an_error_and_the_stream_lives_on(s
         assert answer["type"] == "error" and answer["error"] == "invalid_input", answer
         ws.send_text('{"fps": 5}')
         assert protocol.unpack(ws.receive_bytes())["type"] == "subscribed"
+
+
+@pytest.mark.parametrize(("headers", "allowed"), [
+    ({}, True),
+    ({"origin": "http://127.0.0.1:8000"}, True),
+    ({"origin": "http://localhost:5173"}, True),
+    ({"origin": "https://evil.example"}, False),
+    ({"origin": "null"}, False),
+    ({"host": "evil.example:8000"}, False),
+    ({"host": "127.0.0.1.evil.example"}, False),
+])
+def test_issue17_11_foreign_hosts_and_origins_are_refused_on_loopback(stub_client, headers, allowed):
+    from starlette.websockets import WebSocketDisconnect
+
+    response = stub_client.get("/healthz", headers=headers)
+    if "origin" not in headers:
+        assert response.status_code == (200 if allowed else 421)
+    if allowed:
+        with stub_client.websocket_connect("/stream", headers=headers) as ws:
+            ws.send_text('{"fps": 5}')
+            assert ws.receive_bytes()
+    else:
+        with pytest.raises(WebSocketDisconnect) as info:
+            with stub_client.websocket_connect("/stream", headers=headers):
+                pass
+        assert info.value.code == 1008
+
+
+def test_issue17_11_loopback_binds_answer_loopback_names_only():
+    from edmcgs.server.settings import Settings
+
+    assert sorted(Settings().host_allowlist) == sorted(LOOPBACK)
+    assert Settings(host="0.0.0.0").host_allowlist is None
+
+
+def test_issue17_11_allowed_hosts_are_configurable():
+    from fastapi.testclient import TestClient
+
+    from edmcgs.server.app import create_app
+    from edmcgs.server.settings import Settings
+
+    app = create_app(Settings(allowed_hosts=["scene.lan"]), service_factory=StubService)
+    with TestClient(app, base_url="http://scene.lan:8000") as client:
+        assert client.get("/healthz").status_code == 200
+        assert client.get("/healthz", headers={"host": "127.0.0.1"}).status_code == 421
+
+
+@pytest.mark.parametrize("open_probes", [False, True])
+def test_issue17_12_probes_and_docs_with_a_token(open_probes):
+    from fastapi.testclient import TestClient
+
+    from edmcgs.server.app import create_app
+    from edmcgs.server.settings import Settings
+
+    app = create_app(Settings(token="s3cret", open_probes=open_probes), service_factory=StubService)
+    # TestClient's HTTP Host is its base_url's: a loopback name
+    with TestClient(app, base_url="http://127.0.0.1:8000") as client:
+        assert client.get("/docs").status_code == 200
+        schema = client.get("/openapi.json")
+        assert schema.status_code == 200 and "/render" in schema.json()["paths"]
+        for path in ("/healthz", "/metrics"):
+            assert client.get(path).status_code == (200 if open_probes else 401)
+            assert client.get(path, headers={"Authorization": "Bearer s3cret"}).status_code == 200
+        assert client.get("/render").status_code == 401
+
+
+def test_issue17_13_openapi_states_the_real_limits_and_error_bodies(stub_client):
+    schema = stub_client.get("/openapi.json").json()
+    params = {p["name"]: p["schema"] for p in schema["paths"]["/render"]["get"]["parameters"]}
+
+    def bound(name, key):
+        return next(o[key] for o in params[name]["anyOf"] if key in o)
+
+    assert bound("width", "maximum") == 1920 and bound("width", "minimum") == 1
+    assert bound("height", "maximum") == 1920
+    assert bound("pose", "maxLength") == 4096
+    assert bound("t_us", "maximum") == 2**62 and bound("t_us", "minimum") == -(2**62)
+    for path in ("/render", "/scene", "/healthz", "/metrics"):
+        responses = schema["paths"][path]["get"]["responses"]
+        for status in ("401", "421", "500"):
+            body = responses[status]["content"]["application/json"]["schema"]
+            assert body["title"] == "ErrorBody" and "error" in body["required"]
+    render = schema["paths"]["/render"]["get"]["responses"]
+    for status in ("416", "422", "503"):
+        assert "schema" in render[status]["content"]["application/json"]
