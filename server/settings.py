@@ -40,7 +40,8 @@ class Settings(BaseSettings):
                                                   "--live: the bundled demo's recording, or, with a "
                                                   "checkpoint without an event branch, no sensor at all.")
     live: bool = Field(False, description="Read a DAVIS346 over USB instead of replaying a file.")
-    speed: float = Field(1.0, gt=0, description="Replay speed, a real-time factor (without a sensor: the "
+    speed: float = Field(1.0, gt=0, le=1e6,
+        description="Replay speed, a real-time factor (without a sensor: the "
                                                  "speed of the clock playing the span).")
     loop: bool = Field(False, description="Start the replay over at its end (the demo always loops).")
     host: str = Field("127.0.0.1", description="Interface to bind; loopback unless told otherwise.")
@@ -55,10 +56,12 @@ class Settings(BaseSettings):
                                             "['*']: any.")
     open_probes: bool = Field(False, description="Serve /healthz and /metrics without the token (for "
                                                   "probes and scrapers); every other route still wants it.")
-    max_width: int = Field(1920, gt=0, description="Largest width a client may ask for (px).")
-    max_height: int = Field(1920, gt=0, description="Largest height a client may ask for (px).")
-    render_workers: int = Field(2, gt=0, description="Renders running at once (threads of the render pool).")
-    render_queue: int = Field(8, ge=0, description="Renders waiting for a worker before GET /render "
+    max_width: int = Field(1920, gt=0, le=16_384, description="Largest width a client may ask for (px).")
+    max_height: int = Field(1920, gt=0, le=16_384, description="Largest height a client may ask for (px).")
+    render_workers: int = Field(2, gt=0, le=256,
+        description="Renders running at once (threads of the render pool).")
+    render_queue: int = Field(8, ge=0, le=100_000,
+        description="Renders waiting for a worker before GET /render "
                                                    "answers 503 with Retry-After.")
     stream_workers: int = Field(1, gt=0, le=64, description="Threads rendering websocket frames, shared by "
                                 "every stream and apart from GET /render's workers and queue (a stream "
@@ -67,19 +70,24 @@ class Settings(BaseSettings):
                              "answered with an error message and close code 1013 (try again later).")
     max_connections: int = Field(256, gt=0, le=100_000, description="Concurrent connections and requests "
                                  "at most (uvicorn's limit_concurrency); beyond it HTTP answers 503.")
-    stream_max_fps: float = Field(60.0, gt=0, description="Highest frame rate one websocket may ask for.")
-    replay_batch_us: int = Field(5_000, gt=0, description="Recording time per replay batch pushed to the "
+    stream_max_fps: float = Field(60.0, gt=0, le=1000,
+        description="Highest frame rate one websocket may ask for.")
+    replay_batch_us: int = Field(5_000, gt=0, le=10_000_000,
+        description="Recording time per replay batch pushed to the "
                                                           "ring (µs): the latency a replay adds.")
     ring_events: int = Field(4_000_000, gt=0, description="Capacity of the event ring buffer (events).")
-    deform_cache: int = Field(32, ge=1, description="Deformed Gaussian states kept, keyed by (t, anchor, "
+    deform_cache: int = Field(32, ge=1, le=4096,
+        description="Deformed Gaussian states kept, keyed by (t, anchor, "
                                                     "event count), shared by every client.")
     jpeg_quality: int = Field(90, ge=1, le=100, description="JPEG quality of rendered frames.")
     png_compress_level: int = Field(1, ge=0, le=9, description="zlib level of PNG frames (1: fast).")
-    torch_threads: int | None = Field(1, gt=0, description="torch intra-op threads (the deformation); 1: "
+    torch_threads: int | None = Field(1, gt=0, le=1024,
+        description="torch intra-op threads (the deformation); 1: "
                                                          "renders run side by side on the pool instead, "
                                                          "and a parallel region never waits on a core "
                                                          "another process holds; none: torch's own.")
-    raster_threads: int | None = Field(None, gt=0, description="Threads of the numba rasterizer per render; "
+    raster_threads: int | None = Field(None, gt=0, le=1024,
+        description="Threads of the numba rasterizer per render; "
                                        "none: every core (on a 2-core CPU, 2 per render beat 1 at one and at "
                                        "four clients: bench.serve render p50 20 vs 27 ms).")
 
