@@ -72,8 +72,9 @@ HEADER_RENDER_MS = "X-Edmcgs-Render-Ms"  # server time spent on the render, enco
 HEADER_WIDTH = "X-Edmcgs-Width"  # image width, px
 HEADER_HEIGHT = "X-Edmcgs-Height"  # image height, px
 HEADER_CHANNELS = "X-Edmcgs-Channels"  # 1 (grey) or 3 (RGB)
+HEADER_ANCHOR = "X-Edmcgs-Anchor"  # what the anchor is: checkpoint | predicted | corrected (ANCHOR_KINDS)
 HEADERS = (HEADER_T_US, HEADER_T, HEADER_ANCHOR_US, HEADER_EVENTS, HEADER_RENDER_MS, HEADER_WIDTH,
-           HEADER_HEIGHT, HEADER_CHANNELS)
+           HEADER_HEIGHT, HEADER_CHANNELS, HEADER_ANCHOR)
 
 RENDER_FORMATS = ("png", "jpeg", "msgpack")
 STREAM_FORMATS = ("jpeg", "png", "raw")
@@ -99,6 +100,7 @@ FRAME_KEYS = (
     "height",
     "channels",  # 1 (grey) or 3 (RGB)
     "format",  # "jpeg" | "png" | "raw" (msgpack body of /render: "raw")
+    "anchor",  # what the anchor is: "checkpoint" | "predicted" | "corrected" (ANCHOR_KINDS)
     "data",  # bytes: the encoded image, or for "raw" uint8 pixels [height, width, channels] row-major
 )
 ERROR_KEYS = ("type", "error", "detail", "param", "valid_range")
@@ -355,6 +357,15 @@ class TauSource(StrEnum):
     """The checkpoint's own anchors (``anchors_us`` of GET /scene): the windows it was trained on."""
     STREAM = "stream"
     """The event stream's frames (a replay's or a camera's APS / RGB frames)."""
+    ONLINE = "online"
+    """Past the checkpoint's span: the stream's frames as online anchors (predicted by the event
+    transition, then corrected against the frame; see ``ANCHOR_KINDS``), the checkpoint's last anchor
+    until the first of them."""
+
+
+ANCHOR_KINDS = ("checkpoint", "predicted", "corrected")
+"""What the anchor of a render is (``HEADER_ANCHOR`` / a frame map's ``anchor``): one of the
+checkpoint's, an online anchor's prediction (not corrected yet), or an online anchor fitted to its frame."""
 
 
 TAU_SOURCE_KEYS = ("source", "t_min", "t_max", "t_us_min", "t_us_max")
@@ -441,20 +452,23 @@ class FrameMeta:
     """1 (grey) or 3 (RGB)."""
     format: str
     """The format asked for: png | jpeg | msgpack (HTTP), jpeg | png | raw (websocket)."""
+    anchor: str = "checkpoint"
+    """What the anchor is (``ANCHOR_KINDS``): the checkpoint's, or an online anchor predicted or corrected."""
 
     def headers(self) -> dict[str, str]:
         """The ``HEADERS`` of a GET /render response."""
         return {HEADER_T_US: str(self.t_us), HEADER_T: repr(self.t), HEADER_ANCHOR_US: str(self.anchor_us),
                 HEADER_EVENTS: str(self.events), HEADER_RENDER_MS: f"{self.render_ms:.3f}",
                 HEADER_WIDTH: str(self.width), HEADER_HEIGHT: str(self.height),
-                HEADER_CHANNELS: str(self.channels)}
+                HEADER_CHANNELS: str(self.channels), HEADER_ANCHOR: self.anchor}
 
     @classmethod
     def from_headers(cls, headers, format: str) -> FrameMeta:
         """Read the ``HEADERS`` of a GET /render response (any case-insensitive mapping)."""
         return cls(int(headers[HEADER_T_US]), float(headers[HEADER_T]), int(headers[HEADER_ANCHOR_US]),
                    int(headers[HEADER_EVENTS]), float(headers[HEADER_RENDER_MS]), int(headers[HEADER_WIDTH]),
-                   int(headers[HEADER_HEIGHT]), int(headers[HEADER_CHANNELS]), format)
+                   int(headers[HEADER_HEIGHT]), int(headers[HEADER_CHANNELS]), format,
+                   headers.get(HEADER_ANCHOR, "checkpoint"))
 
     def to_message(self, data: bytes, **stream: Any) -> dict:
         """A frame map (``FRAME_KEYS``): these fields and the image ``data``, plus the websocket's ``seq``,
@@ -469,4 +483,5 @@ class FrameMeta:
         """Read a frame map (the ``data`` and stream keys are left to the caller)."""
         return cls(int(message["t_us"]), float(message["t"]), int(message["anchor_us"]),
                    int(message["events"]), float(message["render_ms"]), int(message["width"]),
-                   int(message["height"]), int(message["channels"]), format or message["format"])
+                   int(message["height"]), int(message["channels"]), format or message["format"],
+                   message.get("anchor", "checkpoint"))

@@ -16,8 +16,9 @@ arrived, so [tau, head) is a complete window.
 
 tau(t), the anchor whose events window [tau, t) drives the deformation, is decided by ``TauRule``
 alone: within the checkpoint's span its own anchors (the windows it was trained on), whatever frames
-the stream carries; a stream's frames only where the checkpoint has no anchor, which today renders
-nothing (outside the span the model has no state).
+the stream carries; past the span's end, online anchors: the stream's frames, each predicted by the
+event transition from the one before (the checkpoint's last anchor first) and corrected in the
+background (server/online.py), so that a stream renders to its head however long it runs.
 """
 
 from __future__ import annotations
@@ -117,35 +118,54 @@ class TauRule:
     scene clock) to every time of its span, the last anchor's window running to the span's end; the
     stream's frames (a replay's every APS frame, a camera's) may be denser or elsewhere. Within the
     span the checkpoint's anchors rule, so that a replay of the checkpoint's own recording renders
-    what ``edmcgs eval`` scores; the stream's frames serve only where the checkpoint has no anchor,
-    outside its span, where nothing renders yet (the place online anchors will go).
+    what ``edmcgs eval`` scores. Past the span's end, with ``online``, the stream's frames become
+    online anchors (``TauSource.ONLINE``: the newest online anchor before t, the checkpoint's last
+    anchor until the first one), up to the head. ``stream_frames`` without ``online`` (an anchor store
+    only) names the stream's frames as the source outside the span, where nothing renders.
     """
 
     checkpoint: Span
     """The span the checkpoint's anchors cover (scene clock)."""
     stream_frames: bool
     """Whether the stream delivers frames (an anchor store is filled)."""
+    online: bool = False
+    """Whether the stream's frames past the span become online anchors (server/online.py)."""
 
     def source(self, scene_t: int) -> TauSource | None:
         """Where tau comes from at ``scene_t``; None: no anchor rules there."""
         if self.checkpoint.first_us <= int(scene_t) <= self.checkpoint.end_us:
             return TauSource.CHECKPOINT
+        if self.online and int(scene_t) > self.checkpoint.end_us:
+            return TauSource.ONLINE
         return TauSource.STREAM if self.stream_frames else None
 
-    def ranges(self) -> list[tuple[TauSource, int, int]]:
+    def end(self, head_scene_us: int | None) -> int:
+        """The last scene time that may be rendered: the span's end, or the head past it when online."""
+        if self.online and head_scene_us is not None:
+            return max(self.checkpoint.end_us, int(head_scene_us))
+        return self.checkpoint.end_us
+
+    def ranges(self, head_scene_us: int | None = None) -> list[tuple[TauSource, int, int]]:
         """The renderable scene times by tau source: (source, first µs, last µs inclusive), in order."""
-        return [(TauSource.CHECKPOINT, self.checkpoint.first_us, self.checkpoint.end_us)]
+        out = [(TauSource.CHECKPOINT, self.checkpoint.first_us, self.checkpoint.end_us)]
+        if self.online and head_scene_us is not None and head_scene_us > self.checkpoint.end_us:
+            out.append((TauSource.ONLINE, self.checkpoint.end_us + 1, int(head_scene_us)))
+        return out
 
 
 def resolve(t_us: int | None, head_stream_us: int, timeline: Timeline, span: Span,
-            anchor_stream: Callable[[int, int], int | None], fmt: Callable[[int], str] = str) -> Instant:
+            anchor_stream: Callable[[int, int], int | None], fmt: Callable[[int], str] = str,
+            online_end_us: int | None = None) -> Instant:
     """The instant rendered for scene time ``t_us`` (None: the head), or TimeNotRenderable saying why.
 
     head_stream_us: the head on the stream clock (every event before it has arrived); anchor_stream:
     (stream time, scene time) -> tau on the stream clock, or None when no anchor precedes it; fmt: how a
-    scene time is written in messages.
+    scene time is written in messages; online_end_us: with online anchors, the last renderable scene
+    time past the span (TauRule.end), which replaces the span's end.
     """
     tl = timeline
+    if online_end_us is not None:
+        span = Span(span.first_us, max(span.end_us, int(online_end_us)))
     if t_us is None:
         t_us, stream_t = tl.scene_of(head_stream_us), head_stream_us
         what = f"the head of the stream (scene time {fmt(t_us)})"
@@ -155,7 +175,10 @@ def resolve(t_us: int | None, head_stream_us: int, timeline: Timeline, span: Spa
         what = f"t={fmt(t_us)}"
     if not span.first_us <= t_us <= span.end_us:
         raise TimeNotRenderable(f"{what} is outside the checkpoint's span: the first anchor is at "
-                            f"{fmt(span.first_us)} and the span ends at {fmt(span.end_us)}")
+                                f"{fmt(span.first_us)} and the span ends at {fmt(span.end_us)}"
+                                if online_end_us is None else
+                                f"{what} is outside what can be rendered: the first anchor is at "
+                                f"{fmt(span.first_us)} and the stream's head is at {fmt(span.end_us)}")
     if stream_t > head_stream_us or (tl.period_us is not None and stream_t < tl.stream_origin_us):
         raise TimeNotRenderable(f"{what} has not been streamed yet")
     a_stream = anchor_stream(stream_t, t_us)

@@ -17,6 +17,7 @@ import numpy as np
 from edmcgs import protocol
 from edmcgs.errors import InvalidInputError, WindowUnavailable
 from edmcgs.geometry import Intrinsics
+from edmcgs.model import online as model_online
 from edmcgs.model.dynamic import EdMCGS
 from edmcgs.protocol import TauSource
 from edmcgs.sensor.buffer.anchors import AnchorStore
@@ -26,6 +27,7 @@ from edmcgs.sensor.events import Events
 from edmcgs.server import clock
 from edmcgs.server.clock import Instant, Span, Timeline, TimeNotRenderable
 from edmcgs.server.encode import to_uint8
+from edmcgs.server.online import OnlineAnchors
 from edmcgs.server.playback import Playback
 from edmcgs.server.state_cache import StateCache
 
@@ -35,6 +37,8 @@ class Rendered:
     pixels: np.ndarray  # uint8 [H, W, C]
     instant: Instant
     events: int
+    anchor: str = "checkpoint"
+    """protocol.ANCHOR_KINDS: the checkpoint's anchor, or an online one predicted or corrected."""
 
 
 class Engine:
@@ -46,11 +50,13 @@ class Engine:
     one); anchors: the source's frames (None: it has none), tau only where the checkpoint has no
     anchor (``tau_rule``, clock.TauRule); cache_size:
     deformed states kept; raster_threads: threads of the numba rasterizer per render (None: numba's
-    default, all cores); playback: without a sensor, the clock that moves the head (playback.py).
+    default, all cores); playback: without a sensor, the clock that moves the head (playback.py);
+    online: the online anchors past the span (online.py; None: the span's end is the last time).
     """
 
     def __init__(self, model: EdMCGS, ring: EventRingBuffer, anchors: AnchorStore | None, *,
-                 cache_size: int = 32, raster_threads: int | None = None, playback: Playback | None = None):
+                 cache_size: int = 32, raster_threads: int | None = None, playback: Playback | None = None,
+                 online: OnlineAnchors | None = None):
         self.model = model
         self.meta = model.meta
         self.ring = ring
@@ -62,7 +68,9 @@ class Engine:
         self.first_us = int(self.scene_anchors[0])  # the Markov chain has no state before it
         self.end_us = int(self.meta.t_end_us)
         self.span = Span(self.first_us, self.end_us)
-        self.tau_rule = clock.TauRule(self.span, stream_frames=anchors is not None)
+        self.online = online
+        self.tau_rule = clock.TauRule(self.span, stream_frames=anchors is not None or online is not None,
+                                      online=online is not None)
         # The numba rasterizer on a CPU; the torch one where the model lives on a GPU.
         self.fast = model.center.device.type == "cpu"
         self.raster_threads = raster_threads
@@ -95,7 +103,8 @@ class Engine:
         if head is None:
             raise TimeNotRenderable("no events have arrived yet; retry in a moment", None)
         try:
-            return clock.resolve(t_us, head[0], self.timeline, self.span, self._anchor_stream, self._fmt)
+            return clock.resolve(t_us, head[0], self.timeline, self.span, self._anchor_stream, self._fmt,
+                                 self.tau_rule.end(head[1]) if self.online is not None else None)
         except TimeNotRenderable as exc:
             self._unavailable(str(exc))
 
@@ -105,6 +114,8 @@ class Engine:
         source = self.tau_rule.source(scene_t)
         if source is TauSource.CHECKPOINT:
             return clock.scene_anchor_stream(self.scene_anchors, stream_t, scene_t)
+        if source is TauSource.ONLINE:
+            return self.online.tau(stream_t, scene_t)
         if source is TauSource.STREAM and self.anchors is not None:
             try:
                 return self.anchors.tau(stream_t)
@@ -115,7 +126,11 @@ class Engine:
     def tau_ranges(self) -> list[dict]:
         """GET /scene's ``tau_sources``: where tau comes from, by range of scene time (protocol.py)."""
         return [{"source": source.value, **self.range_dict((lo, hi))}
-                for source, lo, hi in self.tau_rule.ranges()]
+                for source, lo, hi in self.tau_rule.ranges(self._head_scene())]
+
+    def _head_scene(self) -> int | None:
+        head = self.head()
+        return None if head is None else head[1]
 
     # ------------------------------------------------------------------ what can be rendered
     def renderable(self) -> list[tuple[int, int]]:
@@ -124,9 +139,26 @@ class Engine:
         if head is None:
             return []
         stats = self.ring.stats()
-        # Only the checkpoint's span renders, and tau comes from its anchors there (``tau_rule``).
-        return clock.renderable(head[0], self.timeline, self.span, self.scene_anchors,
-                                stats.oldest_us, bool(stats.overflowed or stats.expired))
+        dropped = bool(stats.overflowed or stats.expired)
+        # Within the checkpoint's span tau comes from its anchors (``tau_rule``).
+        ranges = clock.renderable(head[0], self.timeline, self.span, self.scene_anchors,
+                                  stats.oldest_us, dropped)
+        if self.online is None or head[1] <= self.end_us:
+            return ranges
+        # Past the span, up to the head: from the checkpoint's last anchor of this pass, or from the
+        # oldest online anchor whose events the ring still holds.
+        floor = (stats.oldest_us + 1 if stats.oldest_us is not None else None) if dropped else None
+        last_ckpt_stream = head[0] - (head[1] - int(self.scene_anchors[-1]))
+        if floor is None or last_ckpt_stream >= floor:
+            lo = self.end_us + 1
+        else:
+            lo = next((a.t_us for a in self.online.anchors()
+                       if a.stream_us >= floor and a.stream_us > last_ckpt_stream), None)
+            if lo is None:
+                return ranges
+        if ranges and ranges[-1][1] + 1 >= lo:
+            return [*ranges[:-1], (ranges[-1][0], head[1])]
+        return [*ranges, (lo, head[1])]
 
     def valid_range(self) -> dict | None:
         """The protocol's ``valid_range``: the most recent renderable interval."""
@@ -153,10 +185,16 @@ class Engine:
     # ------------------------------------------------------------------ deformation and render
     def state(self, instant: Instant) -> tuple[object, int]:
         """(GaussianState at the instant, events in its window), shared by all clients (cached)."""
-        key = (instant.t_us, instant.anchor_us, instant.window)
-        return self.cache.get(key, lambda: self._deform(instant))
+        online = self.online.get(instant.window[0]) if self.online is not None else None
+        key = (instant.t_us, instant.anchor_us, instant.window, None if online is None else online.version)
+        return self.cache.get(key, lambda: self._deform(instant, online))
 
-    def _deform(self, instant: Instant) -> tuple[object, int]:
+    def anchor_kind(self, instant: Instant) -> str:
+        """protocol.ANCHOR_KINDS of the instant's anchor."""
+        online = self.online.get(instant.window[0]) if self.online is not None else None
+        return "checkpoint" if online is None else "corrected" if online.corrected else "predicted"
+
+    def _deform(self, instant: Instant, online=None) -> tuple[object, int]:
         try:
             events = self.ring.slice(*instant.window)
         except WindowUnavailable as exc:
@@ -164,10 +202,22 @@ class Engine:
         emap = None
         if self.meta.has_event_branch and len(events):
             emap = accumulate(events, self.meta.event_width, self.meta.event_height)
+        if online is not None:  # from the online anchor's state, by the events since it (model/online.py)
+            try:
+                c2w = self.default_pose(instant.t_us)
+            except InvalidInputError:  # no trajectory and no frame poses: global sampling only
+                c2w = None
+            motion = model_online.advance(self.model, online.motion, emap, c2w)
+            return model_online.state_of(self.model, motion), len(events)
         return self.model.deform(instant.t_us, emap), len(events)
 
     def default_pose(self, t_us: int) -> np.ndarray:
         """The event camera's own pose at scene time ``t_us`` (the checkpoint's trajectory)."""
+        if self.online is not None and int(t_us) > self.end_us:
+            # past the span: the pose of the newest online anchor's frame, when the stream gives poses
+            for a in reversed(self.online.anchors()):
+                if a.t_us <= int(t_us) and a.pose is not None:
+                    return a.pose
         if self.meta.trajectory is None:
             raise InvalidInputError("pose is required: this checkpoint has no camera trajectory")
         return self.meta.trajectory.at(int(t_us))
@@ -185,7 +235,7 @@ class Engine:
         c2w = self.default_pose(instant.t_us) if pose is None else pose
         intr = self.intrinsics(width, height)
         image = self.model.render(state, c2w, intr, fast=self.fast, threads=self.raster_threads)
-        return Rendered(to_uint8(image), instant, n_events)
+        return Rendered(to_uint8(image), instant, n_events, self.anchor_kind(instant))
 
     def warm_up(self) -> float:
         """Compile the fast paths (numba) with one render at the first anchor, off the request path.

@@ -7,8 +7,9 @@ at once, and a playback clock looping over the span at ``speed`` as the head tha
 t and the websocket's live mode follow (playback.py). A checkpoint with an event branch needs its
 events: alone it is refused, naming the fix.
 
-With a sensor, tau(t) still comes from the checkpoint's anchors over its span (clock.TauRule): a
-source's frames are stored (the anchor store) but serve as tau only where the checkpoint has no anchor.
+With a sensor, tau(t) comes from the checkpoint's anchors over its span (clock.TauRule); past its end a
+source's frames become online anchors (online.py: predicted by the event transition, corrected in the
+background), so a stream longer than the span renders to its head.
 """
 
 from __future__ import annotations
@@ -36,17 +37,12 @@ from edmcgs.server.encode import encode
 from edmcgs.server.engine import Engine
 from edmcgs.server.live import Arrivals, HeadSignal
 from edmcgs.server.metrics import CallbackCounter, Counter, Gauge, Histogram, Registry
+from edmcgs.server.online import OnlineAnchors
 from edmcgs.server.playback import Playback
 from edmcgs.server.render_pool import RenderPool
 from edmcgs.server.settings import Settings
 
 log = logging.getLogger("edmcgs.server")
-
-ANCHOR_CAPACITY = 64
-"""Source frames kept: each is a whole image (270 kB at 346x260 RGB), and a looping replay adds them
-again every pass. They give tau(t) only where the checkpoint has no anchor (clock.TauRule); a time
-whose stream frame was evicted answers 416 like evicted events."""
-
 
 def invalid(param: str, message: str) -> InvalidInputError:
     """An InvalidInputError that names the offending request parameter (mapped to 422)."""
@@ -93,6 +89,11 @@ class Metrics:
         self.frames_dropped = add(Counter("edmcgs_stream_frames_dropped_total",
                                           "Websocket frames dropped because the client read slower than "
                                           "they were rendered (latest wins)."))
+        self.fit = add(Histogram("edmcgs_online_fit_seconds", "Time of one online anchor's correction "
+                                 "(seconds)."))
+        self.fit_loss = add(Histogram("edmcgs_online_fit_loss_l1", "L1 photometric loss of each online "
+                                      "anchor after its correction.",
+                                      buckets=(0.01, 0.02, 0.05, 0.1, 0.2, 0.5)))
         self.stream_clients = 0
         self.streams_refused = 0
 
@@ -143,19 +144,24 @@ class Service:
                     f"the event source is {info.width}x{info.height} but the checkpoint's event maps are "
                     f"{meta.event_width}x{meta.event_height}: replay the recording it was trained on")
             ring = EventRingBuffer(settings.ring_events)
-            anchors = AnchorStore(ANCHOR_CAPACITY) if info.has_frames else None
-            engine = Engine(model, ring, anchors, cache_size=settings.deform_cache,
-                            raster_threads=settings.raster_threads)
+            online = None
+            if info.has_frames:  # past the span, the stream's frames become online anchors (online.py)
+                online = OnlineAnchors(model, ring, capacity=settings.online_anchors,
+                                       fit_steps=settings.online_fit_steps,
+                                       fit_scale=settings.online_fit_scale,
+                                       default_pose=_trajectory_pose(meta))
+            engine = Engine(model, ring, None, cache_size=settings.deform_cache,
+                            raster_threads=settings.raster_threads, online=online)
             if info.t_range_us is not None:
                 engine.timeline = replay_timeline(info.t_range_us, meta.t_start_us, meta.t_end_us,
                                                   inputs.loop)
                 retain_passes(ring, engine.timeline)
-            service = cls(settings, inputs, model, source, ring, anchors, engine)
+            service = cls(settings, inputs, model, source, ring, None, engine)
             seconds = engine.warm_up()
             log.info("model %s on %s: %d Gaussians, warm-up %.1f s; source %s (%dx%d, %s)",
                      inputs.checkpoint, settings.device, len(model.gaussians), seconds, info.sensor,
                      info.width, info.height, "tau from the checkpoint's anchors" + (
-                         " (its frames only where the checkpoint has none)" if anchors is not None else ""))
+                         ", online anchors from its frames past the span" if online is not None else ""))
             return service
         except BaseException:
             source.close()
@@ -185,6 +191,9 @@ class Service:
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
         """Start ingesting (the replay's real-time clock starts here) and waking live streams on ``loop``."""
         self.signal = HeadSignal(loop)
+        if self.engine.online is not None:
+            self.engine.online.on_fit = self._on_fit
+            self.engine.online.start()
         if self.source is not None:
             self.ingest = Ingest(self.source, self.ring, self.anchors, on_batch=self._on_batch).start()
 
@@ -196,16 +205,27 @@ class Service:
                 log.warning("the ingest thread did not stop within 5 s")
         if self.source is not None:
             self.source.close()
+        if self.engine.online is not None:
+            self.engine.online.stop()
         self.pool.close()
+
+    def _on_fit(self, seconds: float, before: float, after: float) -> None:
+        self.metrics.fit.observe(seconds)
+        self.metrics.fit_loss.observe(after)
 
     def _on_batch(self, batch: SensorBatch) -> None:
         """Ingest thread, after each batch is stored."""
         if self.engine.timeline is None and len(batch.events):
             # A camera's clock is known at its first event; align it with the scene's start and loop
             # over the trained span (see clock.py).
+            # With frames, online anchors carry it past the span instead: no loop.
             meta = self.model.meta
             self.engine.timeline = Timeline(int(batch.events.t[0]), meta.t_start_us,
-                                            meta.t_end_us - meta.t_start_us + 1)
+                                            None if self.engine.online is not None
+                                            else meta.t_end_us - meta.t_start_us + 1)
+        online, tl = self.engine.online, self.engine.timeline
+        if online is not None and batch.frames is not None and len(batch.frames) and tl is not None:
+            online.on_frames(batch.frames, tl.scene_of)
         wm = self.ring.watermark_us
         if wm is not None:
             self.arrivals.record(wm)
@@ -271,7 +291,7 @@ class Service:
         meta = protocol.FrameMeta(t_us=inst.t_us, t=self.engine.seconds_of(inst.t_us),
                                   anchor_us=inst.anchor_us, events=rendered.events, render_ms=round(ms, 3),
                                   width=width, height=height, channels=int(rendered.pixels.shape[2]),
-                                  format=fmt)
+                                  format=fmt, anchor=rendered.anchor)
         return RenderedFrame(meta, data, inst.window)
 
     def scene(self) -> dict:
@@ -301,6 +321,7 @@ class Service:
             "renderable": engine.range_dict(ranges[-1]) if ranges else None,
             "renderable_ranges": [engine.range_dict(r) for r in ranges],
             "tau_sources": engine.tau_ranges(),
+            "online": self.online_info(),
             "source": None if info is None else {
                 "sensor": info.sensor, "live": info.live, "width": info.width, "height": info.height,
                 "has_frames": info.has_frames, "loop": self.inputs.loop,
@@ -312,6 +333,28 @@ class Service:
                        "stream_max_fps": self.settings.stream_max_fps},
             "formats": list(protocol.RENDER_FORMATS),
             "stream_formats": list(protocol.STREAM_FORMATS),
+        }
+
+    def online_info(self) -> dict | None:
+        """GET /scene's ``online``: the online anchors past the checkpoint's span (None: the stream has
+        no frames)."""
+        online, engine = self.engine.online, self.engine
+        if online is None:
+            return None
+        anchors = online.anchors()
+        fits = sorted(online.fit_seconds)
+        return {
+            "span": None if not anchors else engine.range_dict((anchors[0].t_us, anchors[-1].t_us)),
+            "anchors": [{"t_us": a.t_us, "stream_us": a.stream_us, "corrected": a.corrected}
+                        for a in anchors],
+            "capacity": online.capacity,
+            "predicted": online.predicted, "corrected": online.corrected, "expired": online.expired,
+            "skipped": dict(online.skipped), "refused": dict(online.refused),
+            "queue_depth": online.queue_depth,
+            "fit": {"steps": online.fit_steps if online.fit_enabled else 0, "scale": online.fit_scale,
+                    "last_s": online.last_fit_s, "median_s": fits[len(fits) // 2] if fits else None,
+                    "last_loss": None if online.last_loss is None else {
+                        "before": online.last_loss[0], "after": online.last_loss[1]}},
         }
 
     # ------------------------------------------------------------------ metrics
@@ -344,6 +387,25 @@ class Service:
                             lambda: self.pool.rejected))
         add(Gauge("edmcgs_renders_in_flight", "Renders running or waiting for a worker.",
                   lambda: self.pool.in_flight))
+        online = self.engine.online
+        if online is not None:
+            add(Gauge("edmcgs_online_anchors", "Online anchors held past the checkpoint's span.",
+                      lambda: float(len(online.anchors()))))
+            add(CallbackCounter("edmcgs_online_anchors_total", "Online anchors by outcome: predicted, "
+                                "corrected (fitted to their frame), expired (out of the bounded store).",
+                                lambda: {"predicted": online.predicted, "corrected": online.corrected,
+                                         "expired": online.expired}, "result"))
+            add(CallbackCounter("edmcgs_online_anchors_skipped_total",
+                                "Online anchors not corrected (superseded: a newer frame took the one-slot "
+                                "fit queue) or not made (events_gone: their events left the ring).",
+                                lambda: dict(online.skipped), "reason"))
+            add(CallbackCounter("edmcgs_frames_refused_total", "Stream frames refused as anchors, by "
+                                "reason (size, channels, timestamp: not after the newest frame).",
+                                lambda: dict(online.refused), "reason"))
+            add(Gauge("edmcgs_online_fit_queue_depth", "Online anchors waiting for or in a fit (0..2).",
+                      lambda: float(online.queue_depth)))
+            add(Gauge("edmcgs_online_fit_loss", "L1 photometric loss of the last correction, after its "
+                      "steps.", lambda: float("nan") if online.last_loss is None else online.last_loss[1]))
         add(Gauge("edmcgs_stream_clients", "Open websocket streams.", lambda: self.metrics.stream_clients))
         add(CallbackCounter("edmcgs_streams_refused_total", "Websocket streams refused: max_streams open.",
                             lambda: self.metrics.streams_refused))
@@ -373,3 +435,10 @@ def replay_timeline(t_range_us: tuple[int, int], scene_start_us: int, scene_end_
         log.warning("the recording's clock [%d, %d] µs does not overlap the checkpoint's span [%d, %d] µs: "
                     "aligning its start with the scene's start", first, last, scene_start_us, scene_end_us)
     return Timeline(first, first if same_clock else scene_start_us, period)
+
+
+def _trajectory_pose(meta):
+    """The checkpoint's camera at a scene time (clamped to its span), or None without a trajectory."""
+    def pose(t_us: int):
+        return None if meta.trajectory is None else meta.trajectory.at(int(t_us))
+    return pose

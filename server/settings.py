@@ -86,6 +86,14 @@ class Settings(BaseSettings):
                                                          "renders run side by side on the pool instead, "
                                                          "and a parallel region never waits on a core "
                                                          "another process holds; none: torch's own.")
+    online_anchors: int = Field(64, gt=0, le=100_000,
+        description="Online anchors kept past the checkpoint's span (the stream's frames, predicted and "
+                    "corrected); older ones also expire with their events.")
+    online_fit_steps: int = Field(10, ge=0, le=10_000,
+        description="Optimisation steps correcting each online anchor against its frame, in a background "
+                    "thread (0: predictions only).")
+    online_fit_scale: float = Field(0.5, gt=0, le=1,
+        description="Fraction of the frame's size the correction renders and compares at.")
     raster_threads: int | None = Field(None, gt=0, le=1024,
         description="Threads of the numba rasterizer per render; "
                                        "none: every core (on a 2-core CPU, 2 per render beat 1 at one and at "

@@ -28,7 +28,7 @@ def build_scene(folder: str | os.PathLike, *, width: int = 346, height: int = 26
                 anchor_every_s: float = 0.25, event_rate: float = 300_000.0, init_points: int | None = None,
                 control_points: int | None = None, t0_us: int = 1_600_000_000_000_000, seed: int = 0,
                 config_overrides: dict | None = None, frames_per_anchor: int = 1,
-                event_branch_seed: int | None = None) -> tuple[Path, Path]:
+                event_branch_seed: int | None = None, train_s: float | None = None) -> tuple[Path, Path]:
     """Write ``scene.h5`` (our recording) and ``scene.ckpt`` (an untrained EdMCGS of it) to ``folder``.
 
     The model uses the ``demo`` preset (the CPU-sized config the bundled demo is trained with: 6000
@@ -43,7 +43,9 @@ def build_scene(folder: str | os.PathLike, *, width: int = 346, height: int = 26
     ``frames_per_anchor`` times as often as the checkpoint's anchors, which are every
     ``frames_per_anchor``-th of them (as ``--anchor-every N`` picks them; the rest are its held-out
     frames). event_branch_seed: give the event branch non-trivial weights (as after training), so that
-    renders depend on the events window; None: the untrained branch (no effect).
+    renders depend on the events window; None: the untrained branch (no effect). train_s: the
+    checkpoint covers only the recording's first ``train_s`` seconds (its anchors, span and trajectory);
+    the rest is for online anchors (None: all of it).
     """
     from edmcgs.geometry import Intrinsics, Trajectory
     from edmcgs.model.checkpoint import save_checkpoint
@@ -98,9 +100,15 @@ def build_scene(folder: str | os.PathLike, *, width: int = 346, height: int = 26
     config = replace(config, init_points=init_points or config.init_points,
                      num_control_points=control_points or config.num_control_points,
                      **(config_overrides or {}))
-    picked = slice(None, None, frames_per_anchor)
+    n_train, t_train = len(frame_t), t_end
+    if train_s is not None:
+        t_train = t0_us + round(train_s * 1e6)
+        n_train = int(np.searchsorted(frame_t, t_train, side="right"))
+        keep = traj_t <= t_train
+        traj_t, traj_c2w = traj_t[keep], traj_c2w[keep]
+    picked = slice(0, n_train, frames_per_anchor)
     model = EdMCGS.from_arrays(anchors_t_us=frame_t[picked], anchor_images=frame_images[picked],
-                               intrinsics=intr, anchor_poses=frame_poses[picked], t_end_us=t_end,
+                               intrinsics=intr, anchor_poses=frame_poses[picked], t_end_us=t_train,
                                trajectory=Trajectory(traj_t, traj_c2w), event_size=(width, height),
                                config=config)
     if event_branch_seed is not None:

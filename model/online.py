@@ -1,0 +1,119 @@
+"""Online anchors: the control-point state at a new APS frame past the checkpoint's span, predicted by
+the model's own event-driven transition and corrected against the frame.
+
+An anchor's state is the control-point motion (translations [M, 3], rotations [M, 4]) at its time; the
+Gaussians follow by skinning. Past the span the time prior f_theta has no data: its time input is
+clamped to the span's end (``SceneMeta.normalized_time`` clamps), so it contributes a constant and the
+events carry the motion:
+
+    checkpoint anchor L (the last):  T_L = f_theta(x, t_L)                     (as trained)
+    first online anchor A_1:         T_1 = f_theta(x, 1) + g_phi(x, I_E[L, A_1))   (= deform(A_1))
+    online anchor A_k, k > 1:        T_k = T_{k-1} + g_phi(x, I_E[A_{k-1}, A_k)),  R_k = R_{k-1}
+    a render at t in [A_k, A_k+1):   T(t) = T_k + g_phi(x, I_E[A_k, t))
+
+``correct`` refines a predicted state against the frame: a per-control-point translation residual,
+optimised for a bounded number of Adam steps on the photometric loss through the differentiable
+rasterizer, with the canonical Gaussians and the networks frozen.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from edmcgs.errors import InvalidInputError
+from edmcgs.geometry import Intrinsics, project, world_to_camera
+from edmcgs.model.dynamic import NEAR, EdMCGS, background_color, render_image
+from edmcgs.model.motion.event_branch import sample_global, sample_local
+from edmcgs.model.motion.gaussians import GaussianState
+from edmcgs.model.motion.skin_plan import skin
+
+Motion = tuple[Tensor, Tensor]
+"""(translations [M, 3], rotations [M, 4]) of the control points."""
+
+
+@torch.no_grad()
+def checkpoint_motion(model: EdMCGS, t_us: int, event_map: np.ndarray | None = None,
+                      ev_c2w: np.ndarray | None = None) -> Motion:
+    """The model's own motion at ``t_us`` from its checkpoint anchor (prior clamped past the span)."""
+    trans, rot, _ = model.control_motion(model.meta.normalized_time(int(t_us)), None)
+    if event_map is not None:
+        trans = trans + event_displacement(model, trans, event_map, ev_c2w)
+    return trans, rot
+
+
+@torch.no_grad()
+def event_displacement(model: EdMCGS, base_trans: Tensor, event_map: np.ndarray | Tensor | None,
+                       ev_c2w: np.ndarray | None) -> Tensor:
+    """g_phi's displacement [M, 3] of the control points from the state ``base_trans`` by the events
+    ``event_map`` ([He, We] signed polarity sum); zeros without an event branch or events."""
+    cp = model.control.positions
+    if model.transition is None or event_map is None:
+        return torch.zeros_like(cp)
+    emap = torch.as_tensor(event_map, dtype=torch.float32, device=cp.device)
+    if not bool(torch.any(emap != 0)):
+        return torch.zeros_like(cp)
+    feats = model.encoder(model.config.contrast_threshold * emap[None, None])[0]
+    if model.config.local_sampling:
+        if ev_c2w is None:
+            raise InvalidInputError("ev_c2w is needed to project control points on the event camera")
+        w2c = torch.as_tensor(world_to_camera(np.asarray(ev_c2w, np.float64)), dtype=torch.float32,
+                              device=cp.device)
+        intr = model.meta.event_intrinsics
+        uv, depth = project(cp + base_trans, w2c, intr)
+        codes = sample_local(feats, uv, depth > NEAR, intr.width, intr.height)
+    else:
+        codes = sample_global(feats, cp.shape[0])
+    return model.transition(model.normalize_points(cp), codes) * (model.extent * model.event_scale)
+
+
+def advance(model: EdMCGS, motion: Motion, event_map, ev_c2w) -> Motion:
+    """The Markov transition from an anchor's ``motion`` by the events since it."""
+    trans, rot = motion
+    return trans + event_displacement(model, trans, event_map, ev_c2w), rot
+
+
+@torch.no_grad()
+def state_of(model: EdMCGS, motion: Motion) -> GaussianState:
+    """The Gaussians of a control-point motion (every Gaussian skinned: past the span nothing is frozen)."""
+    trans, rot = motion
+    return skin(model.skin_plan(frozen=False), model.control.positions, rot, trans)
+
+
+def correct(model: EdMCGS, motion: Motion, image: np.ndarray, c2w: np.ndarray, intrinsics: Intrinsics, *,
+            steps: int, lr: float = 2e-3, scale: float = 1.0,
+            reg: float = 1e-2) -> tuple[Motion, float, float]:
+    """Fit a translation residual to ``image`` (uint8 [H, W, C]) seen from ``c2w``.
+
+    steps: Adam steps (0: no fit); lr: step size as a fraction of the scene's extent; scale: render and
+    compare at this fraction of the frame's size (the target is area-downsampled); reg: weight of the
+    residual's squared norm (in extents). Returns (corrected motion, loss before, loss after).
+    """
+    trans0, rot = motion
+    target = torch.as_tensor(image, dtype=torch.float32) / 255.0
+    intr = intrinsics
+    if scale != 1.0:
+        w, h = max(8, round(intr.width * scale)), max(8, round(intr.height * scale))
+        target = torch.nn.functional.interpolate(target.permute(2, 0, 1)[None], size=(h, w),
+                                                 mode="area")[0].permute(1, 2, 0)
+        intr = intr.scaled(w, h)
+    w2c = torch.as_tensor(world_to_camera(np.asarray(c2w, np.float64)), dtype=torch.float32)
+    bg = background_color(model.config, model.meta.channels)
+    extent = float(model.extent)
+    delta = torch.zeros_like(trans0, requires_grad=True)
+    opt = torch.optim.Adam([delta], lr=lr)
+    first = last = None
+    for step in range(steps + 1):
+        state = model.state_from_motion(trans0.detach() + delta * extent, rot.detach())
+        out = render_image(state, w2c, intr, bg)
+        loss = (out - target).abs().mean()
+        value = float(loss.detach())
+        first = value if first is None else first
+        last = value
+        if step == steps:
+            break
+        opt.zero_grad(set_to_none=True)
+        (loss + reg * delta.pow(2).sum(-1).mean()).backward()
+        opt.step()
+    return (trans0 + delta.detach() * extent, rot), float(first), float(last)

@@ -1,0 +1,248 @@
+"""Online anchors: the stream's APS frames past the checkpoint's span become anchors while it runs.
+
+    ingest thread: frame at T past the span ──> refused (counted by reason) or
+                   predicted: the previous anchor's state + g_phi(events [prev, T))  ──> published
+                   ──> one-slot fit queue (newest wins; the one it replaces counts as skipped)
+    fit thread:    a bounded number of steps against the frame (model/online.correct) ──> published
+                   as corrected; its residual carried on to the anchors predicted from it meanwhile
+
+Anchors are keyed by stream time (a looping replay passes the same scene times again; each pass chains
+from the checkpoint's last anchor anew). The store is bounded (``capacity``) and drops anchors whose
+events the ring no longer holds. Readers (renders) take the published tuple without a lock and never
+wait for a fit.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+
+from edmcgs.errors import WindowUnavailable
+from edmcgs.model import online as model_online
+from edmcgs.model.dynamic import EdMCGS
+from edmcgs.sensor.buffer.ring import EventRingBuffer
+from edmcgs.sensor.event_map import accumulate
+from edmcgs.sensor.frames import Frames
+
+log = logging.getLogger("edmcgs.server")
+
+REFUSED_REASONS = ("size", "channels", "timestamp")
+SKIPPED_REASONS = ("superseded", "events_gone")
+
+
+@dataclass(frozen=True)
+class OnlineAnchor:
+    stream_us: int
+    """The frame's time on the stream clock (the key)."""
+    t_us: int
+    """Its scene time (past the checkpoint's span)."""
+    motion: model_online.Motion
+    """Control-point (translations, rotations) at the anchor."""
+    corrected: bool
+    """False: the prediction; True: fitted to the frame."""
+    version: int
+    """Bumped whenever the state changes (the deform cache keys on it)."""
+    pose: np.ndarray | None
+    """The frame's camera-to-world, when the stream gives one."""
+
+
+class OnlineAnchors:
+    """The online anchor store, its predictor (called by the ingest thread) and its fit worker."""
+
+    def __init__(self, model: EdMCGS, ring: EventRingBuffer, *, capacity: int = 64, fit_steps: int = 10,
+                 fit_scale: float = 1.0, fit: bool = True,
+                 default_pose: Callable[[int], np.ndarray | None] = lambda t: None):
+        self.model, self.ring = model, ring
+        self.capacity, self.fit_steps, self.fit_scale = int(capacity), int(fit_steps), float(fit_scale)
+        self.fit_enabled = fit and fit_steps > 0
+        self.default_pose = default_pose
+        meta = model.meta
+        self.end_us = int(meta.t_end_us)
+        self.last_ckpt_us = int(meta.anchors_us[-1])
+        self.size = (meta.intrinsics.width, meta.intrinsics.height)
+        self._anchors: tuple[OnlineAnchor, ...] = ()  # published, oldest first; replaced whole
+        self._lock = threading.Lock()  # writers only
+        self._newest_frame_us: int | None = None
+        self.refused = dict.fromkeys(REFUSED_REASONS, 0)
+        self.skipped = dict.fromkeys(SKIPPED_REASONS, 0)
+        self.predicted = 0
+        self.corrected = 0
+        self.expired = 0
+        self.last_fit_s: float | None = None
+        self.last_loss: tuple[float, float] | None = None
+        self.fit_seconds: list[float] = []  # recent, for /scene
+        self._slot: tuple[OnlineAnchor, np.ndarray] | None = None
+        self._fitting = False
+        self._cv = threading.Condition()
+        self._stop = False
+        self.on_fit: Callable[[float, float, float], None] | None = None  # (seconds, loss before, after)
+        self._thread: threading.Thread | None = None
+        model.requires_grad_(False)  # the networks and canonical Gaussians are frozen
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> OnlineAnchors:
+        if self.fit_enabled:
+            self._thread = threading.Thread(target=self._worker, name="edmcgs-online-fit", daemon=True)
+            self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 5.0) -> None:
+        with self._cv:
+            self._stop = True
+            self._cv.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    # ------------------------------------------------------------------ readers (no lock)
+    def anchors(self) -> tuple[OnlineAnchor, ...]:
+        return self._anchors
+
+    def get(self, stream_us: int) -> OnlineAnchor | None:
+        for a in reversed(self._anchors):
+            if a.stream_us == stream_us:
+                return a
+            if a.stream_us < stream_us:
+                return None
+        return None
+
+    def tau(self, stream_t: int, scene_t: int) -> int:
+        """tau on the stream clock for a time past the span: the newest online anchor at or before it
+        in this pass, else the checkpoint's last anchor (in this pass)."""
+        ckpt = stream_t - (int(scene_t) - self.last_ckpt_us)
+        for a in reversed(self._anchors):
+            if a.stream_us <= stream_t:
+                return a.stream_us if a.stream_us > ckpt else ckpt
+        return ckpt
+
+    @property
+    def queue_depth(self) -> int:
+        return int(self._slot is not None) + int(self._fitting)
+
+    # ------------------------------------------------------------------ ingest thread
+    def on_frames(self, frames: Frames, scene_of: Callable[[int], int]) -> None:
+        """New frames of the stream (ingest thread, after their events are in the ring)."""
+        for i in range(len(frames)):
+            image = np.asarray(frames.images[i])
+            if image.ndim == 2:
+                image = image[..., None]
+            t = int(frames.t_us[i])
+            if (image.shape[1], image.shape[0]) != self.size:
+                self._refuse("size", f"frame at {t} µs is {image.shape[1]}x{image.shape[0]}, the "
+                             "checkpoint's "
+                             f"camera is {self.size[0]}x{self.size[1]}")
+                continue
+            if image.shape[2] != self.model.meta.channels or image.dtype != np.uint8:
+                self._refuse("channels", f"frame at {t} µs has {image.shape[2]} {image.dtype} channels, the "
+                             f"checkpoint renders {self.model.meta.channels} uint8")
+                continue
+            if self._newest_frame_us is not None and t <= self._newest_frame_us:
+                self._refuse("timestamp", f"frame at {t} µs is not after the newest frame "
+                             f"({self._newest_frame_us} µs)")
+                continue
+            self._newest_frame_us = t
+            scene_t = scene_of(t)
+            if scene_t <= self.end_us:
+                continue  # within the checkpoint's span its own anchors rule
+            pose = None if frames.poses is None else np.asarray(frames.poses[i], np.float64)
+            self._predict(t, scene_t, image, pose)
+
+    def _refuse(self, reason: str, message: str) -> None:
+        self.refused[reason] += 1
+        log.warning("frame refused (%s): %s", reason, message)
+
+    def _predict(self, t: int, scene_t: int, image: np.ndarray, pose) -> None:
+        model = self.model
+        with self._lock:
+            prev_stream = self.tau(t - 1, scene_t - 1)
+            prev = self.get(prev_stream)
+            try:
+                events = self.ring.slice(prev_stream, t)
+            except WindowUnavailable:
+                self.skipped["events_gone"] += 1
+                return
+            emap = (accumulate(events, model.meta.event_width, model.meta.event_height)
+                    if len(events) else None)
+            c2w = pose if pose is not None else self.default_pose(scene_t)  # the event camera at the frame
+            if prev is None:
+                motion = model_online.checkpoint_motion(model, scene_t, emap, c2w)
+            else:
+                motion = model_online.advance(model, prev.motion, emap, c2w)
+            anchor = OnlineAnchor(t, scene_t, motion, False, 0, pose)
+            self._publish((*self._anchors, anchor))
+            self.predicted += 1
+        if self.fit_enabled:
+            with self._cv:
+                if self._slot is not None:
+                    self.skipped["superseded"] += 1
+                self._slot = (anchor, image)
+                self._cv.notify()
+
+    def _publish(self, anchors: tuple[OnlineAnchor, ...]) -> None:
+        """Lock held: bound the store by capacity and by the ring's oldest event, then swap."""
+        stats = self.ring.stats()
+        floor = stats.oldest_us if (stats.overflowed or stats.expired) else None
+        keep = [a for a in anchors if floor is None or a.stream_us > floor]
+        keep = keep[-self.capacity:]
+        self.expired += len(anchors) - len(keep)
+        self._anchors = tuple(keep)
+
+    # ------------------------------------------------------------------ fit thread
+    def _worker(self) -> None:
+        torch.set_num_threads(1)
+        while True:
+            with self._cv:
+                while self._slot is None and not self._stop:
+                    self._cv.wait()
+                if self._stop:
+                    return
+                anchor, image = self._slot
+                self._slot, self._fitting = None, True
+            try:
+                self._fit(anchor, image)
+            except Exception:  # a fit that fails leaves the prediction in place
+                log.exception("online anchor fit at %d µs failed", anchor.stream_us)
+            finally:
+                self._fitting = False
+
+    def _fit(self, anchor: OnlineAnchor, image: np.ndarray) -> None:
+        current = self.get(anchor.stream_us)
+        if current is None:
+            return  # expired meanwhile
+        c2w = anchor.pose if anchor.pose is not None else self.default_pose(anchor.t_us)
+        if c2w is None:
+            return
+        t0 = time.perf_counter()
+        (trans, _), before, after = model_online.correct(
+            self.model, current.motion, image, c2w, self.model.meta.intrinsics, steps=self.fit_steps,
+            scale=self.fit_scale)
+        seconds = time.perf_counter() - t0
+        delta = trans - current.motion[0]
+        with self._lock:
+            out = []
+            for a in self._anchors:
+                if a.stream_us == anchor.stream_us:
+                    a = replace(a, motion=(a.motion[0] + delta, a.motion[1]), corrected=True,
+                                version=a.version + 1)
+                elif a.stream_us > anchor.stream_us and not a.corrected:
+                    # predicted from this anchor's prediction: carry the correction on
+                    a = replace(a, motion=(a.motion[0] + delta, a.motion[1]), version=a.version + 1)
+                out.append(a)
+            self._publish(tuple(out))
+        self.corrected += 1
+        self.last_fit_s, self.last_loss = seconds, (before, after)
+        self.fit_seconds = [*self.fit_seconds[-63:], seconds]
+        if self.on_fit is not None:
+            self.on_fit(seconds, before, after)
+
+    def wait_idle(self, timeout: float = 30.0) -> bool:
+        """Until the fit queue is empty and no fit runs (tests, benchmarks)."""
+        deadline = time.monotonic() + timeout
+        while self.queue_depth and time.monotonic() < deadline:
+            time.sleep(0.01)
+        return not self.queue_depth
