@@ -57,11 +57,11 @@ class OnlineAnchors:
 
     def __init__(self, model: EdMCGS, ring: EventRingBuffer, *, capacity: int = 64, fit_steps: int = 10,
                  fit_scale: float = 1.0, fit: bool = True,
-                 default_pose: Callable[[int], np.ndarray | None] = lambda t: None):
+                 default_pose: Callable[[int], np.ndarray | None] | None = None):
         self.model, self.ring = model, ring
         self.capacity, self.fit_steps, self.fit_scale = int(capacity), int(fit_steps), float(fit_scale)
         self.fit_enabled = fit and fit_steps > 0
-        self.default_pose = default_pose
+        self.default_pose = default_pose or self._trajectory_pose
         meta = model.meta
         self.end_us = int(meta.t_end_us)
         self.last_ckpt_us = int(meta.anchors_us[-1])
@@ -98,6 +98,11 @@ class OnlineAnchors:
             self._cv.notify_all()
         if self._thread is not None:
             self._thread.join(timeout)
+
+    def _trajectory_pose(self, t_us: int) -> np.ndarray | None:
+        """The checkpoint's camera at a scene time (clamped to its span), or None without a trajectory."""
+        traj = self.model.meta.trajectory
+        return None if traj is None else traj.at(int(t_us))
 
     # ------------------------------------------------------------------ readers (no lock)
     def anchors(self) -> tuple[OnlineAnchor, ...]:

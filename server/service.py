@@ -148,8 +148,7 @@ class Service:
             if info.has_frames:  # past the span, the stream's frames become online anchors (online.py)
                 online = OnlineAnchors(model, ring, capacity=settings.online_anchors,
                                        fit_steps=settings.online_fit_steps,
-                                       fit_scale=settings.online_fit_scale,
-                                       default_pose=_trajectory_pose(meta))
+                                       fit_scale=settings.online_fit_scale)
             engine = Engine(model, ring, None, cache_size=settings.deform_cache,
                             raster_threads=settings.raster_threads, online=online)
             if info.t_range_us is not None:
@@ -436,9 +435,3 @@ def replay_timeline(t_range_us: tuple[int, int], scene_start_us: int, scene_end_
                     "aligning its start with the scene's start", first, last, scene_start_us, scene_end_us)
     return Timeline(first, first if same_clock else scene_start_us, period)
 
-
-def _trajectory_pose(meta):
-    """The checkpoint's camera at a scene time (clamped to its span), or None without a trajectory."""
-    def pose(t_us: int):
-        return None if meta.trajectory is None else meta.trajectory.at(int(t_us))
-    return pose

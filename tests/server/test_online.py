@@ -1,0 +1,162 @@
+"""Online anchors (server/online.py, model/online.py): frames past the checkpoint's span become anchors,
+predicted by the event transition and corrected in the background; bad frames are refused and counted,
+a fit that falls behind skips and counts, the store stays bounded, and the engine renders up to the head."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+import torch
+
+from edmcgs.model import online as model_online
+from edmcgs.model.checkpoint import load_checkpoint
+from edmcgs.sensor.buffer.ring import EventRingBuffer
+from edmcgs.sensor.event_map import accumulate
+from edmcgs.sensor.events import Events
+from edmcgs.sensor.frames import Frames
+from edmcgs.server.clock import Timeline
+from edmcgs.server.engine import Engine
+from edmcgs.server.online import OnlineAnchors
+from tests.support.server import build_scene
+
+STEP_US = 50_000
+
+
+@pytest.fixture(scope="module")
+def long_scene(tmp_path_factory):
+    """A 2.5 s recording at 64x48, frames every 50 ms; the checkpoint covers its first 0.5 s."""
+    rec_path, ckpt = build_scene(tmp_path_factory.mktemp("online"), width=64, height=48, duration_s=2.5,
+                                 anchor_every_s=0.1, frames_per_anchor=2, event_rate=20_000, init_points=1000,
+                                 control_points=32, event_branch_seed=0, train_s=0.5)
+    from edmcgs.sensor.files.recording import read_recording
+
+    return read_recording(rec_path), load_checkpoint(ckpt)
+
+
+def _events(t0: int, t1: int, n: int = 400, seed: int = 0) -> Events:
+    rng = np.random.default_rng(seed)
+    return Events(np.sort(rng.integers(t0, t1, n)).astype(np.int64),
+                  rng.integers(0, 64, n).astype(np.uint16), rng.integers(0, 48, n).astype(np.uint16),
+                  np.where(rng.random(n) < 0.5, 1, -1).astype(np.int8))
+
+
+def _feed(online: OnlineAnchors, ring: EventRingBuffer, rec, until_us: int, timeline: Timeline,
+          from_us: int | None = None) -> None:
+    """Push the recording's events and frames up to ``until_us`` as the ingest thread does."""
+    lo = rec.t_range_us[0] if from_us is None else from_us
+    ring.push(rec.events.time_slice(lo, until_us), complete_until_us=until_us)
+    sel = (rec.anchors.t_us >= lo) & (rec.anchors.t_us < until_us)
+    online.on_frames(Frames(rec.anchors.t_us[sel], rec.anchors.images[sel], rec.anchors.poses[sel]),
+                     timeline.scene_of)
+
+
+def test_frames_past_the_span_become_predicted_anchors_chained_by_the_events(long_scene):
+    rec, model = long_scene
+    ring = EventRingBuffer(10**6)
+    online = OnlineAnchors(model, ring, fit=False)
+    start = rec.t_range_us[0]
+    tl = Timeline(start, start)
+    _feed(online, ring, rec, model.meta.t_end_us + 3 * STEP_US + 1, tl)
+    anchors = online.anchors()
+    assert [a.t_us - model.meta.t_end_us for a in anchors] == [STEP_US, 2 * STEP_US, 3 * STEP_US]
+    assert not any(a.corrected for a in anchors)
+    # the first from the checkpoint's last anchor: what deform gives there (the prior clamped at the end)
+    last = int(model.meta.anchors_us[-1])
+    emap = accumulate(rec.events.time_slice(last, anchors[0].t_us), 64, 48)
+    pose = rec.anchors.poses[rec.anchors.t_us == anchors[0].t_us][0]
+    expected = model.deform(anchors[0].t_us, emap, ev_c2w=pose)
+    got = model_online.state_of(model, anchors[0].motion)
+    torch.testing.assert_close(got.means, expected.means, atol=1e-5, rtol=0)
+    # the next one moved from the first by g_phi of the events in between
+    assert not torch.equal(anchors[1].motion[0], anchors[0].motion[0])
+    assert online.tau(anchors[1].stream_us + 10, anchors[1].t_us + 10) == anchors[1].stream_us
+    assert online.tau(model.meta.t_end_us + 10, model.meta.t_end_us + 10) == last
+
+
+def test_bad_frames_are_refused_and_counted(long_scene):
+    rec, model = long_scene
+    ring = EventRingBuffer(10**6)
+    online = OnlineAnchors(model, ring, fit=False)
+    tl = Timeline(rec.t_range_us[0], rec.t_range_us[0])
+    end = model.meta.t_end_us
+    ring.push(_events(end - 100_000, end + 400_000), complete_until_us=end + 400_000)
+    good = np.zeros((48, 64, 3), np.uint8)
+    online.on_frames(Frames(np.array([end + 100_000], np.int64), good[None]), tl.scene_of)
+    online.on_frames(Frames(np.array([end + 200_000], np.int64), np.zeros((1, 40, 64, 3), np.uint8)),
+                     tl.scene_of)
+    online.on_frames(Frames(np.array([end + 50_000], np.int64), good[None]), tl.scene_of)  # older
+    online.on_frames(Frames(np.array([end + 100_000], np.int64), good[None]), tl.scene_of)  # the same
+    online.on_frames(Frames(np.array([end + 300_000], np.int64), np.zeros((1, 48, 64, 1), np.uint8)),
+                     tl.scene_of)
+    assert online.refused == {"size": 1, "channels": 1, "timestamp": 2}
+    assert [a.t_us for a in online.anchors()] == [end + 100_000]
+
+
+def test_the_store_is_bounded_and_expires_with_the_events(long_scene):
+    rec, model = long_scene
+    tl = Timeline(rec.t_range_us[0], rec.t_range_us[0])
+    ring = EventRingBuffer(10**6)
+    online = OnlineAnchors(model, ring, capacity=4, fit=False)
+    _feed(online, ring, rec, rec.t_range_us[1], tl)
+    assert len(online.anchors()) == 4 and online.expired == online.predicted - 4 > 0
+    # a ring holding ~150 ms of events: anchors go with their events
+    ring = EventRingBuffer(3000)
+    online = OnlineAnchors(model, ring, capacity=64, fit=False)
+    lo = rec.t_range_us[0]
+    for hi in range(lo + STEP_US, rec.t_range_us[1], STEP_US):
+        _feed(online, ring, rec, hi, tl, from_us=hi - STEP_US)
+    assert ring.stats().overflowed > 0 and online.skipped["events_gone"] == 0
+    assert 0 < len(online.anchors()) < online.predicted == 38
+    assert all(a.stream_us > ring.stats().oldest_us for a in online.anchors())
+
+
+def test_a_fit_that_falls_behind_skips_and_counts_and_corrections_publish(long_scene):
+    rec, model = long_scene
+    ring = EventRingBuffer(10**6)
+    online = OnlineAnchors(model, ring, fit_steps=3, fit_scale=0.5)
+    gate = threading.Event()
+    correct = model_online.correct
+
+    def slow(*args, **kwargs):
+        gate.wait(10)
+        return correct(*args, **kwargs)
+
+    model_online.correct = slow
+    try:
+        online.start()
+        tl = Timeline(rec.t_range_us[0], rec.t_range_us[0])
+        _feed(online, ring, rec, rec.t_range_us[1] + 1, tl)
+        n = online.predicted
+        assert n == 40 and online.queue_depth == 2  # one fitting (held), one waiting: never more
+        gate.set()
+        assert online.wait_idle(60)
+    finally:
+        model_online.correct = correct
+        online.stop()
+    # the first was taken by the fit, the newest waited; every one between was superseded
+    assert online.skipped["superseded"] == n - 2 and online.corrected == 2
+    corrected = [a for a in online.anchors() if a.corrected]
+    assert [a.t_us for a in corrected] == [online.anchors()[0].t_us, online.anchors()[-1].t_us]
+    assert all(a.version >= 1 for a in online.anchors())  # corrections carried on to later predictions
+    before, after = online.last_loss
+    assert after <= before
+
+
+def test_the_engine_renders_past_the_span_up_to_the_head(long_scene):
+    rec, model = long_scene
+    ring = EventRingBuffer(10**6)
+    online = OnlineAnchors(model, ring, fit=False)
+    engine = Engine(model, ring, None, cache_size=4, online=online)
+    start = rec.t_range_us[0]
+    engine.timeline = tl = Timeline(start, start)
+    head = model.meta.t_end_us + 5 * STEP_US + 20_000
+    _feed(online, ring, rec, head + 1, tl)
+    assert engine.renderable() == [(start, head)]
+    assert [s for s, *_ in engine.tau_rule.ranges(head)] == ["checkpoint", "online"]
+    out = engine.render(None, None, 64, 48)
+    assert out.instant.t_us == head and out.anchor == "predicted"
+    assert out.instant.anchor_us == online.anchors()[-1].t_us and out.events > 0
+    before = engine.render(model.meta.t_end_us + 10_000, None, 64, 48)
+    assert before.anchor == "checkpoint" and before.instant.anchor_us == int(model.meta.anchors_us[-1])
