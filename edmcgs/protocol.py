@@ -452,7 +452,7 @@ class FrameMeta:
     """1 (grey) or 3 (RGB)."""
     format: str
     """The format asked for: png | jpeg | msgpack (HTTP), jpeg | png | raw (websocket)."""
-    anchor: str = "checkpoint"
+    anchor: str
     """What the anchor is (``ANCHOR_KINDS``): the checkpoint's, or an online anchor predicted or corrected."""
 
     def headers(self) -> dict[str, str]:

@@ -135,10 +135,10 @@ def test_a_fit_that_falls_behind_skips_and_counts_and_corrections_publish(long_s
     finally:
         model_online.correct = correct
         online.stop()
-    # the first was taken by the fit, the newest waited; every one between was superseded
+    # one was taken by the (held) fit, the newest waited; every other one was superseded
     assert online.skipped["superseded"] == n - 2 and online.corrected == 2
     corrected = [a for a in online.anchors() if a.corrected]
-    assert [a.t_us for a in corrected] == [online.anchors()[0].t_us, online.anchors()[-1].t_us]
+    assert len(corrected) == 2 and corrected[-1] is online.anchors()[-1]
     assert all(a.version >= 1 for a in online.anchors())  # corrections carried on to later predictions
     before, after = online.last_loss
     assert after <= before
