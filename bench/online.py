@@ -1,0 +1,178 @@
+"""Online anchors past the checkpoint's span: drift against time since training ended, and what a
+correction costs.
+
+    .venv/bin/python -m bench.online --recording LONG.h5 --checkpoint SHORT.ckpt [--json PATH] [--csv PATH]
+    .venv/bin/python -m bench.online --timing-only [--json PATH]
+
+With a recording longer than the checkpoint's span (its anchors at the checkpoint's anchor rate past the
+span, its ``held_out`` frames as ground truth), the recording is fed as a replay would (events, then
+each anchor frame past the span), each online anchor predicted by the event transition and, for the
+"corrected" chain, fitted to its frame before the next (a fit that keeps up); then every held-out frame
+past the span is scored (PSNR) for
+
+    live       the service's render: newest corrected anchor before t + the events since it
+    no_corr    the same chain, never corrected (the model's transition alone)
+    hold_last  the newest anchor frame itself (no model)
+
+and each new anchor frame against its prediction before the correction (``pred``). Timing: one
+correction per anchor at 173x130 and 346x260 (the demo preset's model size), anchors per second
+sustained with predict + correct back to back, one torch thread.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from bench.results import table, write_json
+
+TARGETS = {"anchors_per_s_173x130": (">=", 5.0)}
+
+
+def _psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+    return 99.0 if mse == 0 else 10 * np.log10(1.0 / mse)
+
+
+def drift(recording: Path, checkpoint: Path, steps: int, scale: float) -> tuple[list[dict], dict]:
+    from edmcgs.geometry import Trajectory
+    from edmcgs.model import online as model_online
+    from edmcgs.model.checkpoint import load_checkpoint
+    from edmcgs.sensor.buffer.ring import EventRingBuffer
+    from edmcgs.sensor.files.recording import read_recording
+    from edmcgs.sensor.frames import Frames
+    from edmcgs.server.clock import Timeline
+    from edmcgs.server.engine import Engine
+    from edmcgs.server.online import OnlineAnchors
+
+    rec = read_recording(recording)
+    model = load_checkpoint(checkpoint)
+    meta = model.meta
+    end = int(meta.t_end_us)
+    traj = Trajectory(rec.trajectory_t_us, rec.trajectory_c2w) if rec.trajectory_t_us is not None else None
+
+    def pose(t):
+        return traj.at(int(t)) if traj is not None else meta.trajectory.at(int(t))
+
+    start = rec.t_range_us[0]
+    chains = {}
+    pred_rows = []
+    for name, fit in (("live", True), ("no_corr", False)):
+        ring = EventRingBuffer(len(rec.events) + 1)
+        ring.push(rec.events, complete_until_us=rec.t_range_us[1] + 1)
+        online = OnlineAnchors(model, ring, capacity=10**6, fit=False, fit_steps=steps, fit_scale=scale,
+                               default_pose=pose)
+        engine = Engine(model, ring, None, cache_size=4, online=online)
+        engine.timeline = Timeline(start, start)
+        anchors = rec.anchors
+        for i in np.nonzero(anchors.t_us > end)[0]:
+            t = int(anchors.t_us[i])
+            frame = Frames(anchors.t_us[i:i + 1], anchors.images[i:i + 1],
+                           None if anchors.poses is None else anchors.poses[i:i + 1])
+            online.on_frames(frame, engine.timeline.scene_of)
+            a = online.anchors()[-1]
+            if fit:
+                img = model.render(model_online.state_of(model, a.motion), pose(t), meta.intrinsics)
+                pred = _psnr(img, anchors.images[i] / 255.0)
+                t0 = time.perf_counter()
+                online._fit(a, anchors.images[i])
+                pred_rows.append({"t_us": t, "since_end_s": (t - end) / 1e6, "pred_psnr": pred,
+                                  "fit_s": time.perf_counter() - t0,
+                                  "loss_before": online.last_loss[0], "loss_after": online.last_loss[1]})
+        chains[name] = engine
+    held = rec.held_out
+    rows = []
+    anchor_t = rec.anchors.t_us
+    for j in np.nonzero(held.t_us > end)[0]:
+        t = int(held.t_us[j])
+        target = held.images[j] / 255.0
+        c2w = held.poses[j] if held.poses is not None else pose(t)
+        row = {"t_us": t, "since_end_s": (t - end) / 1e6}
+        for name, engine in chains.items():
+            out = engine.render(t, c2w, meta.intrinsics.width, meta.intrinsics.height)
+            row[name] = _psnr(out.pixels / 255.0, target)
+        k = int(np.searchsorted(anchor_t, t, side="right")) - 1
+        row["hold_last"] = _psnr(rec.anchors.images[k] / 255.0, target)
+        rows.append(row)
+    return rows, {"pred": pred_rows}
+
+
+def timing(width: int, height: int, steps: int, scale: float, n: int = 5) -> dict:
+    """Median predict and correct time per anchor for the demo preset's model at width x height."""
+    import tempfile
+
+    from edmcgs.model import online as model_online
+    from edmcgs.model.checkpoint import load_checkpoint
+    from edmcgs.sensor.event_map import accumulate
+    from edmcgs.sensor.files.recording import read_recording
+    from tests.support.server import build_scene
+
+    with tempfile.TemporaryDirectory() as d:
+        rec_path, ckpt = build_scene(d, width=width, height=height, duration_s=1.0, anchor_every_s=0.2,
+                                     event_rate=200_000, event_branch_seed=0)
+        rec, model = read_recording(rec_path), load_checkpoint(ckpt)
+    model.requires_grad_(False)
+    intr = model.meta.intrinsics
+    motion = model_online.checkpoint_motion(model, int(rec.anchors.t_us[0]))
+    preds, fits = [], []
+    for k in range(n + 1):
+        i = k % len(rec.anchors)
+        t = int(rec.anchors.t_us[i])
+        emap = accumulate(rec.events.time_slice(t - 200_000, t), width, height)
+        c2w = rec.anchors.poses[i]
+        t0 = time.perf_counter()
+        motion = model_online.advance(model, motion, emap, c2w)
+        t1 = time.perf_counter()
+        motion, _, _ = model_online.correct(model, motion, rec.anchors.images[i], c2w, intr, steps=steps,
+                                            scale=scale)
+        t2 = time.perf_counter()
+        if k:  # the first warms up
+            preds.append(t1 - t0)
+            fits.append(t2 - t1)
+    return {"predict_s": float(np.median(preds)), "correct_s": float(np.median(fits)),
+            "gaussians": len(model.gaussians), "control_points": model.control.num_points}
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--recording", type=Path)
+    p.add_argument("--checkpoint", type=Path)
+    p.add_argument("--steps", type=int, default=10)
+    p.add_argument("--scale", type=float, default=0.5)
+    p.add_argument("--timing-only", action="store_true")
+    p.add_argument("--json", type=Path)
+    p.add_argument("--csv", type=Path)
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    results: dict = {"steps": args.steps, "scale": args.scale}
+    for w, h in ((173, 130), (346, 260)):
+        t = timing(w, h, args.steps, args.scale)
+        results[f"predict_ms_{w}x{h}"] = 1e3 * t["predict_s"]
+        results[f"correct_ms_{w}x{h}"] = 1e3 * t["correct_s"]
+        results[f"anchors_per_s_{w}x{h}"] = 1.0 / (t["predict_s"] + t["correct_s"])
+        results[f"gaussians_{w}x{h}"] = t["gaussians"]
+    if not args.timing_only:
+        rows, extra = drift(args.recording, args.checkpoint, args.steps, args.scale)
+        for name in ("live", "no_corr", "hold_last"):
+            results[f"psnr_{name}"] = float(np.mean([r[name] for r in rows]))
+        results["live_minus_hold_last_worst_db"] = float(min(r["live"] - r["hold_last"] for r in rows))
+        results["pred_psnr"] = float(np.mean([r["pred_psnr"] for r in extra["pred"]]))
+        results["drift"] = rows
+        results["predictions"] = extra["pred"]
+        if args.csv is not None:
+            args.csv.parent.mkdir(parents=True, exist_ok=True)
+            with open(args.csv, "w", newline="") as f:
+                w = csv.DictWriter(f, fieldnames=list(rows[0]))
+                w.writeheader()
+                w.writerows(rows)
+    print(table(results, TARGETS))
+    write_json(args.json, results)
+
+
+if __name__ == "__main__":
+    main()
