@@ -2,7 +2,7 @@
 correction costs.
 
     .venv/bin/python -m bench.online --recording LONG.h5 --checkpoint SHORT.ckpt [--json PATH] [--csv PATH]
-    .venv/bin/python -m bench.online --timing-only [--json PATH]
+    .venv/bin/python -m bench.online ... --timing-only   (the CPU figures alone)
 
 With a recording longer than the checkpoint's span (its anchors at the checkpoint's anchor rate past the
 span, its ``held_out`` frames as ground truth), the recording is fed as a replay would (events, then
@@ -15,8 +15,8 @@ past the span is scored (PSNR) for
     hold_last  the newest anchor frame itself (no model)
 
 and each new anchor frame against its prediction before the correction (``pred``). Timing: one
-correction per anchor at 173x130 and 346x260 (the demo preset's model size), anchors per second
-sustained with predict + correct back to back, one torch thread.
+correction per anchor of the checkpoint's model at 173x130 and 346x260 (intrinsics scaled), anchors per
+second sustained with predict + correct back to back, one torch thread.
 """
 
 from __future__ import annotations
@@ -102,34 +102,35 @@ def drift(recording: Path, checkpoint: Path, steps: int, scale: float) -> tuple[
     return rows, {"pred": pred_rows}
 
 
-def timing(width: int, height: int, steps: int, scale: float, n: int = 5) -> dict:
-    """Median predict and correct time per anchor for the demo preset's model at width x height."""
-    import tempfile
-
+def timing(checkpoint: Path, recording: Path, width: int, height: int, steps: int, scale: float,
+           n: int = 6) -> dict:
+    """Median predict and correct time per anchor of ``checkpoint``'s model, its anchors rendered and
+    compared at width x height (intrinsics scaled, the frame resized to match)."""
     from edmcgs.model import online as model_online
     from edmcgs.model.checkpoint import load_checkpoint
     from edmcgs.sensor.event_map import accumulate
     from edmcgs.sensor.files.recording import read_recording
-    from tests.support.server import build_scene
 
-    with tempfile.TemporaryDirectory() as d:
-        rec_path, ckpt = build_scene(d, width=width, height=height, duration_s=1.0, anchor_every_s=0.2,
-                                     event_rate=200_000, event_branch_seed=0)
-        rec, model = read_recording(rec_path), load_checkpoint(ckpt)
+    rec, model = read_recording(recording), load_checkpoint(checkpoint)
     model.requires_grad_(False)
-    intr = model.meta.intrinsics
-    motion = model_online.checkpoint_motion(model, int(rec.anchors.t_us[0]))
+    meta = model.meta
+    intr = meta.intrinsics.scaled(width, height)
+    motion = model_online.checkpoint_motion(model, int(meta.t_end_us))
+    poses = rec.anchors.poses if rec.anchors.poses is not None else None
     preds, fits = [], []
     for k in range(n + 1):
-        i = k % len(rec.anchors)
+        i = 1 + k % (len(rec.anchors) - 1)
         t = int(rec.anchors.t_us[i])
-        emap = accumulate(rec.events.time_slice(t - 200_000, t), width, height)
-        c2w = rec.anchors.poses[i]
+        emap = accumulate(rec.events.time_slice(int(rec.anchors.t_us[i - 1]), t), meta.event_width,
+                          meta.event_height)
+        c2w = poses[i] if poses is not None else meta.trajectory.at(t)
+        image = torch.nn.functional.interpolate(
+            torch.as_tensor(rec.anchors.images[i]).permute(2, 0, 1)[None].float(), size=(height, width),
+            mode="bilinear")[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy()
         t0 = time.perf_counter()
         motion = model_online.advance(model, motion, emap, c2w)
         t1 = time.perf_counter()
-        motion, _, _ = model_online.correct(model, motion, rec.anchors.images[i], c2w, intr, steps=steps,
-                                            scale=scale)
+        motion, _, _ = model_online.correct(model, motion, image, c2w, intr, steps=steps, scale=scale)
         t2 = time.perf_counter()
         if k:  # the first warms up
             preds.append(t1 - t0)
@@ -144,14 +145,15 @@ def main(argv=None) -> None:
     p.add_argument("--checkpoint", type=Path)
     p.add_argument("--steps", type=int, default=10)
     p.add_argument("--scale", type=float, default=0.5)
-    p.add_argument("--timing-only", action="store_true")
+    p.add_argument("--timing-only", action="store_true", help="only the CPU figures (no drift)")
+    p.add_argument("--plot", type=Path, help="the drift plot (PNG)")
     p.add_argument("--json", type=Path)
     p.add_argument("--csv", type=Path)
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     results: dict = {"steps": args.steps, "scale": args.scale}
     for w, h in ((173, 130), (346, 260)):
-        t = timing(w, h, args.steps, args.scale)
+        t = timing(args.checkpoint, args.recording, w, h, args.steps, args.scale)
         results[f"predict_ms_{w}x{h}"] = 1e3 * t["predict_s"]
         results[f"correct_ms_{w}x{h}"] = 1e3 * t["correct_s"]
         results[f"anchors_per_s_{w}x{h}"] = 1.0 / (t["predict_s"] + t["correct_s"])
@@ -170,6 +172,11 @@ def main(argv=None) -> None:
                 w = csv.DictWriter(f, fieldnames=list(rows[0]))
                 w.writeheader()
                 w.writerows(rows)
+        if args.plot is not None:
+            from bench.report.plots import online_drift
+
+            args.plot.parent.mkdir(parents=True, exist_ok=True)
+            online_drift(rows, extra["pred"], args.plot, f"{args.steps} steps at {args.scale:g}x size")
     print(table(results, TARGETS))
     write_json(args.json, results)
 

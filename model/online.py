@@ -88,7 +88,8 @@ def correct(model: EdMCGS, motion: Motion, image: np.ndarray, c2w: np.ndarray, i
 
     steps: Adam steps (0: no fit); lr: step size as a fraction of the scene's extent; scale: render and
     compare at this fraction of the frame's size (the target is area-downsampled); reg: weight of the
-    residual's squared norm (in extents). Returns (corrected motion, loss before, loss after).
+    residual's squared norm (in extents). Returns (corrected motion, L1 loss at the first step, L1 loss
+    at the last step, before its update: no extra render to score the result).
     """
     trans0, rot = motion
     target = torch.as_tensor(image, dtype=torch.float32) / 255.0
@@ -104,16 +105,16 @@ def correct(model: EdMCGS, motion: Motion, image: np.ndarray, c2w: np.ndarray, i
     delta = torch.zeros_like(trans0, requires_grad=True)
     opt = torch.optim.Adam([delta], lr=lr)
     first = last = None
-    for step in range(steps + 1):
+    for _ in range(steps):
         state = model.state_from_motion(trans0.detach() + delta * extent, rot.detach())
         out = render_image(state, w2c, intr, bg)
         loss = (out - target).abs().mean()
         value = float(loss.detach())
         first = value if first is None else first
         last = value
-        if step == steps:
-            break
         opt.zero_grad(set_to_none=True)
         (loss + reg * delta.pow(2).sum(-1).mean()).backward()
         opt.step()
-    return (trans0 + delta.detach() * extent, rot), float(first), float(last)
+    if first is None:
+        return (trans0, rot), float("nan"), float("nan")
+    return (trans0 + delta.detach() * extent, rot), first, last
