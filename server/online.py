@@ -15,6 +15,7 @@ wait for a fit.
 from __future__ import annotations
 
 import logging
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -34,6 +35,8 @@ log = logging.getLogger("edmcgs.server")
 
 REFUSED_REASONS = ("size", "channels", "timestamp")
 SKIPPED_REASONS = ("superseded", "events_gone")
+SWITCH_INTERVAL_S = 0.0005
+"""The GIL switch interval while fitting (see ``start``)."""
 
 
 @dataclass(frozen=True)
@@ -88,6 +91,11 @@ class OnlineAnchors:
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> OnlineAnchors:
         if self.fit_enabled:
+            # The fit is thousands of small torch ops, each taking the GIL back; at Python's default 5 ms
+            # switch interval the ingest and request threads starved it (measured: the demo's first fit
+            # took 6 s during a real-time replay, none finished in 6 s beside a 10 fps stream; with
+            # 0.5 ms, 1.1-2.8 s). Process-wide, and only ever lowered.
+            sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
             self._thread = threading.Thread(target=self._worker, name="edmcgs-online-fit", daemon=True)
             self._thread.start()
         return self
