@@ -1,4 +1,4 @@
-"""Checkpoint and command-line fault cases of issue 17: each a clear one-line error, never a traceback."""
+"""Checkpoint and command-line faults: each a clear one-line error, never a traceback."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ class _Evil:
         return (os.system, ("echo should-never-run",))
 
 
-def test_issue17_8_malicious_pickle_never_suggests_weights_only_false(tmp_path):
+def test_malicious_pickle_never_suggests_weights_only_false(tmp_path):
     path = tmp_path / "evil.ckpt"
     torch.save({"format": "edmcgs-checkpoint", "x": _Evil()}, path)
     with pytest.raises(CheckpointError) as info:
@@ -28,7 +28,7 @@ def test_issue17_8_malicious_pickle_never_suggests_weights_only_false(tmp_path):
     assert "system" in message
 
 
-def test_issue17_8_garbage_file_is_one_line(tmp_path):
+def test_garbage_file_is_one_line(tmp_path):
     path = tmp_path / "junk.ckpt"
     path.write_bytes(b"PK\x03\x04" + b"\x00garbage" * 50)
     with pytest.raises(CheckpointError) as info:
@@ -38,12 +38,12 @@ def test_issue17_8_garbage_file_is_one_line(tmp_path):
 
 @pytest.mark.parametrize("name", ["banana", "cuda" if not torch.cuda.is_available() else "cuda:99", "cuda:99",
                                   "tpu"])
-def test_issue17_9_unavailable_devices_are_refused(name):
+def test_unavailable_devices_are_refused(name):
     with pytest.raises(InvalidInputError, match=r"available|unknown"):
         check_device(name)
 
 
-def test_issue17_9_cpu_device_passes():
+def test_cpu_device_passes():
     assert check_device("cpu") == "cpu"
 
 
@@ -99,7 +99,7 @@ MALFORMED = {
 
 
 @pytest.mark.parametrize("case", sorted(MALFORMED))
-def test_issue17_6_malformed_checkpoint_is_one_line_naming_the_field(saved, tmp_path, case):
+def test_malformed_checkpoint_is_one_line_naming_the_field(saved, tmp_path, case):
     mutate, field = MALFORMED[case]
     path = _mutated(saved, tmp_path, mutate)
     with pytest.raises(CheckpointError) as info:
@@ -107,7 +107,7 @@ def test_issue17_6_malformed_checkpoint_is_one_line_naming_the_field(saved, tmp_
     assert field in str(info.value) and "\n" not in str(info.value)
 
 
-def test_issue17_6_out_of_range_index_tensor_is_refused(saved, tmp_path):
+def test_out_of_range_index_tensor_is_refused(saved, tmp_path):
     def flip(payload):
         bind = payload["state_dict"]["control.bind"]
         bind.view(-1)[0] = bind.view(-1)[0] ^ (1 << 40)  # a flipped high bit of an index
@@ -117,7 +117,7 @@ def test_issue17_6_out_of_range_index_tensor_is_refused(saved, tmp_path):
 
 
 @pytest.mark.parametrize("key", ["gaussians.means", "control.bind", "meta"])
-def test_issue17_6_flipped_bit_is_detected_by_the_checksum(saved, tmp_path, key):
+def test_flipped_bit_is_detected_by_the_checksum(saved, tmp_path, key):
     def flip(payload):
         t = payload["meta"]["anchors_us"] if key == "meta" else payload["state_dict"][key]
         raw = t.view(-1).view(torch.uint8) if t.dtype != torch.int64 else t.view(-1)
@@ -128,7 +128,7 @@ def test_issue17_6_flipped_bit_is_detected_by_the_checksum(saved, tmp_path, key)
 
 
 @pytest.mark.parametrize("damage", ["truncate", "zero_range", "flip_bytes"])
-def test_issue17_6_damaged_file_bytes_are_one_line(saved, tmp_path, damage):
+def test_damaged_file_bytes_are_one_line(saved, tmp_path, damage):
     data = bytearray(saved.read_bytes())
     rng = np.random.default_rng(0)
     if damage == "truncate":
@@ -147,5 +147,5 @@ def test_issue17_6_damaged_file_bytes_are_one_line(saved, tmp_path, damage):
     # loading without an error is allowed only when the damage missed every byte that matters
 
 
-def test_issue17_6_valid_checkpoint_still_loads(saved):
+def test_valid_checkpoint_still_loads(saved):
     assert load_checkpoint(saved) is not None

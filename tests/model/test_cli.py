@@ -65,7 +65,7 @@ def test_eval_rejects_a_foreign_checkpoint(recording, tmp_path, capsys):
     assert "checkpoint" in capsys.readouterr().err
 
 
-def test_issue17_7_resume_on_another_recording_fails_before_writing(recording, tmp_path, capsys):
+def test_resume_on_another_recording_fails_before_writing(recording, tmp_path, capsys):
     from edmcgs.model.checkpoint import save_checkpoint
     from tests.support.models import build
 

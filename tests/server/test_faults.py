@@ -1,4 +1,4 @@
-"""Fault cases of issue 17, one test each (unit level: no server process unless stated)."""
+"""Hostile input and faults, one test each (unit level: no server process unless stated)."""
 
 from __future__ import annotations
 
@@ -37,7 +37,7 @@ def _health_of(ingest: Ingest) -> dict:
 
 @pytest.mark.parametrize("exc", [OverflowError("timestamp too large to convert to C _PyTime_t"),
                                  ValueError("boom"), ZeroDivisionError("x")])
-def test_issue17_3_any_ingest_exception_reaches_healthz(exc):
+def test_any_ingest_exception_reaches_healthz(exc):
     ingest = Ingest(_Failing(exc), EventRingBuffer(16), reconnect=False).start()
     ingest.stop(timeout=5)
     assert isinstance(ingest.error, EdmcgsError)
@@ -46,7 +46,7 @@ def test_issue17_3_any_ingest_exception_reaches_healthz(exc):
     assert type(exc).__name__ in details["source_error"] and str(exc) in details["source_error"]
 
 
-def test_issue17_3_corrupt_timestamp_is_a_clear_pacing_error():
+def test_corrupt_timestamp_is_a_clear_pacing_error():
     now = [0.0]
     pacer = Pacer(1.0, clock=lambda: now[0], sleep=lambda s: None)
     pacer.wait_until(1_600_000_000_000_000)
@@ -57,7 +57,7 @@ def test_issue17_3_corrupt_timestamp_is_a_clear_pacing_error():
 @pytest.mark.parametrize("kwargs", [{"device": "banana"}, {"device": "cuda:99"}, {"ring_events": 10**12},
                                     {"max_width": 10**9}, {"render_queue": 10**9}, {"speed": float("inf")},
                                     {"stream_max_fps": 1e9}, {"max_streams": -1}])
-def test_issue17_9_settings_refuse_missing_devices_and_huge_rings(kwargs):
+def test_settings_refuse_missing_devices_and_huge_rings(kwargs):
     from pydantic import ValidationError
 
     from edmcgs.server.settings import Settings
@@ -68,7 +68,7 @@ def test_issue17_9_settings_refuse_missing_devices_and_huge_rings(kwargs):
                                               "greater than"))
 
 
-def test_issue17_9_serve_cli_says_one_line(capsys):
+def test_serve_cli_says_one_line(capsys):
     from edmcgs.server.cli import main
 
     assert main(["--device", "banana"]) == 2
@@ -78,7 +78,7 @@ def test_issue17_9_serve_cli_says_one_line(capsys):
 
 @pytest.mark.parametrize("query", ["token=s3cret", "tok%65n=s3cret", "%74oken=s3cret",
                                    "t=1&tok%65n=s3cret&w=2", "to+ken=x&token=s3cret", "TOKEN=s3cret"])
-def test_issue17_10_token_redacted_by_its_decoded_name(query):
+def test_token_redacted_by_its_decoded_name(query):
     import logging
 
     from edmcgs.server.cli import _RedactToken
@@ -136,13 +136,13 @@ def stub_client():
 
 
 @pytest.mark.parametrize("pose", ["[" * 1500, "[" * 1500 + "]" * 1500, "1," * 5000, "[[[1]]]"])
-def test_issue17_4_deep_or_huge_pose_is_a_422_naming_pose(stub_client, pose):
+def test_deep_or_huge_pose_is_a_422_naming_pose(stub_client, pose):
     response = stub_client.get("/render", params={"pose": pose})
     assert response.status_code == 422
     assert response.json()["param"] == "pose"
 
 
-def test_issue17_14_a_looping_replay_never_overflows_and_keeps_the_span_renderable():
+def test_a_looping_replay_never_overflows_and_keeps_the_span_renderable():
     from edmcgs.sensor.events import Events
     from edmcgs.server import clock
     from edmcgs.server.service import retain_passes
@@ -170,7 +170,7 @@ def test_issue17_14_a_looping_replay_never_overflows_and_keeps_the_span_renderab
     assert ring.stats().expired > 0 and len(ring) <= 3 * per_pass
 
 
-def test_issue17_2_streams_never_take_a_single_render_slot():
+def test_streams_never_take_a_single_render_slot():
     import asyncio
     import threading
 
@@ -193,7 +193,7 @@ def test_issue17_2_streams_never_take_a_single_render_slot():
     asyncio.run(scenario())
 
 
-def test_issue17_2_streams_beyond_the_limit_get_busy_and_1013():
+def test_streams_beyond_the_limit_get_busy_and_1013():
     from fastapi.testclient import TestClient
     from starlette.websockets import WebSocketDisconnect
 
@@ -210,7 +210,7 @@ def test_issue17_2_streams_beyond_the_limit_get_busy_and_1013():
         assert info.value.code == 1013
 
 
-def test_issue17_2_connections_are_capped(monkeypatch):
+def test_connections_are_capped(monkeypatch):
     import uvicorn
 
     from edmcgs.server import cli
@@ -247,7 +247,7 @@ WS_CASES = {
 
 
 @pytest.mark.parametrize("case", sorted(WS_CASES))
-def test_issue17_5_bad_websocket_messages_get_an_error_and_the_stream_lives_on(stub_client, case):
+def test_bad_websocket_messages_get_an_error_and_the_stream_lives_on(stub_client, case):
     from edmcgs import protocol
 
     with stub_client.websocket_connect("/stream") as ws:
@@ -268,7 +268,7 @@ def test_issue17_5_bad_websocket_messages_get_an_error_and_the_stream_lives_on(s
     ({"host": "evil.example:8000"}, False),
     ({"host": "127.0.0.1.evil.example"}, False),
 ])
-def test_issue17_11_foreign_hosts_and_origins_are_refused_on_loopback(stub_client, headers, allowed):
+def test_foreign_hosts_and_origins_are_refused_on_loopback(stub_client, headers, allowed):
     from starlette.websockets import WebSocketDisconnect
 
     response = stub_client.get("/healthz", headers=headers)
@@ -285,14 +285,14 @@ def test_issue17_11_foreign_hosts_and_origins_are_refused_on_loopback(stub_clien
         assert info.value.code == 1008
 
 
-def test_issue17_11_loopback_binds_answer_loopback_names_only():
+def test_loopback_binds_answer_loopback_names_only():
     from edmcgs.server.settings import Settings
 
     assert sorted(Settings().host_allowlist) == sorted(LOOPBACK)
     assert Settings(host="0.0.0.0").host_allowlist is None
 
 
-def test_issue17_11_allowed_hosts_are_configurable():
+def test_allowed_hosts_are_configurable():
     from fastapi.testclient import TestClient
 
     from edmcgs.server.app import create_app
@@ -305,7 +305,7 @@ def test_issue17_11_allowed_hosts_are_configurable():
 
 
 @pytest.mark.parametrize("open_probes", [False, True])
-def test_issue17_12_probes_and_docs_with_a_token(open_probes):
+def test_probes_and_docs_with_a_token(open_probes):
     from fastapi.testclient import TestClient
 
     from edmcgs.server.app import create_app
@@ -323,7 +323,7 @@ def test_issue17_12_probes_and_docs_with_a_token(open_probes):
         assert client.get("/render").status_code == 401
 
 
-def test_issue17_13_openapi_states_the_real_limits_and_error_bodies(stub_client):
+def test_openapi_states_the_real_limits_and_error_bodies(stub_client):
     schema = stub_client.get("/openapi.json").json()
     params = {p["name"]: p["schema"] for p in schema["paths"]["/render"]["get"]["parameters"]}
 
