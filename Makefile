@@ -1,7 +1,7 @@
 # The two commands of the README, and the checks of CONTRIBUTING.md.
 PY := .venv/bin/python
 
-.PHONY: serve test check lint lock bench demo
+.PHONY: serve test check lint lock fuzz bench demo
 
 serve:  ## set up, then serve the bundled demo scene on http://127.0.0.1:8000
 	scripts/bootstrap.sh
@@ -20,6 +20,10 @@ lint:
 
 lock:   ## refresh requirements/constraints.txt to the newest versions pyproject.toml allows
 	scripts/lock.sh
+
+fuzz:   ## schemathesis against a real edmcgs-serve: all checks, >= 1000 cases, 0 server errors
+	scripts/bootstrap.sh --test
+	scripts/fuzz_api.sh
 
 bench:  ## every benchmark, JSON into reports/bench/
 	mkdir -p reports/bench

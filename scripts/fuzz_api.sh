@@ -4,11 +4,12 @@
 #
 #   scripts/fuzz_api.sh [MAX_EXAMPLES]      # default 1200 per operation (1323 cases with seed 1)
 #
-# Needs schemathesis in .venv (.venv/bin/python -m pip install schemathesis; not part of the pinned set).
+# Installs the fuzz extra (schemathesis, pinned in pyproject.toml) into .venv first.
 # scripts/schemathesis.toml says which statuses schema-valid data may still get, and why.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 max_examples="${1:-1200}"
+.venv/bin/python -m pip install -q --disable-pip-version-check -c requirements/constraints.txt -e '.[dev,fuzz]'
 work="$(mktemp -d)"
 port="$(.venv/bin/python -c 'from tests.support.server import free_port; print(free_port())')"
 .venv/bin/python -c "
