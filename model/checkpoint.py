@@ -34,6 +34,7 @@ from edmcgs.errors import CheckpointError, EdmcgsError
 from edmcgs.geometry import Intrinsics, Trajectory
 from edmcgs.model.config import EdmcgsConfig
 from edmcgs.model.dynamic import EdMCGS, SceneMeta
+from edmcgs.model.motion.background import BackgroundLayer
 from edmcgs.model.motion.control_points import ControlPoints
 from edmcgs.model.motion.gaussians import Gaussians
 from edmcgs.model.motion.leanness import decisions, frozen_control_points
@@ -307,9 +308,18 @@ def _build(payload: dict) -> EdMCGS:
         raise CheckpointError("has_event_branch disagrees with the config's switches")
     sizes = payload["sizes"]
     n, mcp = int(sizes["num_gaussians"]), int(sizes["num_control_points"])
-    model = EdMCGS(meta, config, Gaussians.empty(n, config.sh_degree, meta.channels),
-                   ControlPoints.empty(mcp, n, config.skin_k, config.graph_k), torch.zeros(3), 1.0)
     state = payload["state_dict"]
+    layer = None
+    texture = state.get("bg_layer.texture")
+    if config.bg_layer:
+        if not isinstance(texture, torch.Tensor) or texture.ndim != 3:
+            raise CheckpointError("config.bg_layer is on but the state_dict has no [C, H, W] "
+                                  "bg_layer.texture")
+        layer = BackgroundLayer.empty(*texture.shape)
+    gaussians = Gaussians.empty(n, config.sh_degree, meta.channels, birth=config.anchor_windows)
+    model = EdMCGS(meta, config, gaussians,
+                   ControlPoints.empty(mcp, n, config.skin_k, config.graph_k, birth=config.anchor_windows),
+                   torch.zeros(3), 1.0, layer)
     expected = model.state_dict()
     missing = sorted(set(expected) - set(state))
     unexpected = sorted(set(state) - set(expected))

@@ -30,7 +30,10 @@ class EdmcgsConfig:
 
     # --- representation ----------------------------------------------------------------------
     init_points: int = 20000
-    """Number of Gaussians at initialisation (back-projected anchor pixels)."""
+    """Number of Gaussians at initialisation (back-projected anchor pixels; one per pixel that differs
+    from the background when there are fewer such pixels)."""
+    init_opacity: float = 0.1
+    """Opacity of every Gaussian at initialisation."""
     init_anchors: int = 0
     """Back-project the first this many anchors at initialisation (0: all). One anchor gives a single
     canonical copy of a moving object; all give every pose, which the deformation must then hide."""
@@ -62,6 +65,20 @@ class EdmcgsConfig:
     """Phi reads I_E averaged over pool x pool pixel blocks (1: full resolution, as in the paper)."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Linear RGB colour behind all Gaussians, in [0, 1] (grey models use its Rec. 601 luma)."""
+    bg_layer: bool = False
+    """A distant background layer (``motion.background``): a learned texture over ray directions,
+    initialised from the anchors' per-texel median, behind the Gaussians instead of ``background``.
+    For a static or rotating camera (the static scene at infinity); the Gaussians then model what moves."""
+    dynamic_threshold: float = 2.0 / 255.0
+    """Initial Gaussians go on anchor pixels that differ from the background (the colour, or the layer's
+    view) by more than this, in [0, 1] intensity."""
+    anchor_windows: bool = False
+    """Each Gaussian lives in the gap after the anchor it was lifted from: at time t only the Gaussians
+    of tau(t)'s anchor are drawn, moved from that anchor by the prior and the events since (a Markov
+    chain restarted at every anchor). Off: every Gaussian at every time."""
+    event_act: str = "relu"
+    """Activation of Phi's hidden layers: ``relu`` (the paper's) or ``leaky`` (LeakyReLU 0.1; a channel
+    cannot die). Both keep Phi(0) = 0."""
 
     # --- losses --------------------------------------------------------------------------------
     lambda_dssim: float = 0.2
@@ -78,6 +95,14 @@ class EdmcgsConfig:
     """epsilon of the log-luminance L = log(I + epsilon), I in [0, 1]."""
     event_loss_levels: int = 1
     """Pyramid levels of the event loss (1: per pixel, as in the paper; more: also 2x, 4x ... pooled)."""
+    lambda_next: float = 0.0
+    """Weight of the photometric loss of a gap's Gaussians, moved by the whole gap's events (and the
+    prior), against the next anchor frame (needs ``anchor_windows``). It trains the motion only: the
+    canonical Gaussians enter it detached (else it would fade them rather than move them)."""
+    next_levels: int = 1
+    """Pyramid levels of the next-anchor loss: besides the photometric loss at full resolution, the mean
+    L1 at this many - 1 coarser levels (2x, 4x ... pooled), so a mover carried to the wrong place is
+    still pulled towards its next position."""
     anchored_pairs: float = 0.0
     """Probability that the event loss's first time t_a is the gap's anchor (else uniform on the grid):
     such a pair compares the render at t_b with the anchor moved on by all events since."""
@@ -111,6 +136,8 @@ class EdmcgsConfig:
     """Adam step of f_theta, decayed exponentially to 1/50."""
     lr_event: float = 1e-3
     """Adam step of Phi and g_phi, decayed exponentially to 1/10."""
+    lr_background: float = 2.5e-3
+    """Adam step of the background layer's texture logits."""
     lr_radius: float = 1e-3
     """Adam step of the control points' log-radii."""
     deform_from: float = 0.0
@@ -184,7 +211,7 @@ class EdmcgsConfig:
         """Raise ``InvalidInputError`` naming the first field out of its range."""
         positive = ("init_points", "max_gaussians", "num_control_points", "skin_k", "graph_k",
                     "deform_width", "deform_depth", "event_hidden", "event_pool", "iterations", "substeps",
-                    "event_loss_levels", "max_pair_steps", "densify_every", "eval_frames")
+                    "event_loss_levels", "next_levels", "max_pair_steps", "densify_every", "eval_frames")
         for name in positive:
             if getattr(self, name) <= 0:
                 raise InvalidInputError(f"config.{name} must be > 0, got {getattr(self, name)}")
@@ -201,6 +228,12 @@ class EdmcgsConfig:
             raise InvalidInputError(f"config.background must be 3 numbers in [0, 1], got {self.background}")
         if not 0.0 <= self.anchored_pairs <= 1.0:
             raise InvalidInputError(f"config.anchored_pairs must be in [0, 1], got {self.anchored_pairs}")
+        if self.event_act not in ("relu", "leaky"):
+            raise InvalidInputError(f"config.event_act must be 'relu' or 'leaky', got {self.event_act!r}")
+        if not 0.0 < self.init_opacity < 1.0:
+            raise InvalidInputError(f"config.init_opacity must be in (0, 1), got {self.init_opacity}")
+        if not 0.0 <= self.dynamic_threshold < 1.0 or self.lambda_next < 0:
+            raise InvalidInputError("config.dynamic_threshold must be in [0, 1) and lambda_next >= 0")
         if self.contrast_threshold <= 0 or self.log_eps <= 0 or self.radius_init <= 0:
             raise InvalidInputError("config.contrast_threshold, log_eps and radius_init must be > 0")
         lo, hi = self.event_warmup
@@ -265,11 +298,23 @@ def _demo() -> EdmcgsConfig:
     )
 
 
+def _real() -> EdmcgsConfig:
+    # A real sensor's street: a static (or rotating) DAVIS346 at 346x260 grey. The static scene goes to
+    # the background layer, so the Gaussians are lifted only from anchor pixels that differ from it (the
+    # movers), each living in the gap after its anchor and carried through it by the events.
+    return _demo().replace(
+        bg_layer=True, anchor_windows=True, event_act="leaky", dynamic_threshold=0.06, lambda_next=1.0,
+        init_points=4000, max_gaussians=20000, init_opacity=0.7, lr_features=0.01,
+    )
+
+
 PRESETS = {
     "paper": EdmcgsConfig,
     "demo": _demo,
+    "real": _real,
 }
-"""Named configurations: ``paper`` (the paper's settings, 30k iterations) and ``demo`` (CPU-sized)."""
+"""Named configurations: ``paper`` (the paper's settings, 30k iterations), ``demo`` (CPU-sized) and
+``real`` (a static or rotating 346x260 event camera: background layer, anchor windows)."""
 
 
 def preset(name: str) -> EdmcgsConfig:

@@ -21,6 +21,7 @@ from torch import Tensor, nn
 from edmcgs.errors import InvalidInputError, RenderError
 from edmcgs.geometry import Intrinsics, Trajectory, project, quat_normalize, validate_pose, world_to_camera
 from edmcgs.model.config import EdmcgsConfig
+from edmcgs.model.motion.background import BackgroundLayer, composite
 from edmcgs.model.motion.control_points import ControlPoints
 from edmcgs.model.motion.deformation import DeformationField
 from edmcgs.model.motion.event_branch import EventEncoder, EventTransition, sample_global, sample_local
@@ -85,7 +86,7 @@ class EdMCGS(nn.Module):
     """The dynamic scene. Build with ``from_arrays`` (untrained) or ``checkpoint.load_checkpoint``."""
 
     def __init__(self, meta: SceneMeta, config: EdmcgsConfig, gaussians: Gaussians, control: ControlPoints,
-                 center: Tensor, extent: float):
+                 center: Tensor, extent: float, bg_layer: BackgroundLayer | None = None):
         super().__init__()
         self.meta = meta
         self.config = config
@@ -95,11 +96,14 @@ class EdMCGS(nn.Module):
                                       pos_freqs=config.pos_freqs, time_freqs=config.time_freqs)
         if config.has_event_branch:
             # The largest log-luminance change of a pixel with I in [0, 1]: log(1 + eps) - log(eps).
-            self.encoder = EventEncoder(limit=math.log1p(1.0 / config.log_eps), pool=config.event_pool)
+            self.encoder = EventEncoder(limit=math.log1p(1.0 / config.log_eps), pool=config.event_pool,
+                                        act=config.event_act)
             self.transition = EventTransition(pos_freqs=config.event_pos_freqs, hidden=config.event_hidden)
         else:
             self.encoder = None
             self.transition = None
+        self.bg_layer = bg_layer
+        """The distant background layer (config.bg_layer), or None: the constant ``background``."""
         self.register_buffer("center", center.float().reshape(3))
         self.register_buffer("extent", torch.tensor(float(extent)))
         self.register_buffer("event_scale", torch.tensor(1.0))
@@ -162,14 +166,25 @@ class EdMCGS(nn.Module):
         config = config.replace(sh_degree=degree)
         meta.config, meta.lean = config.to_dict(), {"sh_degree": record}
         k = config.init_anchors or len(images)
-        points, colors, scales = backproject_anchors(images[:k], poses[:k], intrinsics, center, extent,
-                                                     config.init_points, rng,
-                                                     background_color(config, images.shape[3]).numpy())
-        gaussians = Gaussians.from_points(points, colors, scales, sh_degree=config.sh_degree)
+        layer = None
+        background = background_color(config, images.shape[3]).numpy()
+        if config.bg_layer:
+            layer = BackgroundLayer.covering(np.concatenate([poses[:, :3, :3], trajectory.c2w[:, :3, :3]]),
+                                             intrinsics, int(images.shape[3]))
+            layer.fit_median(images, poses[:, :3, :3], intrinsics)
+            with torch.no_grad():
+                background = np.stack([layer.image(p[:3, :3], intrinsics).numpy() for p in poses[:k]])
+        points, colors, scales, views = backproject_anchors(
+            images[:k], poses[:k], intrinsics, center, extent, config.init_points, rng, background,
+            threshold=config.dynamic_threshold, return_views=True)
+        gaussians = Gaussians.from_points(points, colors, scales, sh_degree=config.sh_degree,
+                                          opacity=config.init_opacity,
+                                          birth=views if config.anchor_windows else None)
         m = min(config.num_control_points, len(gaussians))
         control = ControlPoints.sample(gaussians.means.detach(), m, skin_k=config.skin_k,
-                                       graph_k=config.graph_k, radius=config.radius_init * extent)
-        model = cls(meta, config, gaussians, control, torch.from_numpy(center), extent)
+                                       graph_k=config.graph_k, radius=config.radius_init * extent,
+                                       birth=gaussians.birth)
+        model = cls(meta, config, gaussians, control, torch.from_numpy(center), extent, layer)
         model.event_scale.fill_(0.0 if config.has_event_branch else 1.0)
         return model.eval()
 
@@ -183,18 +198,27 @@ class EdMCGS(nn.Module):
                                     "the Markov chain has no state there")
         return int(anchors[np.searchsorted(anchors, t_us, side="right") - 1])
 
+    def window(self, t_us: int) -> int | None:
+        """The anchor index whose Gaussians are drawn at ``t_us`` (config.anchor_windows), else None."""
+        if self.gaussians.birth is None:
+            return None
+        return int(np.searchsorted(self.meta.anchors_us, self.tau(t_us), side="left"))
+
     # ------------------------------------------------------------------ differentiable core
     def normalize_points(self, points: Tensor) -> Tensor:
         """World points -> scene coordinates (centre 0, extent 1), the networks' input frame."""
         return (points - self.center) / self.extent
 
     def control_motion(self, t: float, event_map: Tensor | None = None, ev_w2c: Tensor | None = None, *,
-                       static: bool = False) -> tuple[Tensor, Tensor, Tensor | None]:
+                       static: bool = False,
+                       since: float | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
         """Control-point transforms at normalised time ``t``.
 
         event_map: Tensor  # [He, We] float32 signed polarity sum over [tau(t), t), or None (empty)
         ev_w2c: Tensor     # [4, 4] event camera world-to-camera at t (needed by local sampling)
         static: the identity motion (warm-up of the canonical set)
+        since: normalised time of the anchor the motion starts from (anchor windows): the prior's motion
+               is taken relative to it, f(x, t) - f(x, since), so the state at the anchor is canonical
         returns (translations [M, 3], rotations [M, 4] unit, event displacement [M, 3] or None)
         """
         cp = self.control.positions
@@ -202,6 +226,9 @@ class EdMCGS(nn.Module):
             return torch.zeros_like(cp), identity_rotations(cp.shape[0], device=cp.device), None
         x = self.normalize_points(cp)
         d_mu, d_q = self.prior(x, t)
+        if since is not None:
+            d_mu0, d_q0 = self.prior(x, since)
+            d_mu, d_q = d_mu - d_mu0, d_q - d_q0
         trans = d_mu * self.extent
         rot = quat_normalize(identity_rotations(cp.shape[0], device=cp.device) + d_q)
         event_disp = None
@@ -219,18 +246,31 @@ class EdMCGS(nn.Module):
             trans = trans + event_disp
         return trans, rot, event_disp
 
-    def state_from_motion(self, trans: Tensor, rot: Tensor) -> GaussianState:
-        """Skin the canonical Gaussians by control-point transforms [M, 3], [M, 4]."""
+    def state_from_motion(self, trans: Tensor, rot: Tensor, window: int | None = None, *,
+                          motion_only: bool = False) -> GaussianState:
+        """Skin the canonical Gaussians by control-point transforms [M, 3], [M, 4]; with anchor windows,
+        ``window`` (an anchor index) zeroes the opacity of the Gaussians living in other gaps.
+        motion_only: the canonical Gaussians enter detached (a loss on the result trains the motion)."""
         g = self.gaussians
         weights = self.control.weights(g.means)
-        means, quats = lbs(g.means, g.quats, self.control.positions, rot, trans, self.control.bind, weights)
-        return GaussianState(means, quats, g.scales(), g.opacities(), g.colors())
+        canon = [g.means, g.quats, g.scales(), g.opacities(), g.colors()]
+        if motion_only:
+            canon = [t.detach() for t in canon]
+        means, quats = lbs(canon[0], canon[1], self.control.positions, rot, trans, self.control.bind, weights)
+        opacities = canon[3]
+        visible = g.visible_in(window)
+        if visible is not None:
+            opacities = opacities * visible
+        return GaussianState(means, quats, canon[2], opacities, canon[4])
 
     def state_at(self, t: float, event_map: Tensor | None = None, ev_w2c: Tensor | None = None, *,
-                 static: bool = False) -> GaussianState:
-        """The (differentiable) Gaussians at normalised time ``t``; see ``control_motion``."""
-        trans, rot, _ = self.control_motion(t, event_map, ev_w2c, static=static)
-        return self.state_from_motion(trans, rot)
+                 static: bool = False, window: int | None = None) -> GaussianState:
+        """The (differentiable) Gaussians at normalised time ``t``; see ``control_motion``. ``window``:
+        the anchor (index) whose Gaussians are drawn, moved relative to that anchor's time."""
+        since = None if window is None or self.gaussians.birth is None else \
+            self.meta.normalized_time(int(self.meta.anchors_us[window]))
+        trans, rot, _ = self.control_motion(t, event_map, ev_w2c, static=static, since=since)
+        return self.state_from_motion(trans, rot, window)
 
     # ------------------------------------------------------------------ inference API
     @torch.no_grad()
@@ -269,13 +309,20 @@ class EdMCGS(nn.Module):
             validate_pose(np.asarray(ev_c2w, dtype=np.float64))
             w2c = torch.as_tensor(world_to_camera(np.asarray(ev_c2w, dtype=np.float64)),
                                   dtype=torch.float32, device=device)
-        trans, rot, event_disp = self.control_motion(self.meta.normalized_time(t_us), emap, w2c)
+        window = self.window(t_us)
+        since = None if window is None else self.meta.normalized_time(self.tau(t_us))
+        trans, rot, event_disp = self.control_motion(self.meta.normalized_time(t_us), emap, w2c, since=since)
         frozen = self.meta.frozen
         # A frozen point pushed by the events beyond the threshold is not still at this time: skin all.
         lean = frozen is not None and (event_disp is None or not bool(
             (event_disp[torch.as_tensor(frozen, device=device)].norm(dim=-1)
              > self.meta.freeze_threshold).any()))
-        return skin(self.skin_plan(frozen=lean), self.control.positions, rot, trans)
+        state = skin(self.skin_plan(frozen=lean), self.control.positions, rot, trans)
+        visible = self.gaussians.visible_in(window)
+        if visible is not None:
+            state = GaussianState(state.means, state.quats, state.scales,
+                                  state.opacities * visible.to(device), state.colors)
+        return state
 
     def skin_plan(self, *, frozen: bool = True) -> SkinPlan:
         """The time-independent half of ``deform`` (weights, activated canonical Gaussians), built once
@@ -309,7 +356,8 @@ class EdMCGS(nn.Module):
         c2w = np.asarray(c2w, dtype=np.float64)
         validate_pose(c2w)
         w2c = world_to_camera(c2w)
-        bg = self._background(background)
+        layer = self.bg_layer if background is None else None
+        bg = np.zeros(self.meta.channels, np.float32) if layer is not None else self._background(background)
         try:
             if fast:
                 # Imported here: the numba rasterizer is for inference only; training never loads it.
@@ -319,16 +367,20 @@ class EdMCGS(nn.Module):
                 torch_threads = torch.get_num_threads()
                 try:
                     out = rasterize_fast(*arrays, w2c.astype(np.float32), intrinsics, background=bg,
-                                         threads=threads)
+                                         threads=threads, return_alpha=layer is not None)
                 finally:
                     # numba's OpenMP layer sets the process-wide OpenMP thread count, which is also
                     # torch's; put back what the caller chose.
                     torch.set_num_threads(torch_threads)
                 image = out.image
+                if layer is not None:
+                    behind = layer.image(c2w[:3, :3], intrinsics).detach().cpu().numpy()
+                    image = image + (1.0 - out.alpha)[..., None] * behind
             else:
                 dev = state.means.device
+                behind = None if layer is None else layer.image(c2w[:3, :3], intrinsics)
                 image = render_image(state, torch.as_tensor(w2c, dtype=torch.float32, device=dev), intrinsics,
-                                     torch.as_tensor(bg, device=dev)).cpu().numpy()
+                                     torch.as_tensor(bg, device=dev), behind).cpu().numpy()
         except InvalidInputError:
             raise
         except (RuntimeError, ValueError) as exc:
@@ -356,9 +408,15 @@ def background_color(config: EdmcgsConfig, channels: int) -> Tensor:
     return rgb if channels == 3 else (rgb @ torch.tensor(LUMA)).reshape(1)
 
 
-def render_image(state: GaussianState, w2c: Tensor, intrinsics: Intrinsics, background: Tensor) -> Tensor:
-    """Differentiable render of ``state`` -> [H, W, C] (the training path)."""
-    return rasterize(*_fields(state), w2c, intrinsics, background=background).image
+def render_image(state: GaussianState, w2c: Tensor, intrinsics: Intrinsics, background: Tensor,
+                 layer: Tensor | None = None) -> Tensor:
+    """Differentiable render of ``state`` -> [H, W, C] (the training path); ``layer`` [H, W, C]: the
+    background layer's view, composited under the splats instead of ``background``."""
+    if layer is None:
+        return rasterize(*_fields(state), w2c, intrinsics, background=background).image
+    out = rasterize(*_fields(state), w2c, intrinsics, background=torch.zeros_like(background),
+                    return_alpha=True)
+    return composite(out.image, out.alpha, layer)
 
 
 def _fields(state: GaussianState) -> tuple[Tensor, ...]:

@@ -31,17 +31,21 @@ def saturate(log_change: Tensor, limit: float) -> Tensor:
 
 
 class EventEncoder(nn.Module):
-    """Phi: Conv(1->16, k7, s2) ReLU Conv(16->32, k5, s2) ReLU Conv(32->32, k3, s1), bias-free.
+    """Phi: Conv(1->16, k7, s2) act Conv(16->32, k5, s2) act Conv(32->32, k3, s1), bias-free
+    (act: ReLU, or LeakyReLU 0.1 with ``act="leaky"``).
 
     A 32-channel map at a quarter of the input resolution, receptive field ``FIELD`` = 23 px.
     The input is saturated first (``saturate``), so the output is bounded in the event count; with
     ``pool`` > 1 it is then averaged over pool x pool blocks (a field of 23 x pool pixels, no new weights).
     """
 
-    def __init__(self, *, limit: float, pool: int = 1):
+    def __init__(self, *, limit: float, pool: int = 1, act: str = "relu"):
         super().__init__()
         self.limit = float(limit)
         self.pool = int(pool)
+        self.act = act
+        self.dead_fraction = float("nan")
+        """Fraction of the second layer's channels never above 0 on the last map (training health)."""
         self.conv1 = nn.Conv2d(1, 16, 7, stride=2, padding=3, bias=False)
         self.conv2 = nn.Conv2d(16, 32, 5, stride=2, padding=2, bias=False)
         self.conv3 = nn.Conv2d(32, FEATURES, 3, stride=1, padding=1, bias=False)
@@ -53,9 +57,15 @@ class EventEncoder(nn.Module):
         x = saturate(event_map, self.limit)
         if self.pool > 1:  # a pool-times wider receptive field; the mean keeps zero and the bound
             x = F.avg_pool2d(x, self.pool, ceil_mode=True)
-        h = torch.relu(self.conv1(x))
-        h = torch.relu(self.conv2(h))
-        return self.conv3(h)
+        h = self._act(self.conv1(x))
+        h = self.conv2(h)
+        with torch.no_grad():
+            self.dead_fraction = float((h.amax(dim=(0, 2, 3)) <= 0).float().mean())
+        return self.conv3(self._act(h))
+
+    def _act(self, x: Tensor) -> Tensor:
+        # Both fix 0: a bias-free Phi maps an empty window to exactly 0 either way.
+        return F.leaky_relu(x, 0.1) if self.act == "leaky" else torch.relu(x)
 
 
 def sample_local(features: Tensor, uv: Tensor, valid: Tensor, width: int, height: int) -> Tensor:

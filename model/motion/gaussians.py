@@ -47,24 +47,27 @@ class Gaussians(nn.Module):
     """
 
     def __init__(self, means: Tensor, quats: Tensor, log_scales: Tensor, opacity_logits: Tensor,
-                 features: Tensor):
+                 features: Tensor, birth: Tensor | None = None):
         super().__init__()
         self.means = nn.Parameter(means)
         self.quats = nn.Parameter(quats)
         self.log_scales = nn.Parameter(log_scales)
         self.opacity_logits = nn.Parameter(opacity_logits)
         self.features = nn.Parameter(features)
+        # [N] int64 anchor index whose gap this Gaussian lives in (config.anchor_windows), or None:
+        # every Gaussian at every time. A buffer: densification copies it, the optimizer never sees it.
+        self.register_buffer("birth", None if birth is None else birth.long())
 
     @classmethod
-    def empty(cls, n: int, sh_degree: int, channels: int) -> Gaussians:
+    def empty(cls, n: int, sh_degree: int, channels: int, *, birth: bool = False) -> Gaussians:
         """Zero-filled placeholders of the right shapes (a checkpoint's tensors are loaded into them)."""
         k = (sh_degree + 1) ** 2
         return cls(torch.zeros(n, 3), torch.zeros(n, 4), torch.zeros(n, 3), torch.zeros(n),
-                   torch.zeros(n, k, channels))
+                   torch.zeros(n, k, channels), torch.zeros(n, dtype=torch.long) if birth else None)
 
     @classmethod
     def from_points(cls, points: Tensor, colors: Tensor, scales: Tensor, *, sh_degree: int,
-                    opacity: float = 0.1) -> Gaussians:
+                    opacity: float = 0.1, birth: Tensor | None = None) -> Gaussians:
         """Isotropic Gaussians at ``points``.
 
         points: Tensor  # [N, 3]
@@ -80,7 +83,7 @@ class Gaussians(nn.Module):
         quats[:, 0] = 1.0
         log_scales = torch.log(scales.clamp_min(1e-7))[:, None].repeat(1, 3)
         opacity_logits = torch.full((n,), float(torch.logit(torch.tensor(opacity))))
-        return cls(points.float().clone(), quats, log_scales, opacity_logits, features)
+        return cls(points.float().clone(), quats, log_scales, opacity_logits, features, birth)
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
@@ -109,3 +112,11 @@ class Gaussians(nn.Module):
         """Swap in new per-Gaussian parameters (after densification); N may change."""
         for name in PER_GAUSSIAN:
             setattr(self, name, nn.Parameter(tensors[name]))
+        if self.birth is not None:
+            self.birth = tensors["birth"].long()
+
+    def visible_in(self, window: int | None) -> Tensor | None:
+        """[N] float 0/1: the Gaussians that live in anchor ``window``'s gap; None: all (no windows)."""
+        if self.birth is None or window is None:
+            return None
+        return (self.birth == int(window)).to(self.means.dtype)

@@ -42,19 +42,25 @@ def scene_center_and_extent(poses: np.ndarray, intrinsics: Intrinsics,
 
 def backproject_anchors(images: np.ndarray, poses: np.ndarray, intrinsics: Intrinsics, center: np.ndarray,
                         extent: float, n: int, rng: np.random.Generator, background: np.ndarray,
-                        jitter: float = 0.05) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``n`` Gaussians on random anchor pixels at the centre's depth.
+                        jitter: float = 0.05, threshold: float = 2.0 / 255.0, return_views: bool = False):
+    """``n`` Gaussians on random anchor pixels at the centre's depth (one on every candidate pixel when
+    there are at most ``n``).
 
     images: np.ndarray      # [F, H, W, C] uint8
     poses: np.ndarray       # [F, 4, 4] float64 c2w
-    background: np.ndarray  # [C] in [0, 1]: pixels of this colour (within 2/255) are already explained
-                            #  by the background and get no Gaussian (unless every pixel is such)
-    returns (points [n, 3], colors [n, C] in [0, 1], scales [n]) float32 tensors
+    background: np.ndarray  # [C] in [0, 1], or [F, H, W, C] per anchor pixel (a background layer's
+                            #  views): pixels within ``threshold`` of it are already explained by the
+                            #  background and get no Gaussian (unless every pixel is such)
+    returns (points [n, 3], colors [n, C] in [0, 1], scales [n]) float32 tensors, and with
+    ``return_views`` the [n] int64 anchor index each point was lifted from
     """
     f, h, w, _ = images.shape
-    differs = np.abs(images.astype(np.float32) / 255.0 - background).max(-1) > 2.0 / 255.0
+    differs = np.abs(images.astype(np.float32) / 255.0 - background).max(-1) > threshold
     candidates = np.flatnonzero(differs) if differs.any() else np.arange(differs.size)
-    view, v, u = np.unravel_index(rng.choice(candidates, n), (f, h, w))
+    # As many as there are candidates: one on each (a background layer leaves few: the movers).
+    picked = candidates if n >= candidates.size else rng.choice(candidates, n)
+    n = picked.size
+    view, v, u = np.unravel_index(picked, (f, h, w))
     c2w = poses[view]
     depth_center = ((center - c2w[:, :3, 3]) * c2w[:, :3, 2]).sum(1)
     z = np.maximum(depth_center + rng.uniform(-jitter, jitter, n) * extent, 1e-3 * depth_center)
@@ -66,4 +72,5 @@ def backproject_anchors(images: np.ndarray, poses: np.ndarray, intrinsics: Intri
     # candidate pixels), lifted to each point's depth: neighbouring splats overlap a little.
     spacing_px = np.sqrt(candidates.size / n)
     scales = torch.from_numpy((0.5 * spacing_px * z / intrinsics.fx).astype(np.float32))
-    return points, torch.from_numpy(colors), scales.clamp(1e-4 * extent, 0.05 * extent)
+    out = points, torch.from_numpy(colors), scales.clamp(1e-4 * extent, 0.05 * extent)
+    return (*out, torch.from_numpy(view.astype(np.int64))) if return_views else out

@@ -86,6 +86,9 @@ def control_motion_bound(model, samples: int = FREEZE_SAMPLES) -> torch.Tensor:
         trans, rot, _ = model.control_motion(float(t))
         theta = 2.0 * torch.acos(rot[:, 0].abs().clamp(max=1.0))
         bound = torch.maximum(bound, trans.norm(dim=-1) + theta * reach)
+    if model.gaussians.birth is not None:
+        # Anchor windows move by f(t) - f(tau): at most twice the largest absolute motion.
+        bound = 2.0 * bound
     return bound
 
 

@@ -5,12 +5,14 @@ from torch import Tensor
 
 
 def knn(queries: Tensor, points: Tensor, k: int, *, exclude_self: bool = False,
-        chunk: int = 1024) -> tuple[Tensor, Tensor]:
+        chunk: int = 1024, exact: bool = False) -> tuple[Tensor, Tensor]:
     """The k nearest ``points`` of every query, nearest first.
 
     queries: Tensor  # [Q, 3] float32
     points: Tensor   # [P, 3] float32
     exclude_self: queries are ``points`` themselves; skip each one's own index.
+    exact: distances from coordinate differences (no |a|^2 + |b|^2 - 2ab cancellation: for points far
+           from the origin, such as the lifted points of ``control_points``)
     returns (dist2 [Q, k] float32 squared distances, idx [Q, k] int64)
     """
     extra = 1 if exclude_self else 0
@@ -18,7 +20,8 @@ def knn(queries: Tensor, points: Tensor, k: int, *, exclude_self: bool = False,
     dists, idxs = [], []
     for start in range(0, queries.shape[0], chunk):
         q = queries[start:start + chunk]
-        d2 = torch.cdist(q, points).square()
+        mode = "donot_use_mm_for_euclid_dist" if exact else "use_mm_for_euclid_dist_if_necessary"
+        d2 = torch.cdist(q, points, compute_mode=mode).square()
         if exclude_self:
             rows = torch.arange(q.shape[0], device=q.device)
             d2[rows, rows + start] = float("inf")

@@ -63,6 +63,9 @@ def _rebuild(optimizer: torch.optim.Optimizer, gaussians: Gaussians, keep: Tenso
         if extra is not None:
             value = torch.cat([value, extra[name]])
         new[name] = value
+    if gaussians.birth is not None:
+        birth = gaussians.birth[keep]
+        new["birth"] = birth if extra is None else torch.cat([birth, extra["birth"]])
     gaussians.replace(new)
     added = 0 if extra is None else extra["means"].shape[0]
     for group in optimizer.param_groups:
@@ -107,7 +110,8 @@ def densify_and_prune(gaussians: Gaussians, optimizer: torch.optim.Optimizer, st
             budget -= cost
         clone, split = chosen & ~big, chosen & big
 
-    params = {name: getattr(gaussians, name).detach() for name in PER_GAUSSIAN}
+    names = PER_GAUSSIAN if gaussians.birth is None else (*PER_GAUSSIAN, "birth")
+    params = {name: getattr(gaussians, name).detach() for name in names}
     cloned = {name: value[clone] for name, value in params.items()}
     # Split: two samples from each Gaussian, scales shrunk by 1.6 (as in 3DGS).
     idx = torch.nonzero(split)[:, 0].repeat(2)
@@ -117,7 +121,7 @@ def densify_and_prune(gaussians: Gaussians, optimizer: torch.optim.Optimizer, st
     halves = {name: value[idx] for name, value in params.items()}
     halves["means"] = halves["means"] + (rot @ offsets[..., None])[..., 0]
     halves["log_scales"] = halves["log_scales"] - math.log(1.6)
-    extra = {name: torch.cat([cloned[name], halves[name]]) for name in PER_GAUSSIAN}
+    extra = {name: torch.cat([cloned[name], halves[name]]) for name in names}
 
     opacity = gaussians.opacities()
     prune = opacity < min_opacity

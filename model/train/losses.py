@@ -55,6 +55,22 @@ def photometric_loss(rendered: Tensor, target: Tensor, lambda_dssim: float) -> T
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - ssim(rendered, target))
 
 
+def pyramid_l1(rendered: Tensor, target: Tensor, levels: int) -> Tensor:
+    """Mean L1 of [H, W, C] images at ``levels`` - 1 coarser levels (each 2x2 mean-pooled from the one
+    before; 0 for levels <= 1). A small object displaced by more than its own size overlaps its target
+    only at a coarse level: there the loss still pulls it the right way."""
+    total = rendered.new_zeros(())
+    a, b = rendered.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]
+    used = 0
+    for _ in range(levels - 1):
+        if min(a.shape[-2:]) < 2:
+            break
+        a, b = F.avg_pool2d(a, 2), F.avg_pool2d(b, 2)
+        total = total + (a - b).abs().mean()
+        used += 1
+    return total / max(used, 1)
+
+
 def tli_loss(points_t1: Tensor, points_t2: Tensor, graph: Tensor) -> Tensor:
     """Mean squared change of edge length between two nearby times.
 

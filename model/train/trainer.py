@@ -31,7 +31,7 @@ from edmcgs.model.eval.evaluation import evaluate, summarize
 from edmcgs.model.motion.gaussians import GaussianState
 from edmcgs.model.train.data import EventGrid, TrainingData
 from edmcgs.model.train.density import GradientStats, densify_and_prune, reset_opacity, screen_space_grad
-from edmcgs.model.train.losses import event_loss, laplacian_smoothness, photometric_loss, tli_loss
+from edmcgs.model.train.losses import event_loss, laplacian_smoothness, photometric_loss, pyramid_l1, tli_loss
 from edmcgs.model.train.schedule import exp_decay, ramp
 
 MAX_BAD_STEPS = 20
@@ -103,6 +103,8 @@ class Trainer:
             {"name": "radius", "params": [m.control.log_radius], "lr": cfg.lr_radius},
             {"name": "deform", "params": list(m.prior.parameters()), "lr": cfg.lr_deform},
         ]
+        if m.bg_layer is not None:
+            groups.append({"name": "background", "params": [m.bg_layer.texture], "lr": cfg.lr_background})
         if m.transition is not None:
             groups.append({"name": "event", "params": [*m.encoder.parameters(), *m.transition.parameters()],
                            "lr": cfg.lr_event})
@@ -120,16 +122,23 @@ class Trainer:
             self.model.event_scale.fill_(ramp(progress, *cfg.event_warmup))
 
     # ------------------------------------------------------------------ one step
-    def _render(self, state: GaussianState, w2c: Tensor, intr=None) -> Tensor:
-        return render_image(state, w2c, intr or self.intr, self.background)
+    def _render(self, state: GaussianState, w2c: Tensor, intr=None, *, detach_layer: bool = False) -> Tensor:
+        intr = intr or self.intr
+        layer = None
+        if self.model.bg_layer is not None:
+            layer = self.model.bg_layer.image(w2c[:3, :3].T, intr)
+            layer = layer.detach() if detach_layer else layer
+        return render_image(state, w2c, intr, self.background, layer)
 
     def _gap_motion(self, gap: int, k: int):
-        """Control-point motion at grid time (gap, k): the next anchor's state at the gap's end."""
+        """Control-point motion at grid time (gap, k): the next anchor's state at the gap's end (with
+        anchor windows: the gap's own Gaussians moved by all of its events)."""
         grid = self.grid
-        if k == grid.substeps and grid.ends_at_anchor[gap]:
+        if k == grid.substeps and grid.ends_at_anchor[gap] and not model_has_windows(self.model):
             return self.model.control_motion(self.anchor_times[gap + 1])
         emap = grid.cum[gap, k] if k > 0 else None
-        return self.model.control_motion(self.grid_t[gap][k], emap, self.grid_w2c[gap, k])
+        since = self.anchor_times[gap] if model_has_windows(self.model) else None
+        return self.model.control_motion(self.grid_t[gap][k], emap, self.grid_w2c[gap, k], since=since)
 
     def train_step(self) -> dict[str, float]:
         """One optimisation step; returns the loss terms (floats)."""
@@ -140,7 +149,8 @@ class Trainer:
         terms: dict[str, Tensor] = {}
 
         n = int(self.rng.integers(len(self.anchor_times)))
-        anchor_state = model.state_at(self.anchor_times[n], static=static)
+        windows = model_has_windows(model)
+        anchor_state = model.state_at(self.anchor_times[n], static=static, window=n if windows else None)
         anchor_state.means.retain_grad()
         image = self._render(anchor_state, self.anchor_w2c[n])
         terms["photo"] = photometric_loss(image, self.anchor_images[n], cfg.lambda_dssim)
@@ -155,10 +165,11 @@ class Trainer:
             trans_a, rot_a, disp_a = self._gap_motion(gap, a)
             trans_b, rot_b, disp_b = self._gap_motion(gap, b)
             renders = []
+            window = gap if windows else None
             for trans, rot, k in ((trans_a, rot_a, a), (trans_b, rot_b, b)):
-                st = model.state_from_motion(trans, rot)
+                st = model.state_from_motion(trans, rot, window)
                 st = GaussianState(st.means, st.quats, st.scales, st.opacities, st.colors.detach())
-                renders.append(self._render(st, self.grid_w2c[gap, k], self.event_intr))
+                renders.append(self._render(st, self.grid_w2c[gap, k], self.event_intr, detach_layer=True))
             events = self.grid.cum[gap, b] - self.grid.cum[gap, a]
             ei = self.event_intr
             events = _resize(events[None, :, :, None], ei.height, ei.width)[0, :, :, 0]
@@ -168,8 +179,21 @@ class Trainer:
             if cfg.tli:
                 terms["tli"] = tli_loss(cp + trans_a, cp + trans_b, model.control.graph)
                 loss = loss + cfg.lambda_tli * terms["tli"]
+            if windows and cfg.lambda_next > 0 and self.grid.ends_at_anchor[gap]:
+                # The gap's Gaussians carried by all its events to the next anchor frame.
+                s_end = self.grid.substeps
+                trans_e, rot_e, _ = (trans_b, rot_b, None) if b == s_end else self._gap_motion(gap, s_end)
+                st = model.state_from_motion(trans_e, rot_e, gap, motion_only=True)
+                image_next = self._render(st, self.anchor_w2c[gap + 1])
+                target = self.anchor_images[gap + 1]
+                terms["next"] = photometric_loss(image_next, target, cfg.lambda_dssim) \
+                    + pyramid_l1(image_next, target, cfg.next_levels)
+                loss = loss + cfg.lambda_next * terms["next"]
             disps = [d for d in (disp_a, disp_b) if d is not None]
             if disps:
+                terms["edisp"] = torch.stack([d.detach().norm(dim=-1).mean() for d in disps]).mean() \
+                    / model.extent
+                terms["dead"] = torch.tensor(model.encoder.dead_fraction)
                 graph = model.control.graph
                 terms["smooth"] = sum(laplacian_smoothness(d, graph) for d in disps) / len(disps)
                 loss = loss + cfg.lambda_smooth * terms["smooth"]
@@ -223,10 +247,11 @@ class Trainer:
                               generator=self.generator)
             self.stats = GradientStats(len(model.gaussians), self.device)
             if progress < cfg.control_resample_until and len(model.gaussians) >= model.control.num_points:
-                model.control.resample(model.gaussians.means, radius=cfg.radius_init * extent)
+                model.control.resample(model.gaussians.means, radius=cfg.radius_init * extent,
+                                       birth=model.gaussians.birth)
                 self._forget("radius")
             else:
-                model.control.rebind(model.gaussians.means)
+                model.control.rebind(model.gaussians.means, birth=model.gaussians.birth)
         if cfg.opacity_reset_every and self.step % cfg.opacity_reset_every == 0:
             reset_opacity(model.gaussians, self.optimizer)
 
@@ -272,11 +297,13 @@ class Trainer:
                 post["N"] = len(self.model.gaussians)
                 bar.set_postfix(post, refresh=False)
             if cfg.eval_every and self.step % cfg.eval_every == 0 and self.data.evaluable().size:
-                result = {"step": self.step, **self.evaluate(cfg.eval_frames), "seconds": self.train_seconds}
+                result = {"step": self.step, **self.evaluate(cfg.eval_frames), "seconds": self.train_seconds,
+                          **{k: ema[k] for k in HEALTH if k in ema}}
                 self.history.append(result)
                 bar.write(f"step {self.step}: held-out PSNR {result['psnr']:.2f} dB, "
                           f"SSIM {result['ssim']:.4f} "
-                          f"({result['frames']} frames), {len(self.model.gaussians)} Gaussians")
+                          f"({result['frames']} frames), {len(self.model.gaussians)} Gaussians"
+                          + "".join(f", {k} {result[k]:.4g}" for k in HEALTH if k in result))
             if checkpoint_path and cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0 \
                     and self.step < cfg.iterations:
                 save_checkpoint(self.model, checkpoint_path, train_state=self.train_state())
@@ -304,9 +331,21 @@ class Trainer:
         self.train_seconds = float(state.get("train_seconds", 0.0))
 
 
+def model_has_windows(model: EdMCGS) -> bool:
+    """Whether the model's Gaussians live in anchor windows (config.anchor_windows)."""
+    return model.gaussians.birth is not None
+
+
+HEALTH = ("event", "edisp", "dead")
+"""Training-health columns of the history: the event loss, the mean event displacement (scene extents)
+and the fraction of Phi's second-layer channels never above 0 (moving averages at the evaluation)."""
+
+
 def write_history_csv(history: list[dict], path: str | os.PathLike) -> None:
-    """The evaluation history as CSV (step, psnr, ssim, frames, seconds)."""
-    lines = ["step,psnr,ssim,frames,seconds"]
-    lines += [f"{h['step']},{h['psnr']:.4f},{h['ssim']:.5f},{h['frames']},{h['seconds']:.1f}"
+    """The evaluation history as CSV (step, psnr, ssim, frames, seconds, then the health columns,
+    empty where a run has no event branch)."""
+    lines = ["step,psnr,ssim,frames,seconds," + ",".join(HEALTH)]
+    lines += [f"{h['step']},{h['psnr']:.4f},{h['ssim']:.5f},{h['frames']},{h['seconds']:.1f},"
+              + ",".join("" if h.get(k) is None else f"{h[k]:.5g}" for k in HEALTH)
               for h in history]
     Path(path).write_text("\n".join(lines) + "\n")

@@ -1,0 +1,154 @@
+"""A distant background layer: a learned texture over world ray directions, behind all Gaussians.
+
+A static or purely rotating camera sees its static scene as if at infinite distance: the colour of a
+pixel is a function of its ray's direction only. The layer stores that function as an image on the
+*reference* camera's image plane (the first anchor's rotation and intrinsics), widened to hold every
+direction the recording's cameras look along (a pan), at one texel per reference pixel. A pixel of any
+camera reads it where its ray crosses that plane (bilinear); for the reference camera itself, and any
+camera with its rotation and intrinsics, that is the texel at the pixel's own integer position, read
+without interpolation. Renders composite it under the splats:
+
+    image = rgb_gaussians + (1 - alpha_gaussians) * texture(ray)
+
+The Gaussians (and their control points) are then left for what moves. The texture starts from the
+per-texel median of the anchors (which drops a passing car and averages read noise) and is fitted with
+the Gaussians by the photometric loss.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from edmcgs.geometry import Intrinsics
+
+MARGIN = 2
+"""Texels beyond the outermost projected pixel on each side (bilinear reads at the edge stay inside)."""
+
+
+def _rays(intr: Intrinsics, device=None) -> Tensor:
+    """[H, W, 3] camera-frame ray directions (z = 1) of the pixel centres (integers)."""
+    v, u = torch.meshgrid(torch.arange(intr.height, dtype=torch.float64, device=device),
+                          torch.arange(intr.width, dtype=torch.float64, device=device), indexing="ij")
+    return torch.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, torch.ones_like(u)], -1)
+
+
+class BackgroundLayer(nn.Module):
+    """Texture [C, Ht, Wt] on the reference image plane; texel (i, j) is reference pixel (u0 + j, v0 + i).
+
+    Buffers: ``ref_rot`` [3, 3] reference camera-to-world rotation, ``ref_k`` [4] (fx, fy, cx, cy),
+    ``origin`` [2] (u0, v0). Parameter: ``texture`` (logits of the colour, colour = sigmoid).
+    """
+
+    def __init__(self, texture_logits: Tensor, ref_rot: Tensor, ref_k: Tensor, origin: Tensor):
+        super().__init__()
+        self.texture = nn.Parameter(texture_logits)
+        self.register_buffer("ref_rot", ref_rot.double().reshape(3, 3))
+        self.register_buffer("ref_k", ref_k.double().reshape(4))
+        self.register_buffer("origin", origin.double().reshape(2))
+
+    @classmethod
+    def empty(cls, channels: int, height: int, width: int) -> BackgroundLayer:
+        """Placeholders of the right shapes for loading a checkpoint."""
+        return cls(torch.zeros(channels, height, width), torch.eye(3), torch.zeros(4), torch.zeros(2))
+
+    @classmethod
+    def covering(cls, rotations: np.ndarray, intr: Intrinsics, channels: int) -> BackgroundLayer:
+        """A grey (0.5) layer whose plane holds every pixel of cameras with ``rotations`` [F, 3, 3] (c2w).
+
+        The reference is the first rotation; rays of a camera turned by 90 degrees or more from it
+        cannot meet its plane and are clamped to the texture's edge (a pan of that size is out of scope).
+        """
+        rots = np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)
+        ref = rots[0]
+        corners = np.array([[0, 0, 1], [intr.width - 1, 0, 1], [0, intr.height - 1, 1],
+                            [intr.width - 1, intr.height - 1, 1]], dtype=np.float64)
+        kinv = np.linalg.inv(np.array([[intr.fx, 0, intr.cx], [0, intr.fy, intr.cy], [0, 0, 1]]))
+        rays = corners @ kinv.T                                           # [4, 3]
+        d = np.einsum("ij,fjk,nk->fni", ref.T, rots, rays).reshape(-1, 3)  # into the reference frame
+        d = d[d[:, 2] > 1e-6]
+        u = intr.fx * d[:, 0] / d[:, 2] + intr.cx
+        v = intr.fy * d[:, 1] / d[:, 2] + intr.cy
+        w1, h1 = intr.width - 1, intr.height - 1
+        u0 = math.floor(min(u.min(), 0.0) + 1e-6) - (MARGIN if u.min() < -1e-6 else 0)
+        v0 = math.floor(min(v.min(), 0.0) + 1e-6) - (MARGIN if v.min() < -1e-6 else 0)
+        u1 = math.ceil(max(u.max(), w1) - 1e-6) + (MARGIN if u.max() > w1 + 1e-6 else 0)
+        v1 = math.ceil(max(v.max(), h1) - 1e-6) + (MARGIN if v.max() > h1 + 1e-6 else 0)
+        width, height = int(u1 - u0 + 1), int(v1 - v0 + 1)
+        return cls(torch.zeros(channels, height, width), torch.from_numpy(ref),
+                   torch.tensor([intr.fx, intr.fy, intr.cx, intr.cy]), torch.tensor([float(u0), float(v0)]))
+
+    @property
+    def channels(self) -> int:
+        return int(self.texture.shape[0])
+
+    def colors(self) -> Tensor:
+        """[C, Ht, Wt] the texture's colour in (0, 1)."""
+        return torch.sigmoid(self.texture)
+
+    def texel_coords(self, c2w_rot: Tensor | np.ndarray, intr: Intrinsics) -> Tensor | None:
+        """[H, W, 2] float64 texture coordinates (column, row) of a camera's pixels, or None when the
+        camera has the reference's rotation and intrinsics (pixel (u, v) is texel (u - u0, v - v0))."""
+        rot = torch.as_tensor(np.asarray(c2w_rot, dtype=np.float64) if not isinstance(c2w_rot, Tensor)
+                              else c2w_rot.double(), device=self.ref_rot.device).reshape(3, 3)
+        k = self.ref_k.tolist()
+        same_k = np.allclose(k, [intr.fx, intr.fy, intr.cx, intr.cy], rtol=0, atol=1e-9)
+        if same_k and bool(torch.allclose(rot, self.ref_rot, rtol=0, atol=1e-12)):
+            return None
+        d = _rays(intr, self.ref_rot.device) @ (self.ref_rot.T @ rot).T  # [H, W, 3] in the reference frame
+        z = d[..., 2].clamp_min(1e-6)
+        u = k[0] * d[..., 0] / z + k[2] - self.origin[0]
+        v = k[1] * d[..., 1] / z + k[3] - self.origin[1]
+        return torch.stack([u, v], -1)
+
+    def image(self, c2w_rot: Tensor | np.ndarray, intr: Intrinsics) -> Tensor:
+        """[H, W, C]: the layer seen by a camera with rotation ``c2w_rot`` [3, 3] and intrinsics ``intr``."""
+        tex = self.colors()
+        coords = self.texel_coords(c2w_rot, intr)
+        if coords is None:
+            u0, v0 = (-round(float(x)) for x in self.origin)
+            return tex[:, v0:v0 + intr.height, u0:u0 + intr.width].permute(1, 2, 0)
+        _, ht, wt = tex.shape
+        grid = torch.stack([2.0 * coords[..., 0] / max(wt - 1, 1) - 1.0,
+                            2.0 * coords[..., 1] / max(ht - 1, 1) - 1.0], -1).to(tex.dtype)
+        out = F.grid_sample(tex[None], grid[None], mode="bilinear", padding_mode="border", align_corners=True)
+        return out[0].permute(1, 2, 0)
+
+    @torch.no_grad()
+    def fit_median(self, images: np.ndarray, rotations: np.ndarray, intr: Intrinsics) -> None:
+        """Set the texture to the per-texel median of ``images`` [F, H, W, C] uint8 seen by cameras with
+        ``rotations`` [F, 3, 3]; texels no image sees take the median of all pixels."""
+        _, ht, wt = self.texture.shape
+        k = self.ref_k.tolist()
+        vv, uu = torch.meshgrid(torch.arange(ht, dtype=torch.float64), torch.arange(wt, dtype=torch.float64),
+                                indexing="ij")
+        u_ref, v_ref = uu + self.origin[0], vv + self.origin[1]
+        rays = torch.stack([(u_ref - k[2]) / k[0], (v_ref - k[3]) / k[1], torch.ones_like(u_ref)], -1)
+        samples = []
+        for img, rot in zip(images, np.asarray(rotations, dtype=np.float64), strict=True):
+            d = rays @ (torch.from_numpy(rot).T @ self.ref_rot).T  # reference frame -> this camera
+            z = d[..., 2]
+            u = intr.fx * d[..., 0] / z.clamp_min(1e-6) + intr.cx
+            v = intr.fy * d[..., 1] / z.clamp_min(1e-6) + intr.cy
+            inside = (z > 1e-6) & (u >= -0.5) & (u <= intr.width - 0.5) & (v >= -0.5) \
+                & (v <= intr.height - 0.5)
+            grid = torch.stack([(2 * u + 1) / intr.width - 1, (2 * v + 1) / intr.height - 1], -1).float()
+            src = torch.from_numpy(img.astype(np.float32) / 255.0).permute(2, 0, 1)[None]
+            val = F.grid_sample(src, grid[None], mode="bilinear", padding_mode="border",
+                                align_corners=False)[0]
+            samples.append(torch.where(inside[None], val, torch.full_like(val, float("nan"))))
+        stack = torch.stack(samples)                                     # [F, C, Ht, Wt]
+        med = torch.nanmedian(stack, dim=0).values
+        fallback = np.median(images.reshape(-1, images.shape[-1]), 0).astype(np.float32) / 255
+        fallback = torch.from_numpy(fallback)
+        med = torch.where(torch.isnan(med), fallback[:, None, None].expand_as(med), med)
+        self.texture.copy_(torch.logit(med.clamp(0.01, 0.99)))
+
+
+def composite(image: Tensor, alpha: Tensor, background: Tensor) -> Tensor:
+    """Gaussians rendered over black, [H, W, C] with alpha [H, W], over a [H, W, C] background."""
+    return image + (1.0 - alpha)[..., None] * background

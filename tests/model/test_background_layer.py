@@ -1,0 +1,186 @@
+"""The distant background layer, anchor windows and the leaky event encoder (config switches of the
+``real`` preset): each off changes nothing, each on keeps the model's invariants."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from edmcgs.geometry import Intrinsics
+from edmcgs.model.checkpoint import load_checkpoint, save_checkpoint
+from edmcgs.model.config import preset
+from edmcgs.model.motion.background import BackgroundLayer
+from edmcgs.model.render.rasterize_fast import rasterize_fast
+from edmcgs.model.train.density import GradientStats, densify_and_prune
+from edmcgs.model.train.trainer import Trainer, write_history_csv
+from tests.support import tiny_scene
+from tests.support.models import TINY, build, one_torch_thread, randomize_event_branch  # noqa: F401
+
+LAYERED = TINY.replace(bg_layer=True, anchor_windows=True, event_act="leaky", dynamic_threshold=0.06,
+                       lambda_next=1.0, init_opacity=0.7)
+
+
+def _yaw(deg: float) -> np.ndarray:
+    a = math.radians(deg)
+    pose = np.eye(4)
+    pose[:3, :3] = [[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]]
+    return pose
+
+
+def test_layer_off_renders_as_before():
+    model, data = build()
+    assert model.bg_layer is None and model.gaussians.birth is None
+    t = int(data.held_out_t_us[0])
+    state = model.deform(t, data.event_map(model.tau(t), t))
+    image = model.render(state, np.eye(4), model.meta.intrinsics)
+    arrays = [x.detach().numpy()
+              for x in (state.means, state.quats, state.scales, state.opacities, state.colors)]
+    direct = rasterize_fast(*arrays, np.eye(4, dtype=np.float32), model.meta.intrinsics,
+                            background=np.zeros(3, np.float32)).image
+    np.testing.assert_array_equal(image, np.clip(direct, 0, 1))
+
+
+def test_reference_camera_reads_texels_and_median_drops_the_mover():
+    model, _ = build(LAYERED)
+    layer = model.bg_layer
+    assert tuple(layer.texture.shape) == (3, tiny_scene.H, tiny_scene.W)
+    view = layer.image(np.eye(3), model.meta.intrinsics)
+    torch.testing.assert_close(view, layer.colors().permute(1, 2, 0))
+    # The square is at three places in three anchors: the median is the plain background everywhere.
+    expected = np.round(tiny_scene.image(tiny_scene.T0, size=0.0) * 255) / 255
+    np.testing.assert_allclose(view.detach().numpy(), expected, atol=0.011)
+    # Only the square's pixels get Gaussians: one on each (there are fewer than init_points).
+    images = np.stack([np.round(tiny_scene.image(int(t)) * 255) / 255 for t in model.meta.anchors_us])
+    differs = int((np.abs(images - expected).max(-1) > LAYERED.dynamic_threshold).sum())
+    assert 0 < differs < TINY.init_points and len(model.gaussians) == differs
+
+
+def test_panned_layer_covers_every_view_and_is_continuous():
+    intr = Intrinsics(40.0, 40.0, 23.5, 15.5, 48, 32)
+    rots = np.stack([np.eye(3), _yaw(5)[:3, :3]])
+    layer = BackgroundLayer.covering(rots, intr, 1)
+    assert layer.texture.shape[1] >= 32 and layer.texture.shape[2] > 48
+    with torch.no_grad():
+        layer.texture.copy_(torch.randn(layer.texture.shape, generator=torch.Generator().manual_seed(0)))
+    turned = layer.image(rots[1], intr)
+    assert torch.isfinite(turned).all() and turned.shape == (32, 48, 1)
+    # A tiny turn reads (almost) the same texels.
+    near = layer.image(_yaw(1e-4)[:3, :3], intr)
+    torch.testing.assert_close(near, layer.image(np.eye(3), intr), atol=2e-3, rtol=0)
+
+
+@pytest.mark.parametrize("pose", [np.eye(4), _yaw(3.0)])
+def test_fast_and_torch_renders_agree_with_the_layer(pose):
+    model, data = build(LAYERED)
+    randomize_event_branch(model)
+    t = int(data.held_out_t_us[0])
+    state = model.deform(t, data.event_map(model.tau(t), t))
+    fast = model.render(state, pose, model.meta.intrinsics, fast=True)
+    slow = model.render(state, pose, model.meta.intrinsics, fast=False)
+    np.testing.assert_allclose(fast, slow, atol=2e-4)
+
+
+def test_windows_draw_only_the_anchors_gaussians_in_their_canonical_pose():
+    model, data = build(LAYERED)
+    birth = model.gaussians.birth
+    assert birth is not None and set(birth.tolist()) <= {0, 1, 2}
+    for k, t in enumerate(data.anchors_t_us):
+        state = model.deform(int(t))
+        assert model.window(int(t)) == k
+        assert torch.equal(state.opacities == 0, birth != k)
+        torch.testing.assert_close(state.means[birth == k], model.gaussians.means.detach()[birth == k])
+    t = int(data.held_out_t_us[1])  # in gap 1
+    assert model.window(t) == 1
+    assert torch.equal(model.deform(t).opacities == 0, birth != 1)
+
+
+def test_leaky_encoder_keeps_zero_events_exactly_zero():
+    model, _ = build(LAYERED)
+    randomize_event_branch(model)
+    x = model.normalize_points(model.control.positions)
+    feats = model.encoder(torch.zeros(1, 1, tiny_scene.H, tiny_scene.W))
+    assert torch.equal(feats, torch.zeros_like(feats))
+    codes = torch.zeros(model.control.num_points, 32)
+    assert torch.equal(model.transition(x, codes), torch.zeros(model.control.num_points, 3))
+    _, _, disp = model.control_motion(0.3, torch.zeros(tiny_scene.H, tiny_scene.W), torch.eye(4))
+    assert disp is None
+    # A negative input reaches the output through the leaky slope (a ReLU Phi would pass no gradient).
+    h = model.encoder._act(torch.tensor([-1.0]))
+    assert float(h) == pytest.approx(-0.1)
+
+
+def test_checkpoint_round_trip_with_layer_and_windows(tmp_path):
+    model, data = build(LAYERED)
+    randomize_event_branch(model)
+    with torch.no_grad():
+        model.bg_layer.texture.add_(0.3)
+    path = tmp_path / "m.ckpt"
+    save_checkpoint(model, path)
+    loaded = load_checkpoint(path)
+    assert torch.equal(loaded.gaussians.birth, model.gaussians.birth)
+    torch.testing.assert_close(loaded.bg_layer.colors(), model.bg_layer.colors(), atol=0, rtol=0)
+    t = int(data.held_out_t_us[0])
+    emap = data.event_map(model.tau(t), t)
+    for pose in (np.eye(4), _yaw(2.0)):
+        a = model.render(model.deform(t, emap), pose, model.meta.intrinsics)
+        b = loaded.render(loaded.deform(t, emap), pose, loaded.meta.intrinsics)
+        np.testing.assert_array_equal(a, b)
+
+
+def test_densification_keeps_birth_aligned():
+    model, _ = build(LAYERED)
+    g = model.gaussians
+    optimizer = torch.optim.Adam([{"name": n, "params": [getattr(g, n)]} for n in
+                                  ("means", "quats", "log_scales", "opacity_logits", "features")])
+    tag = g.means.detach()[:, 0].clone()
+    stats = GradientStats(len(g))
+    stats.add(torch.linspace(0, 1e-3, len(g)))
+    with torch.no_grad():
+        g.opacity_logits[:5] = -10.0  # pruned
+    before = dict(zip(tag.tolist(), g.birth.tolist(), strict=True))
+    densify_and_prune(g, optimizer, stats, grad_threshold=5e-4, extent=float(model.extent),
+                      percent_dense=0.01, min_opacity=0.005, max_size=None, max_count=10_000)
+    assert g.birth.shape == (len(g),)
+    for x, b in zip(g.means.detach()[:, 0].tolist(), g.birth.tolist(), strict=True):
+        if x in before:  # kept or cloned rows (split ones moved)
+            assert before[x] == b
+
+
+def test_training_with_layer_and_windows_logs_health(tmp_path):
+    model, data = build(LAYERED.replace(iterations=12))
+    trainer = Trainer(model, data, progress=False)
+    terms = {}
+    for _ in range(12):
+        terms.update(trainer.train_step())
+    assert {"photo", "event", "next", "edisp", "dead"} <= set(terms)
+    assert all(math.isfinite(v) for v in terms.values())
+    assert 0.0 <= terms["dead"] <= 1.0
+    trainer.history = [{"step": 12, "psnr": 20.0, "ssim": 0.5, "frames": 2, "seconds": 1.0, "event": 0.1,
+                        "edisp": 1e-3, "dead": 0.0}, {"step": 13, "psnr": 20.0, "ssim": 0.5, "frames": 2,
+                                                      "seconds": 1.0}]
+    write_history_csv(trainer.history, tmp_path / "h.csv")
+    lines = (tmp_path / "h.csv").read_text().splitlines()
+    assert lines[0] == "step,psnr,ssim,frames,seconds,event,edisp,dead"
+    assert lines[2].endswith(",,,")
+
+
+def test_real_preset_switches():
+    cfg = preset("real")
+    assert cfg.bg_layer and cfg.anchor_windows and cfg.event_act == "leaky"
+    demo = preset("demo")
+    assert not demo.bg_layer and not demo.anchor_windows and demo.event_act == "relu"
+
+
+def test_control_points_of_a_window_carry_only_its_gaussians():
+    model, _ = build(LAYERED)
+    cp, birth = model.control, model.gaussians.birth
+    assert cp.birth is not None
+    counts = torch.bincount(cp.birth, minlength=3)
+    assert bool((counts >= TINY.skin_k).all())  # farthest-point sampling covers every window
+    assert torch.equal(cp.birth[cp.bind], birth[:, None].expand_as(cp.bind))
+    # After densification moved or added Gaussians, rebinding keeps to the windows.
+    cp.rebind(model.gaussians.means + 0.01, birth=birth)
+    assert torch.equal(cp.birth[cp.bind], birth[:, None].expand_as(cp.bind))
+    with pytest.raises(ValueError):
+        cp.rebind(model.gaussians.means)
