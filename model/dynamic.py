@@ -349,7 +349,8 @@ class EdMCGS(nn.Module):
         """Render ``state`` from camera ``c2w`` [4, 4] (OpenCV c2w) -> [H, W, C] float32 in [0, 1].
 
         fast: the numba CPU rasterizer; False: the differentiable PyTorch one (same image to ~1e-5).
-        background: grey level or [C] colour behind the Gaussians (default: the config's).
+        background: grey level or [C] colour behind the Gaussians (default: the background layer when
+                    the model has one, else the config's colour).
         threads: the fast rasterizer's threads (default: numba's, all cores); a server running several
                  renders at once on a few shared cores is faster with 1 each (no parallel-region stalls).
         """
