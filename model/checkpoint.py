@@ -263,6 +263,13 @@ def validate(payload: dict) -> None:
                 raise CheckpointError(f"state_dict[{key!r}] must be an integer tensor")
             if value.numel() and (int(value.min()) < 0 or int(value.max()) >= mcp):
                 raise CheckpointError(f"state_dict[{key!r}] indexes outside [0, {mcp}) control points")
+    for key in ("gaussians.birth", "control.birth"):  # anchor windows: each names an anchor
+        value = state.get(key)
+        if isinstance(value, torch.Tensor):
+            if value.is_floating_point() or value.dtype == torch.bool:
+                raise CheckpointError(f"state_dict[{key!r}] must be an integer tensor")
+            if value.numel() and (int(value.min()) < 0 or int(value.max()) >= len(anchors)):
+                raise CheckpointError(f"state_dict[{key!r}] names anchors outside [0, {len(anchors)})")
     train_state = payload.get("train_state")
     if train_state is not None:
         if not isinstance(train_state, dict):

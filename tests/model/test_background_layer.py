@@ -184,3 +184,15 @@ def test_control_points_of_a_window_carry_only_its_gaussians():
     assert torch.equal(cp.birth[cp.bind], birth[:, None].expand_as(cp.bind))
     with pytest.raises(ValueError):
         cp.rebind(model.gaussians.means)
+
+
+def test_checkpoint_with_a_window_outside_the_anchors_is_refused(tmp_path):
+    from edmcgs.errors import CheckpointError
+
+    model, _ = build(LAYERED)
+    with torch.no_grad():
+        model.gaussians.birth[0] = 7  # three anchors
+    path = tmp_path / "bad.ckpt"
+    save_checkpoint(model, path)
+    with pytest.raises(CheckpointError, match=r"gaussians\.birth"):
+        load_checkpoint(path)
