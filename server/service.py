@@ -145,7 +145,13 @@ class Service:
                     f"{meta.event_width}x{meta.event_height}: replay the recording it was trained on")
             ring = EventRingBuffer(settings.ring_events)
             online = None
-            if info.has_frames:  # past the span, the stream's frames become online anchors (online.py)
+            # Past the span, the stream's frames become online anchors (online.py); not yet for a model
+            # drawn in anchor windows or over a background layer (the prediction and the fit know neither).
+            unsupported = [k for k in ("anchor_windows", "bg_layer") if getattr(model.config, k)]
+            if info.has_frames and unsupported:
+                log.warning("no online anchors past the checkpoint's span: it was trained with %s, which "
+                            "they do not support yet", " and ".join(unsupported))
+            elif info.has_frames:
                 online = OnlineAnchors(model, ring, capacity=settings.online_anchors,
                                        fit_steps=settings.online_fit_steps,
                                        fit_scale=settings.online_fit_scale)
@@ -336,7 +342,7 @@ class Service:
 
     def online_info(self) -> dict | None:
         """GET /scene's ``online``: the online anchors past the checkpoint's span (None: the stream has
-        no frames)."""
+        no frames, or the checkpoint uses anchor windows or a background layer, not supported yet)."""
         online, engine = self.engine.online, self.engine
         if online is None:
             return None

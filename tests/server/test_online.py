@@ -162,3 +162,25 @@ def test_the_engine_renders_past_the_span_up_to_the_head(long_scene):
     assert out.instant.anchor_us == online.anchors()[-1].t_us and out.events > 0
     before = engine.render(model.meta.t_end_us + 10_000, None, 64, 48)
     assert before.anchor == "checkpoint" and before.instant.anchor_us == int(model.meta.anchors_us[-1])
+
+
+@pytest.mark.parametrize("switch", ["anchor_windows", "bg_layer"])
+def test_a_checkpoint_the_online_anchors_cannot_continue_gets_none(tmp_path, monkeypatch, switch):
+    from edmcgs.server import service as service_module
+    from edmcgs.server.settings import Settings
+
+    rec_path, ckpt = build_scene(tmp_path, width=64, height=48, duration_s=1.0, anchor_every_s=0.1,
+                                 frames_per_anchor=2, event_rate=5_000, init_points=500, control_points=16,
+                                 train_s=0.5)
+
+    def load_with(path, device="cpu"):
+        model = load_checkpoint(path, device)
+        model.config = model.config.replace(**{switch: True})  # as a real-preset checkpoint states it
+        return model
+
+    monkeypatch.setattr(service_module, "load_checkpoint", load_with)
+    service = service_module.Service.open(Settings(replay=rec_path, checkpoint=ckpt))
+    try:
+        assert service.engine.online is None and service.online_info() is None
+    finally:
+        service.close()
