@@ -14,8 +14,10 @@ from edmcgs.options import RecordingOptions, add_recording_arguments
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="edmcgs train", description="Train EdMCGS on a recording.")
-    parser.add_argument("recording", help="the recording: AEDAT4, or HDF5 (edmcgs, DSEC, v2e)")
-    parser.add_argument("-o", "--output", required=True, help="checkpoint to write (atomically)")
+    parser.add_argument("recording", nargs="?", help="the recording: AEDAT4, or HDF5 (edmcgs, DSEC, v2e)")
+    parser.add_argument("-o", "--output", help="checkpoint to write (atomically)")
+    parser.add_argument("--list-config", action="store_true",
+                        help="print every config key of the preset with its value and description, then exit")
     parser.add_argument("--config", default="demo", choices=sorted(PRESETS), help="preset (default: demo)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config field, e.g. --set events=false --set iterations=500")
@@ -28,11 +30,26 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_recording_arguments(parser)
     args = parser.parse_args(argv)
+    if args.list_config:
+        return _list_config(args.config)
+    if args.recording is None or args.output is None:
+        parser.error("give RECORDING and -o CHECKPOINT (or --list-config)")
     try:
         return _run(args)
     except EdmcgsError as exc:
         print(f"edmcgs train: {exc}", file=sys.stderr)
         return 1
+
+
+def _list_config(name: str) -> int:
+    from dataclasses import asdict
+
+    from edmcgs.model.config import field_docs, preset
+
+    docs = field_docs()
+    for key, value in asdict(preset(name)).items():
+        print(f"{key} = {value!r}\n    {docs.get(key, '')}")
+    return 0
 
 
 def check_resume_fits(model, data, path) -> None:

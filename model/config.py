@@ -332,3 +332,19 @@ def preset(name: str) -> EdmcgsConfig:
 
 
 __all__ = ["PRESETS", "EdmcgsConfig", "preset"]
+
+
+def field_docs() -> dict[str, str]:
+    """Each config field's description: the docstring written under it in ``EdmcgsConfig``."""
+    import ast
+    import inspect
+    import itertools
+    import textwrap
+
+    body = ast.parse(textwrap.dedent(inspect.getsource(EdmcgsConfig))).body[0].body
+    docs = {}
+    for node, after in itertools.pairwise(body):
+        if isinstance(node, ast.AnnAssign) and isinstance(after, ast.Expr) \
+                and isinstance(after.value, ast.Constant) and isinstance(after.value.value, str):
+            docs[node.target.id] = " ".join(after.value.value.split())
+    return docs

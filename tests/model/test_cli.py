@@ -78,3 +78,19 @@ def test_resume_on_another_recording_fails_before_writing(recording, tmp_path, c
     err = capsys.readouterr().err
     assert "was not trained on this recording" in err and "Traceback" not in err
     assert ckpt.read_bytes() == before
+
+
+def test_list_config_prints_every_key_with_its_value_and_description(capsys):
+    import dataclasses
+
+    from edmcgs.model.config import EdmcgsConfig, preset
+
+    assert main(["train", "--list-config", "--config", "real"]) == 0
+    out = capsys.readouterr().out
+    for f in dataclasses.fields(EdmcgsConfig):
+        value = getattr(preset("real"), f.name)
+        assert f"{f.name} = {value!r}\n    " in out, f.name
+    assert "Use the event stream at all." in out  # the description written under the field
+    with pytest.raises(SystemExit):
+        main(["train"])
+    assert "--list-config" in capsys.readouterr().err
