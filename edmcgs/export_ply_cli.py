@@ -62,6 +62,8 @@ def _run(args) -> int:
         print("no --recording: the event branch sees no events (the time prior alone)")
     state = model.deform(t_us, emap)
     write_ply(state, args.output)
+    if model.bg_layer is not None:
+        print("the checkpoint's distant background layer is not a set of Gaussians: it is not in the PLY")
     events = 0 if emap is None else int(np.abs(emap).sum())
     print(f"wrote {args.output}: {len(state)} Gaussians at t = {(t_us - meta.t_start_us) / 1e6:.6f} s "
           f"(anchor {(tau - meta.t_start_us) / 1e6:.6f} s, {events} events)")

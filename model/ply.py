@@ -3,7 +3,8 @@ read: binary little-endian float32 ``x y z nx ny nz f_dc_0..2 f_rest_* opacity s
 
 Stored as 3DGS stores its parameters: opacity as a logit, scales as logs, rotation as a unit quaternion
 (w, x, y, z), colour as SH coefficients whose DC term gives colour = 0.5 + C0 * f_dc. A degree-0 model
-(plain colours) is written as its DC term; a grey model's channel is written to R, G and B.
+(plain colours) is written as its DC term; a grey model's channel is written to R, G and B. Gaussians of
+exactly zero opacity (those of other anchor windows) are left out.
 """
 
 from __future__ import annotations
@@ -21,16 +22,17 @@ from edmcgs.model.render.sh import SH_C0
 
 
 def ply_fields(state: GaussianState) -> dict[str, np.ndarray]:
-    """The PLY columns (name -> float32 [N]) of ``state``, in the 3DGS order."""
-    n = len(state)
-    if n == 0:
-        raise InvalidInputError("no Gaussians to export")
+    """The PLY columns (name -> float32 [N]) of the visible Gaussians of ``state``, in the 3DGS order."""
     with torch.no_grad():
-        means = state.means.detach().cpu().double().numpy()
-        quats = torch.nn.functional.normalize(state.quats.detach().cpu().double(), dim=-1).numpy()
-        scales = state.scales.detach().cpu().double().clamp_min(1e-30).numpy()
-        opacity = state.opacities.detach().cpu().double().clamp(1e-7, 1 - 1e-7).numpy()
-        colors = state.colors.detach().cpu().double()
+        keep = (state.opacities.detach().cpu() > 0).nonzero().squeeze(1)
+        n = len(keep)
+        if n == 0:
+            raise InvalidInputError("no Gaussians to export")
+        means = state.means.detach().cpu()[keep].double().numpy()
+        quats = torch.nn.functional.normalize(state.quats.detach().cpu()[keep].double(), dim=-1).numpy()
+        scales = state.scales.detach().cpu()[keep].double().clamp_min(1e-30).numpy()
+        opacity = state.opacities.detach().cpu()[keep].double().clamp(1e-7, 1 - 1e-7).numpy()
+        colors = state.colors.detach().cpu()[keep].double()
     coeffs = ((colors - 0.5) / SH_C0)[:, None, :] if colors.ndim == 2 else colors  # [N, K, C]
     if coeffs.shape[2] == 1:
         coeffs = coeffs.expand(-1, -1, 3)

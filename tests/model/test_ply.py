@@ -60,6 +60,9 @@ def test_non_finite_or_empty_states_write_nothing(tmp_path):
                           torch.full((1,), 0.5), torch.full((1, 3), float("nan")))
     with pytest.raises(InvalidInputError, match="non-finite f_dc_0"):
         write_ply(state, tmp_path / "bad.ply")
+    hidden = GaussianState(state.means, state.quats, state.scales, torch.zeros(1), state.colors)
+    with pytest.raises(InvalidInputError, match="no Gaussians"):  # opacity 0: another anchor window's
+        write_ply(hidden, tmp_path / "hidden.ply")
     empty = GaussianState(*(t[:0] for t in (state.means, state.quats, state.scales, state.opacities,
                                             state.colors)))
     with pytest.raises(InvalidInputError, match="no Gaussians"):
@@ -81,3 +84,12 @@ def test_the_export_ply_command(tmp_path, capsys):
     assert "use --force" in capsys.readouterr().err
     assert main(["export-ply", str(ckpt), "--t", "9", "-o", str(out), "--force"]) == 1
     assert "outside the checkpoint's span" in capsys.readouterr().err
+
+
+def test_gaussians_of_other_anchor_windows_are_left_out(tmp_path):
+    n = 4
+    state = GaussianState(torch.arange(n * 3, dtype=torch.float32).reshape(n, 3),
+                          torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.ones(n, 3),
+                          torch.tensor([0.5, 0.0, 0.9, 0.0]), torch.full((n, 3), 0.5))
+    vertex, _ = _read(write_ply(state, tmp_path / "window.ply"))
+    assert np.asarray(vertex["x"]).tolist() == [0.0, 6.0]  # the two of zero opacity are not written
