@@ -285,11 +285,9 @@ def _parse(f: dataclasses.Field, raw: str):
 def _demo() -> EdmcgsConfig:
     # Sized for a 2-core CPU and a 173x130 scene: fewer Gaussians and control points, a smaller prior,
     # 1500 iterations, the event-loss renders at half resolution. With 20x fewer steps than the paper,
-    # the event loss weighs 1.0, not 0.05: on jumpingjack at 5 fps the held-out PSNR rises from 25.0
-    # (0.05) through 25.7 (0.2) and 26.1 (0.5) to 26.7 dB (1.0), then flattens (26.8 at 2.0) while
-    # the anchors lose 2.5 dB. Phi reads I_E pooled 4x4: its 23-px receptive field then spans 92 px of the
-    # event camera, the scale of a limb's path between anchors (held-out PSNR 26.66 -> 27.37 at 2x2 ->
-    # 27.53 dB at 4x4), and Phi runs in 0.38 instead of 1.23 ms on a 173x130 map (one thread).
+    # the event loss weighs 1.0, not 0.05 (held-out PSNR rises with it up to 1.0, then the anchors lose).
+    # Phi reads I_E pooled 4x4: its 23-px receptive field then spans 92 px of the event camera, the scale
+    # of a limb's path between anchors, and Phi runs on a map 16x smaller. Figures: README, reports/.
     return EdmcgsConfig(
         init_points=3000, max_gaussians=30000, num_control_points=256, deform_width=128, deform_depth=4,
         iterations=1500, train_scale=1.0, event_render_scale=0.5, eval_every=500, checkpoint_every=500,
@@ -302,11 +300,10 @@ def _real() -> EdmcgsConfig:
     # A real sensor's street: a static (or rotating) DAVIS346 at 346x260 grey. The static scene goes to
     # the background layer; one Gaussian on every anchor pixel that differs from it (the movers: no
     # densification needed), each living in the gap after its anchor with the control points of that
-    # window, and carried through the gap by the events. On the synthetic street (edmcgs synth traffic,
-    # 173x130, 1500 steps) each piece was measured: the motion is learnt from the event loss with t_a at
-    # the anchor (anchored_pairs 1: the anchor state is exact, so the events since it say where the
-    # edges went; 32.3 dB without the next-anchor loss) plus the next anchor frame seen through a
-    # 6-level pyramid (34.4 dB; alone, with free t_a, it pushes movers off the frame, 33.1 dB).
+    # window, and carried through the gap by the events. The motion is learnt from the event loss taken
+    # from the anchor (anchored_pairs 1: the anchor state is exact, so the events since it say where the
+    # edges went) plus the next anchor frame seen through a 6-level pyramid (alone, with free start
+    # times, it pushes movers off the frame). Figures: README ("Real data").
     return _demo().replace(
         bg_layer=True, anchor_windows=True, event_act="leaky", dynamic_threshold=0.04, init_opacity=0.8,
         init_points=60000, max_gaussians=60000, densify_from=0.0, densify_until=0.0,

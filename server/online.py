@@ -92,9 +92,8 @@ class OnlineAnchors:
     def start(self) -> OnlineAnchors:
         if self.fit_enabled:
             # The fit is thousands of small torch ops, each taking the GIL back; at Python's default 5 ms
-            # switch interval the ingest and request threads starved it (measured: the demo's first fit
-            # took 6 s during a real-time replay, none finished in 6 s beside a 10 fps stream; with
-            # 0.5 ms, 1.1-2.8 s). Process-wide, and only ever lowered.
+            # switch interval the ingest and request threads starve it (figures in reports/online.md).
+            # Process-wide, and only ever lowered.
             sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
             self._thread = threading.Thread(target=self._worker, name="edmcgs-online-fit", daemon=True)
             self._thread.start()

@@ -213,17 +213,22 @@ def main(argv: list[str] | None = None) -> int:
                              duration_s=args.duration, sampling=AdaptiveSampling(
                                  dt_max_us=args.dt_max_us, dt_min_us=args.dt_min_us, max_delta=MAX_DELTA))
         out = args.output or Path(f"{args.scene}_{args.fps:g}fps_{args.size}.h5")
-        rec = build_recording(config, progress=not args.quiet)
-        write_recording(out, rec, compression="gzip" if args.compress else None)
+        save(build_recording(config, progress=not args.quiet), out, compress=args.compress)
     except EdmcgsError as exc:
         print(f"edmcgs synth: error: {exc}", file=sys.stderr)
         return 2
-    meta = rec.metadata
-    print(f"{out}: {meta['scene']} {rec.width}x{rec.height}, {meta['gaussians']} Gaussians, "
-          f"{meta['duration_s']:g} s, {len(rec.anchors)} anchors, "
-          f"{0 if rec.held_out is None else len(rec.held_out)} held-out frames, {len(rec.events)} events "
-          f"({meta['sampling']['samples']} renders), {meta['build_seconds']:.1f} s")
     return 0
+
+
+def save(rec: Recording, out: Path, *, compress: bool) -> None:
+    """Write a synthetic recording (gzip the events when ``compress``) and say what it holds."""
+    write_recording(out, rec, compression="gzip" if compress else None)
+    meta = rec.metadata
+    gaussians = f"{meta['gaussians']} Gaussians, " if "gaussians" in meta else ""
+    held = 0 if rec.held_out is None else len(rec.held_out)
+    print(f"{out}: {meta['scene']} {rec.width}x{rec.height}, {gaussians}{meta['duration_s']:g} s, "
+          f"{len(rec.anchors)} anchors, {held} held-out frames, {len(rec.events)} events "
+          f"({meta['sampling']['samples']} renders), {meta['build_seconds']:.1f} s")
 
 
 if __name__ == "__main__":

@@ -27,9 +27,9 @@ import numpy as np
 from tqdm import tqdm
 
 from edmcgs.errors import EdmcgsError, InvalidInputError
-from edmcgs.sensor.files.recording import Recording, write_recording
+from edmcgs.sensor.files.recording import Recording
 from edmcgs.sensor.frames import Frames
-from edmcgs.synth.build import TRAJECTORY_STEP_US, frame_times
+from edmcgs.synth.build import TRAJECTORY_STEP_US, frame_times, save
 from edmcgs.synth.esim import AdaptiveSampling, SimulatorConfig, simulate_render
 from edmcgs.synth.traffic import FULL_HEIGHT, FULL_WIDTH, TrafficScene
 
@@ -247,15 +247,10 @@ def main(argv: list[str] | None = None) -> int:
             sampling=AdaptiveSampling(dt_max_us=args.dt_max_us, dt_min_us=args.dt_min_us, max_delta=2.0))
         name = "traffic-pan" if config.pan else "traffic"
         out = args.output or Path(f"{name}_{args.fps:g}fps_{args.size}.h5")
-        rec = build_traffic(config, progress=not args.quiet)
-        write_recording(out, rec, compression="gzip" if args.compress else None)
+        save(build_traffic(config, progress=not args.quiet), out, compress=args.compress)
     except EdmcgsError as exc:
         print(f"edmcgs synth: error: {exc}", file=sys.stderr)
         return 2
-    meta = rec.metadata
-    print(f"{out}: {meta['scene']} {rec.width}x{rec.height}, {meta['duration_s']:g} s, "
-          f"{len(rec.anchors)} anchors, {0 if rec.held_out is None else len(rec.held_out)} held-out frames, "
-          f"{len(rec.events)} events ({meta['sampling']['samples']} renders), {meta['build_seconds']:.1f} s")
     return 0
 
 
