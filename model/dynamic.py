@@ -27,7 +27,7 @@ from edmcgs.model.motion.deformation import DeformationField
 from edmcgs.model.motion.event_branch import EventEncoder, EventTransition, sample_global, sample_local
 from edmcgs.model.motion.gaussians import Gaussians, GaussianState
 from edmcgs.model.motion.initialization import backproject_anchors, scene_center_and_extent
-from edmcgs.model.motion.leanness import choose_sh_degree
+from edmcgs.model.motion.leanness import choose_sh_degree, control_reach, motion_bound
 from edmcgs.model.motion.skin_plan import SkinPlan, build_plan, plan_key, skin
 from edmcgs.model.motion.skinning import identity_rotations, lbs
 from edmcgs.model.render.rasterize import rasterize
@@ -311,12 +311,17 @@ class EdMCGS(nn.Module):
                                   dtype=torch.float32, device=device)
         window = self.window(t_us)
         since = None if window is None else self.meta.normalized_time(self.tau(t_us))
-        trans, rot, event_disp = self.control_motion(self.meta.normalized_time(t_us), emap, w2c, since=since)
-        frozen = self.meta.frozen
-        # A frozen point pushed by the events beyond the threshold is not still at this time: skin all.
-        lean = frozen is not None and (event_disp is None or not bool(
-            (event_disp[torch.as_tensor(frozen, device=device)].norm(dim=-1)
-             > self.meta.freeze_threshold).any()))
+        trans, rot, _ = self.control_motion(self.meta.normalized_time(t_us), emap, w2c, since=since)
+        # Frozen Gaussians keep their canonical pose only while every frozen point's motion at this very
+        # query (prior and events) stays within the threshold: the stated bound then holds at any time,
+        # not only at the times the freeze decision sampled.
+        lean = False
+        if self.meta.frozen is not None:
+            plan = self.skin_plan(frozen=True)
+            f = plan.frozen
+            if window is not None:  # the other windows' Gaussians are not drawn: their points may move
+                f = f & (self.control.birth == window)
+            lean = bool((motion_bound(trans[f], rot[f], plan.reach[f]) <= self.meta.freeze_threshold).all())
         state = skin(self.skin_plan(frozen=lean), self.control.positions, rot, trans)
         visible = self.gaussians.visible_in(window)
         if visible is not None:
@@ -341,6 +346,8 @@ class EdMCGS(nn.Module):
                     mask = torch.as_tensor(self.meta.frozen, dtype=torch.bool, device=cp.positions.device)
                 canonical = GaussianState(g.means, g.quats, g.scales(), g.opacities(), g.colors())
                 plan = self._plans[frozen] = build_plan(canonical, cp.bind, cp.weights(g.means), mask, key)
+                if mask is not None:
+                    plan.frozen, plan.reach = mask, control_reach(self)
         return plan
 
     @torch.no_grad()

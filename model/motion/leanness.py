@@ -8,6 +8,8 @@
 - frozen control points: those whose prior motion over the whole span moves none of their Gaussians
   by more than a threshold; Gaussians bound only to frozen points keep their canonical pose at
   inference (``frozen_control_points``), an error of at most the threshold (world units) per mean.
+  ``EdMCGS.deform`` checks the frozen points' motion at each query (prior and events, ``motion_bound``)
+  and skins every Gaussian where it is beyond: the bound holds at every time, not only at the samples.
 
 ``decisions`` gathers these as the checkpoint's ``meta["lean"]`` (plain JSON-able values).
 """
@@ -68,27 +70,53 @@ def events_decision(num_events: int, events: bool) -> tuple[bool, str | None]:
 
 
 @torch.no_grad()
-def control_motion_bound(model, samples: int = FREEZE_SAMPLES) -> torch.Tensor:
-    """[M] float32: per control point, the most its prior motion moves any of its Gaussians, sampled
-    at ``samples`` times over the span (world units).
-
-    A Gaussian at distance r from control point k moves by at most |T_k| + theta_k r under k's rigid
-    transform (|(R - I) v| = 2 sin(theta / 2) |v| <= theta |v|), and LBS is a convex blend: a Gaussian
-    whose K points all bound below epsilon moves by less than epsilon.
-    """
+def control_reach(model) -> torch.Tensor:
+    """[M] float32: per control point, the distance to the farthest Gaussian bound to it (world units),
+    the lever arm its rotation moves that Gaussian by."""
     cp = model.control
     means = model.gaussians.means.detach()
     dist = (means[:, None, :] - cp.positions[cp.bind]).norm(dim=-1)          # [N, K]
-    reach = torch.zeros(cp.num_points, device=means.device).scatter_reduce(
-        0, cp.bind.reshape(-1), dist.reshape(-1), reduce="amax")              # [M] farthest Gaussian
-    bound = torch.zeros(cp.num_points, device=means.device)
-    for t in np.linspace(0.0, 1.0, samples):
-        trans, rot, _ = model.control_motion(float(t))
-        theta = 2.0 * torch.acos(rot[:, 0].abs().clamp(max=1.0))
-        bound = torch.maximum(bound, trans.norm(dim=-1) + theta * reach)
-    if model.gaussians.birth is not None:
-        # Anchor windows move by f(t) - f(tau): at most twice the largest absolute motion.
-        bound = 2.0 * bound
+    return torch.zeros(cp.num_points, device=means.device).scatter_reduce(
+        0, cp.bind.reshape(-1), dist.reshape(-1), reduce="amax")
+
+
+def motion_bound(trans: torch.Tensor, rot: torch.Tensor, reach: torch.Tensor) -> torch.Tensor:
+    """[M] the most each control point's rigid transform moves any of its Gaussians: |T_k| + theta_k r_k.
+
+    |(R - I) v| = 2 sin(theta / 2) |v| <= theta |v|, and LBS is a convex blend, so a Gaussian whose K
+    points all bound below epsilon moves by less than epsilon.
+    trans: [M, 3], rot: [M, 4] unit quaternions, reach: [M] (``control_reach``)
+    """
+    theta = 2.0 * torch.acos(rot[:, 0].abs().clamp(max=1.0))
+    return trans.norm(dim=-1) + theta * reach
+
+
+@torch.no_grad()
+def control_motion_bound(model, samples: int = FREEZE_SAMPLES) -> torch.Tensor:
+    """[M] float32: per control point, the most its prior motion moves any of its Gaussians, sampled
+    at ``samples`` times over the span (world units; ``motion_bound``).
+
+    With anchor windows a point only draws in its own window, moved relative to that window's anchor:
+    it is sampled there (``samples`` times per window), as ``deform`` moves it.
+    """
+    cp = model.control
+    reach = control_reach(model)
+    bound = torch.zeros(cp.num_points, device=reach.device)
+    if cp.birth is None:
+        for t in np.linspace(0.0, 1.0, samples):
+            trans, rot, _ = model.control_motion(float(t))
+            bound = torch.maximum(bound, motion_bound(trans, rot, reach))
+        return bound
+    meta = model.meta
+    starts = [meta.normalized_time(int(a)) for a in meta.anchors_us]
+    ends = starts[1:] + [1.0]
+    for w, (since, end) in enumerate(zip(starts, ends, strict=True)):
+        mine = cp.birth == w
+        if not bool(mine.any()):
+            continue
+        for t in np.linspace(since, end, samples):
+            trans, rot, _ = model.control_motion(float(t), since=since)
+            bound = torch.where(mine, torch.maximum(bound, motion_bound(trans, rot, reach)), bound)
     return bound
 
 

@@ -36,6 +36,8 @@ class SkinPlan:
     weights: Tensor           # [Nm, K] float32 their skinning weights (rows sum to 1)
     moving: Tensor | None     # [Nm] int64 indices of the Gaussians that are skinned; None: all N
     key: tuple                # identity and version of every tensor the plan was derived from
+    frozen: Tensor | None     # [M] bool the frozen control points (a plan that leaves them still)
+    reach: Tensor | None      # [M] float32 each point's farthest Gaussian (``leanness.control_reach``)
     """
 
     canonical: GaussianState
@@ -43,6 +45,8 @@ class SkinPlan:
     weights: Tensor
     moving: Tensor | None
     key: tuple
+    frozen: Tensor | None = None
+    reach: Tensor | None = None
 
     @property
     def num_moving(self) -> int:
