@@ -109,7 +109,7 @@ def control_motion_bound(model, samples: int = FREEZE_SAMPLES) -> torch.Tensor:
         return bound
     meta = model.meta
     starts = [meta.normalized_time(int(a)) for a in meta.anchors_us]
-    ends = starts[1:] + [1.0]
+    ends = [*starts[1:], 1.0]
     for w, (since, end) in enumerate(zip(starts, ends, strict=True)):
         mine = cp.birth == w
         if not bool(mine.any()):

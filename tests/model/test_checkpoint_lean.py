@@ -94,8 +94,8 @@ def _worst_shift(lean, model, times, data, windowed=False) -> float:
         tau = lean.tau(t)
         emap = data.event_map(tau, t) if t > tau else None
         since = lean.meta.normalized_time(tau) if windowed else None
-        trans, rot, _ = model.control_motion(model.meta.normalized_time(t),
-                                             None if emap is None else torch.as_tensor(emap), w2c, since=since)
+        events = None if emap is None else torch.as_tensor(emap)
+        trans, rot, _ = model.control_motion(model.meta.normalized_time(t), events, w2c, since=since)
         full, got = model.state_from_motion(trans, rot), lean.deform(t, emap)
         drawn = got.opacities.reshape(-1) > 0
         worst = max(worst, float((got.means - full.means)[drawn].norm(dim=-1).max()))
