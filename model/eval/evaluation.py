@@ -30,6 +30,20 @@ class FrameScore:
     """LPIPS-VGG, when the evaluation was given its weights."""
 
 
+def render_held_out(model: EdMCGS, data: TrainingData, i: int, *,
+                    fast: bool = True) -> tuple[np.ndarray, int, int]:
+    """(image [H, W, C] float32 in [0, 1], tau(t), events) of held-out frame ``i``: the state at its time
+    driven by the events since tau(t), rendered from its camera."""
+    t = int(data.held_out_t_us[i])
+    tau = model.tau(t)
+    emap = None
+    if data.event_map is not None and t > tau:
+        emap = np.asarray(data.event_map(tau, t), dtype=np.float32)
+    state = model.deform(t, emap, data.trajectory.at(t))
+    image = model.render(state, data.held_out_pose(i), model.meta.intrinsics, fast=fast)
+    return image, tau, 0 if emap is None else int(np.abs(emap).sum())
+
+
 def evaluate(model: EdMCGS, data: TrainingData, indices: np.ndarray | None = None, *,
              fast: bool = True, lpips: LPIPS | None = None) -> list[FrameScore]:
     """Render every held-out frame in ``indices`` (default: all evaluable ones) and score it
@@ -37,17 +51,11 @@ def evaluate(model: EdMCGS, data: TrainingData, indices: np.ndarray | None = Non
     indices = data.evaluable() if indices is None else np.asarray(indices)
     rows = []
     for i in indices.tolist():
-        t = int(data.held_out_t_us[i])
-        tau = model.tau(t)
-        emap = None
-        if data.event_map is not None and t > tau:
-            emap = np.asarray(data.event_map(tau, t), dtype=np.float32)
-        state = model.deform(t, emap, data.trajectory.at(t))
-        image = model.render(state, data.held_out_pose(i), model.meta.intrinsics, fast=fast)
+        image, tau, events = render_held_out(model, data, i, fast=fast)
         target = data.held_out_images[i].astype(np.float32) / 255.0
-        events = 0 if emap is None else int(np.abs(emap).sum())
-        rows.append(FrameScore(i, t, tau, events, psnr(image, target), ssim_score(image, target),
-                               None if lpips is None else lpips.score(image, target)))
+        score = None if lpips is None else lpips.score(image, target)
+        rows.append(FrameScore(i, int(data.held_out_t_us[i]), tau, events, psnr(image, target),
+                               ssim_score(image, target), score))
     return rows
 
 
