@@ -2,8 +2,13 @@
 
 Every error a user can act on is an ``EdmcgsError``; the server maps these classes to HTTP status
 codes in one place (``edmcgs.server.errors``). Errors from dv-processing, pyusb, h5py and torch are
-translated at the boundary with ``raise ... from exc`` so the cause stays visible.
+translated at the boundary with ``raise ... from exc`` so the cause stays visible (``translated``).
 """
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator
 
 
 class EdmcgsError(Exception):
@@ -59,3 +64,17 @@ class RenderError(EdmcgsError):
 
 class TrainingError(EdmcgsError):
     """Training cannot proceed (e.g. a recording without anchor frames)."""
+
+
+@contextlib.contextmanager
+def translated(catch: tuple[type[BaseException], ...], into: Callable[[BaseException], BaseException], *,
+               keep: tuple[type[BaseException], ...] = ()) -> Iterator[None]:
+    """Re-raise an exception of a ``catch`` type raised in the block as ``into(exc)``, with ``exc`` as its
+    cause; ``keep`` types (errors already said in our terms, which may be subclasses of a ``catch``
+    type) pass through unchanged."""
+    try:
+        yield
+    except keep:
+        raise
+    except catch as exc:
+        raise into(exc) from exc

@@ -76,19 +76,23 @@ class Intrinsics:
 
 # ----------------------------------------------------------------------------------------- rotations
 
-def quat_multiply(a: Tensor, b: Tensor) -> Tensor:
-    """Hamilton product a * b (rotation b first, then a).
+def quat_multiply(a, b):
+    """Hamilton product a * b (rotation b first, then a), in the type given.
 
-    a, b: Tensor  # [..., 4] (w, x, y, z), broadcastable
+    a, b: [..., 4] (w, x, y, z), broadcastable. Tensors: the differentiable algebra of the deformation
+    path, returns Tensor. Anything else (array-like): returns np.ndarray float64.
     """
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([
+    if isinstance(a, Tensor):
+        (aw, ax, ay, az), (bw, bx, by, bz), stack = a.unbind(-1), b.unbind(-1), torch.stack
+    else:
+        a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+        (aw, ax, ay, az), (bw, bx, by, bz), stack = np.moveaxis(a, -1, 0), np.moveaxis(b, -1, 0), np.stack
+    return stack([
         aw * bw - ax * bx - ay * by - az * bz,
         aw * bx + ax * bw + ay * bz - az * by,
         aw * by - ax * bz + ay * bw + az * bx,
         aw * bz + ax * by - ay * bx + az * bw,
-    ], dim=-1)
+    ], -1)
 
 
 def quat_normalize(q: Tensor, eps: float = 1e-12) -> Tensor:

@@ -33,10 +33,6 @@ from edmcgs.sensor.sources.hdf5 import SUPPORTED_LAYOUTS
 from edmcgs.sensor.sources.open import AEDAT_SUFFIXES, HDF5_SUFFIXES, open_source, parse_resolution
 from edmcgs.sensor.sources.pacing import Pacing
 
-STRUCTURAL = ("events", "markov", "sh_degree", "num_control_points", "skin_k", "graph_k", "deform_width",
-              "deform_depth", "pos_freqs", "time_freqs", "event_pos_freqs", "event_hidden")
-"""Config fields that shape the parameters: a resumed run cannot change them."""
-
 
 def recording_intrinsics(rec: Recording) -> Intrinsics:
     """The recording's pinhole camera; without one, a centred camera with a 53-degree horizontal view."""

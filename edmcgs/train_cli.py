@@ -17,7 +17,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("recording", nargs="?", help="the recording: AEDAT4, or HDF5 (edmcgs, DSEC, v2e)")
     parser.add_argument("-o", "--output", help="checkpoint to write (atomically)")
     parser.add_argument("--list-config", action="store_true",
-                        help="print every config key of the preset with its value and description, then exit")
+                        help="print every config key of the preset, by part, with its value and description, "
+                             "then exit")
     parser.add_argument("--config", default="demo", choices=sorted(PRESETS), help="preset (default: demo)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config field, e.g. --set events=false --set iterations=500")
@@ -42,13 +43,19 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _list_config(name: str) -> int:
-    from dataclasses import asdict
+    import textwrap
+    from dataclasses import fields
 
-    from edmcgs.model.config import field_docs, preset
+    from edmcgs.model.config import FROZEN_PARTS, PARTS, field_docs, preset
 
-    docs = field_docs()
-    for key, value in asdict(preset(name)).items():
-        print(f"{key} = {value!r}\n    {docs.get(key, '')}")
+    cfg, docs = preset(name), field_docs()
+    for part in PARTS:
+        frozen = " (frozen on --resume)" if part in FROZEN_PARTS else ""
+        print(textwrap.fill(f"{part.__name__}{frozen}: {' '.join(part.__doc__.split())}", 100,
+                            initial_indent="# ", subsequent_indent="# ") + "\n")
+        for f in fields(part):
+            print(f"{f.name} = {getattr(cfg, f.name)!r}\n    {docs[f.name]}")
+        print()
     return 0
 
 
@@ -89,7 +96,7 @@ def _run(args) -> int:
     from edmcgs.model.eval.compare import Comparison
     from edmcgs.model.eval.evaluation import evaluate
     from edmcgs.model.train.trainer import Trainer, write_history_csv
-    from edmcgs.pipeline import STRUCTURAL, build_config, open_recording, training_data
+    from edmcgs.pipeline import build_config, open_recording, training_data
 
     if args.threads < 1:
         raise InvalidInputError(f"--threads must be >= 1, got {args.threads}")
@@ -109,9 +116,10 @@ def _run(args) -> int:
         model = load_checkpoint(out)
         check_resume_fits(model, data, out)  # before anything is written over it
         cfg = model.config.with_overrides(args.overrides)
-        changed = [k for k in STRUCTURAL if getattr(cfg, k) != getattr(model.config, k)]
+        changed = model.config.frozen_changes(cfg)
         if changed:
-            raise InvalidInputError(f"--resume cannot change {changed}: they shape the saved parameters")
+            raise InvalidInputError(f"--resume cannot change {changed}: the saved tensors were built with "
+                                    "them (the config's Structure and Initialisation parts; --list-config)")
         model.config = cfg
         model.meta.config = cfg.to_dict()
         train_state = payload.get("train_state")

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from edmcgs.atomic import atomic_output
-from edmcgs.errors import CheckpointError, EdmcgsError
+from edmcgs.errors import CheckpointError, EdmcgsError, translated
 from edmcgs.geometry import Intrinsics, Trajectory
 from edmcgs.model.config import EdmcgsConfig
 from edmcgs.model.dynamic import EdMCGS, SceneMeta
@@ -280,12 +280,10 @@ def validate(payload: dict) -> None:
 def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu") -> EdMCGS:
     """The model stored at ``path`` on ``device``, in eval mode."""
     payload = read_checkpoint(path)
-    try:
+    with translated((EdmcgsError, KeyError, TypeError, ValueError, RuntimeError),
+                    lambda exc: CheckpointError(f"{str(path)!r} is inconsistent: {exc}"),
+                    keep=CheckpointError):
         model = _build(payload)
-    except CheckpointError:
-        raise
-    except (EdmcgsError, KeyError, TypeError, ValueError, RuntimeError) as exc:
-        raise CheckpointError(f"{str(path)!r} is inconsistent: {exc}") from exc
     return model.to(device).eval()
 
 

@@ -1,9 +1,15 @@
-"""One configuration for EdMCGS: model sizes, loss weights, schedules and the ablation switches.
+"""One configuration for EdMCGS, in four parts: structure, initialisation, losses and schedule.
 
-The ablations of the paper are switches of this dataclass, never copies of code:
-``events=False`` (time-only prior), ``markov=False`` (events only as a training loss),
-``local_sampling=False`` (global average pooling of the event features), ``tli=False``.
-Schedules are fractions of ``iterations`` so that ``--set iterations=N`` keeps them consistent.
+``EdmcgsConfig`` is composed of the parts (a dataclass deriving from each), so every field reads flat
+(``cfg.skin_k``), ``--set key=value`` takes flat keys, and a checkpoint stores the config as one flat map
+(the format every checkpoint has had). What a part is decides what a resume may change: ``Structure`` and
+``Initialisation`` describe the saved tensors, so ``frozen_changes`` refuses them; ``Losses`` and
+``Schedule`` only steer further training.
+
+The ablations of the paper are switches, never copies of code: ``events=False`` (time-only prior),
+``markov=False`` (events only as a training loss), ``local_sampling=False`` (global average pooling of
+the event features), ``tli=False``. Schedules are fractions of ``iterations`` so that
+``--set iterations=N`` keeps them consistent.
 """
 
 from __future__ import annotations
@@ -15,30 +21,17 @@ from edmcgs.errors import InvalidInputError
 
 
 @dataclass
-class EdmcgsConfig:
-    """Every knob of the model and its training; presets are ``demo`` and ``paper``."""
+class Structure:
+    """What the checkpoint's tensors are: which exist (the switches), their sizes, and the constants the
+    trained model computes with (Phi's input scale and activation, the colour behind the Gaussians).
+    The model is built from these; a resumed run keeps the saved tensors, so it cannot change them."""
 
-    # --- ablation switches -------------------------------------------------------------------
     events: bool = True
     """Use the event stream at all. False: the time-only prior, no event loss, no event branch."""
     markov: bool = True
     """Event-driven Markov transition g_phi, active at inference. False: events only supervise."""
     local_sampling: bool = True
     """Sample Phi's map at each control point's projection. False: one globally pooled code."""
-    tli: bool = True
-    """Temporal local isometry regulariser on the control points' KNN graph."""
-
-    # --- representation ----------------------------------------------------------------------
-    init_points: int = 20000
-    """Number of Gaussians at initialisation (back-projected anchor pixels; one per pixel that differs
-    from the background when there are fewer such pixels)."""
-    init_opacity: float = 0.1
-    """Opacity of every Gaussian at initialisation."""
-    init_anchors: int = 0
-    """Back-project the first this many anchors at initialisation (0: all). One anchor gives a single
-    canonical copy of a moving object; all give every pose, which the deformation must then hide."""
-    max_gaussians: int = 200000
-    """Densification stops adding Gaussians above this count."""
     sh_degree: int = 0
     """Spherical-harmonics degree of the colour; 0 stores a plain colour per Gaussian."""
     num_control_points: int = 512
@@ -47,8 +40,6 @@ class EdmcgsConfig:
     """K: control points each Gaussian is bound to (linear blend skinning)."""
     graph_k: int = 10
     """K_conn: neighbours of each control point in the TLI / smoothness graph."""
-    radius_init: float = 0.1
-    """Initial RBF radius of every control point, as a fraction of the scene extent."""
     deform_width: int = 256
     """Width of the RGB-prior deformation MLP f_theta."""
     deform_depth: int = 8
@@ -63,24 +54,57 @@ class EdmcgsConfig:
     """Hidden width of g_phi."""
     event_pool: int = 1
     """Phi reads I_E averaged over pool x pool pixel blocks (1: full resolution, as in the paper)."""
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """Linear RGB colour behind all Gaussians, in [0, 1] (grey models use its Rec. 601 luma)."""
+    event_act: str = "relu"
+    """Activation of Phi's hidden layers: ``relu`` (the paper's) or ``leaky`` (LeakyReLU 0.1; a channel
+    cannot die). Both keep Phi(0) = 0."""
     bg_layer: bool = False
     """A distant background layer (``motion.background``): a learned texture over ray directions,
     initialised from the anchors' per-texel median, behind the Gaussians instead of ``background``.
     For a static or rotating camera (the static scene at infinity); the Gaussians then model what moves."""
-    dynamic_threshold: float = 2.0 / 255.0
-    """Initial Gaussians go on anchor pixels that differ from the background (the colour, or the layer's
-    view) by more than this, in [0, 1] intensity."""
     anchor_windows: bool = False
     """Each Gaussian lives in the gap after the anchor it was lifted from: at time t only the Gaussians
     of tau(t)'s anchor are drawn, moved from that anchor by the prior and the events since (a Markov
     chain restarted at every anchor). Off: every Gaussian at every time."""
-    event_act: str = "relu"
-    """Activation of Phi's hidden layers: ``relu`` (the paper's) or ``leaky`` (LeakyReLU 0.1; a channel
-    cannot die). Both keep Phi(0) = 0."""
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Linear RGB colour behind all Gaussians, in [0, 1] (grey models use its Rec. 601 luma)."""
+    contrast_threshold: float = 0.2
+    """C: log-luminance change per event (taken from the recording when it states one); the event loss's
+    unit, and the scale of I_E that Phi reads."""
+    log_eps: float = 1e-3
+    """epsilon of the log-luminance L = log(I + epsilon), I in [0, 1]; it also bounds Phi's input."""
 
-    # --- losses --------------------------------------------------------------------------------
+    @property
+    def has_event_branch(self) -> bool:
+        """Whether the event-driven transition (Phi, g_phi) exists."""
+        return self.events and self.markov
+
+
+@dataclass
+class Initialisation:
+    """How a new model's tensors start: read when it is built from the anchors. A resumed run keeps
+    the saved tensors, so changing these would record a start the model never had."""
+
+    init_points: int = 20000
+    """Number of Gaussians at initialisation (back-projected anchor pixels; one per pixel that differs
+    from the background when there are fewer such pixels)."""
+    init_opacity: float = 0.1
+    """Opacity of every Gaussian at initialisation."""
+    init_anchors: int = 0
+    """Back-project the first this many anchors at initialisation (0: all). One anchor gives a single
+    canonical copy of a moving object; all give every pose, which the deformation must then hide."""
+    radius_init: float = 0.1
+    """Initial RBF radius of every control point, as a fraction of the scene extent."""
+    dynamic_threshold: float = 2.0 / 255.0
+    """Initial Gaussians go on anchor pixels that differ from the background (the colour, or the layer's
+    view) by more than this, in [0, 1] intensity."""
+
+
+@dataclass
+class Losses:
+    """The training objective: which terms are on and their weights, pyramids and pair sampling."""
+
+    tli: bool = True
+    """Temporal local isometry regulariser on the control points' KNN graph."""
     lambda_dssim: float = 0.2
     """lambda_d: weight of D-SSIM against L1 in the photometric loss at the anchors."""
     lambda_event: float = 0.05
@@ -89,10 +113,6 @@ class EdmcgsConfig:
     """lambda_t: weight of the temporal local isometry loss."""
     lambda_smooth: float = 1e-2
     """lambda_s: weight of the KNN Laplacian smoothness of g_phi's output."""
-    contrast_threshold: float = 0.2
-    """C: log-luminance change per event (taken from the recording when it states one)."""
-    log_eps: float = 1e-3
-    """epsilon of the log-luminance L = log(I + epsilon), I in [0, 1]."""
     event_loss_levels: int = 1
     """Pyramid levels of the event loss (1: per pixel, as in the paper; more: also 2x, 4x ... pooled)."""
     lambda_next: float = 0.0
@@ -107,7 +127,12 @@ class EdmcgsConfig:
     """Probability that the event loss's first time t_a is the gap's anchor (else uniform on the grid):
     such a pair compares the render at t_b with the anchor moved on by all events since."""
 
-    # --- training ------------------------------------------------------------------------------
+
+@dataclass
+class Schedule:
+    """How training runs: steps, resolutions, event sub-steps, learning rates, density control,
+    evaluation and checkpoints."""
+
     iterations: int = 30000
     """Optimisation steps."""
     train_scale: float = 1.0
@@ -144,6 +169,8 @@ class EdmcgsConfig:
     """Fraction of training during which the deformation is off (static warm-up of the canonical set)."""
     event_warmup: tuple[float, float] = (0.2, 0.4)
     """Fractions of training between which g_phi's output scale ramps from 0 to 1."""
+    max_gaussians: int = 200000
+    """Densification stops adding Gaussians above this count."""
     densify_from: float = 0.02
     """Fraction of training from which adaptive density control runs."""
     densify_until: float = 0.5
@@ -170,6 +197,23 @@ class EdmcgsConfig:
     checkpoint_every: int = 1000
     """Iterations between two resumable checkpoints (0: only at the end)."""
 
+
+PARTS: tuple[type, ...] = (Structure, Initialisation, Losses, Schedule)
+"""The config's parts, in the order ``--list-config`` and ``to_dict`` list them."""
+
+FROZEN_PARTS: tuple[type, ...] = (Structure, Initialisation)
+"""The parts that describe the saved tensors: a resumed run keeps the tensors, so it cannot change these."""
+
+FROZEN_ON_RESUME: tuple[str, ...] = tuple(f.name for part in FROZEN_PARTS for f in fields(part))
+"""The fields of ``FROZEN_PARTS``: what ``frozen_changes`` compares."""
+
+
+# A dataclass lists its bases' fields from the last base to the first: the parts go in reverse so that
+# fields(EdmcgsConfig) (and so repr, to_dict) read structure first, schedule last.
+@dataclass
+class EdmcgsConfig(Schedule, Losses, Initialisation, Structure):
+    """Every knob of the model and its training, flat; presets are ``paper``, ``demo`` and ``real``."""
+
     def to_dict(self) -> dict:
         return {f.name: _plain(getattr(self, f.name)) for f in fields(self)}
 
@@ -186,6 +230,10 @@ class EdmcgsConfig:
                 setattr(cfg, f.name, _coerce(f, data[f.name]))
         cfg.validate()
         return cfg
+
+    def frozen_changes(self, other: EdmcgsConfig) -> list[str]:
+        """The fields of ``FROZEN_ON_RESUME`` whose values differ in ``other`` (a resume's config)."""
+        return [name for name in FROZEN_ON_RESUME if getattr(self, name) != getattr(other, name)]
 
     def replace(self, **changes) -> EdmcgsConfig:
         cfg = dataclasses.replace(self, **changes)
@@ -232,8 +280,11 @@ class EdmcgsConfig:
             raise InvalidInputError(f"config.event_act must be 'relu' or 'leaky', got {self.event_act!r}")
         if not 0.0 < self.init_opacity < 1.0:
             raise InvalidInputError(f"config.init_opacity must be in (0, 1), got {self.init_opacity}")
-        if not 0.0 <= self.dynamic_threshold < 1.0 or self.lambda_next < 0:
-            raise InvalidInputError("config.dynamic_threshold must be in [0, 1) and lambda_next >= 0")
+        if not 0.0 <= self.dynamic_threshold < 1.0:
+            raise InvalidInputError(f"config.dynamic_threshold must be in [0, 1), got "
+                                    f"{self.dynamic_threshold}")
+        if self.lambda_next < 0:
+            raise InvalidInputError(f"config.lambda_next must be >= 0, got {self.lambda_next}")
         if self.contrast_threshold <= 0 or self.log_eps <= 0 or self.radius_init <= 0:
             raise InvalidInputError("config.contrast_threshold, log_eps and radius_init must be > 0")
         lo, hi = self.event_warmup
@@ -241,11 +292,6 @@ class EdmcgsConfig:
             raise InvalidInputError(f"config.event_warmup must be 0 <= start <= end <= 1, got {lo, hi}")
         if self.skin_k > self.num_control_points or self.graph_k >= self.num_control_points:
             raise InvalidInputError("config.skin_k and graph_k must be smaller than num_control_points")
-
-    @property
-    def has_event_branch(self) -> bool:
-        """Whether the event-driven transition (Phi, g_phi) exists."""
-        return self.events and self.markov
 
 
 def _plain(value):
@@ -328,20 +374,22 @@ def preset(name: str) -> EdmcgsConfig:
     return PRESETS[name]()
 
 
-__all__ = ["PRESETS", "EdmcgsConfig", "preset"]
-
-
 def field_docs() -> dict[str, str]:
-    """Each config field's description: the docstring written under it in ``EdmcgsConfig``."""
+    """Each config field's description: the docstring written under it in its part."""
     import ast
     import inspect
     import itertools
     import textwrap
 
-    body = ast.parse(textwrap.dedent(inspect.getsource(EdmcgsConfig))).body[0].body
     docs = {}
-    for node, after in itertools.pairwise(body):
-        if isinstance(node, ast.AnnAssign) and isinstance(after, ast.Expr) \
-                and isinstance(after.value, ast.Constant) and isinstance(after.value.value, str):
-            docs[node.target.id] = " ".join(after.value.value.split())
+    for part in PARTS:
+        body = ast.parse(textwrap.dedent(inspect.getsource(part))).body[0].body
+        for node, after in itertools.pairwise(body):
+            if isinstance(node, ast.AnnAssign) and isinstance(after, ast.Expr) \
+                    and isinstance(after.value, ast.Constant) and isinstance(after.value.value, str):
+                docs[node.target.id] = " ".join(after.value.value.split())
     return docs
+
+
+__all__ = ["FROZEN_ON_RESUME", "FROZEN_PARTS", "PARTS", "PRESETS", "EdmcgsConfig", "Initialisation", "Losses",
+           "Schedule", "Structure", "field_docs", "preset"]

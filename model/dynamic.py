@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from edmcgs.errors import InvalidInputError, RenderError
+from edmcgs.errors import InvalidInputError, RenderError, translated
 from edmcgs.geometry import Intrinsics, Trajectory, project, quat_normalize, validate_pose, world_to_camera
 from edmcgs.model.config import EdmcgsConfig
 from edmcgs.model.motion.background import BackgroundLayer, composite
@@ -366,7 +366,8 @@ class EdMCGS(nn.Module):
         w2c = world_to_camera(c2w)
         layer = self.bg_layer if background is None else None
         bg = np.zeros(self.meta.channels, np.float32) if layer is not None else self._background(background)
-        try:
+        with translated((RuntimeError, ValueError), lambda exc: RenderError(f"rendering failed: {exc}"),
+                        keep=InvalidInputError):
             if fast:
                 # Imported here: the numba rasterizer is for inference only; training never loads it.
                 from edmcgs.model.render.rasterize_fast import rasterize_fast
@@ -389,10 +390,6 @@ class EdMCGS(nn.Module):
                 behind = None if layer is None else layer.image(c2w[:3, :3], intrinsics)
                 image = render_image(state, torch.as_tensor(w2c, dtype=torch.float32, device=dev), intrinsics,
                                      torch.as_tensor(bg, device=dev), behind).cpu().numpy()
-        except InvalidInputError:
-            raise
-        except (RuntimeError, ValueError) as exc:
-            raise RenderError(f"rendering failed: {exc}") from exc
         image = image.astype(np.float32, copy=False)
         if not np.isfinite(image).all():  # checked first: nan_to_num costs 10x the check
             image = np.nan_to_num(image, nan=0.0, posinf=1.0, neginf=0.0)

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from edmcgs.geometry import quat_multiply
+
 
 @dataclass(frozen=True, eq=False)
 class Cloud:
@@ -40,16 +42,6 @@ class Cloud:
     def concat(clouds: list[Cloud]) -> Cloud:
         return Cloud(*(np.concatenate([getattr(c, k) for c in clouds])
                        for k in ("means", "quats", "scales", "opacities", "colors")))
-
-
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a * b (rotation b first, then a); [..., 4] (w, x, y, z), broadcastable."""
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz,
-                     aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw], axis=-1)
 
 
 def axis_angle_quat(axis, angle) -> np.ndarray:

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from edmcgs.geometry import rotmat_to_quat
-from edmcgs.synth.cloud import Cloud, axis_angle_quat, quat_multiply, rotation
+from edmcgs.geometry import quat_multiply, rotmat_to_quat
+from edmcgs.synth.cloud import Cloud, axis_angle_quat, rotation
 from edmcgs.synth.orbit import Orbit
 from edmcgs.synth.primitives import capsule, ellipsoid, stripes
 from edmcgs.synth.scene import ProceduralScene, Size

@@ -34,9 +34,10 @@ def _overrides(switches: dict, iterations: int, train_scale: float | None) -> li
 
 
 def run_key(rec_key: str, config: dict, device: str, lpips: bool) -> str:
-    # The resolved config, not the preset's name: a retuned preset must not reuse an older run.
+    # The resolved config, not the preset's name: a retuned preset must not reuse an older run. Keys
+    # sorted: the same values are the same run, whatever order the config lists its fields in.
     blob = json.dumps([rec_key, config, device, torch.get_num_threads(), torch.__version__]
-                      + (["lpips"] if lpips else []))
+                      + (["lpips"] if lpips else []), sort_keys=True)
     return hashlib.sha1(blob.encode()).hexdigest()[:12]
 
 

@@ -31,7 +31,7 @@ import h5py
 import numpy as np
 
 from edmcgs.atomic import atomic_output
-from edmcgs.errors import InvalidInputError, RecordingError, ReplayFormatError
+from edmcgs.errors import InvalidInputError, RecordingError, ReplayFormatError, translated
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.frames import Frames
 
@@ -387,7 +387,8 @@ class RecordingFile:
 
     def _validate(self) -> None:
         f = self._f
-        try:
+        with translated((OSError, KeyError, ValueError, TypeError, InvalidInputError),
+                        lambda exc: self._fail(f"corrupt recording: {exc}"), keep=ReplayFormatError):
             fmt = f.attrs.get("format")
             if fmt != FORMAT_NAME:
                 raise self._fail(
@@ -420,10 +421,6 @@ class RecordingFile:
                     self._validate_frames(group)
             if "anchors" not in f:
                 raise self._fail("anchors group missing")
-        except ReplayFormatError:
-            raise
-        except (OSError, KeyError, ValueError, TypeError, InvalidInputError) as exc:
-            raise self._fail(f"corrupt recording: {exc}") from exc
 
     def _validate_frames(self, group: str) -> None:
         g = self._f[group]
@@ -437,12 +434,11 @@ class RecordingFile:
             raise self._fail(f"{group}/poses has shape {g['poses'].shape}, expected [{len(t)}, 4, 4]")
 
     def _read(self, what: str, fn):
-        try:
+        # InvalidInputError is translated: what we read fails the checks, the file is corrupt.
+        with translated((OSError, KeyError, ValueError, InvalidInputError),
+                        lambda exc: self._fail(f"cannot read {what} (truncated or corrupt?): {exc}"),
+                        keep=ReplayFormatError):
             return fn()
-        except ReplayFormatError:
-            raise
-        except (OSError, KeyError, ValueError, InvalidInputError) as exc:
-            raise self._fail(f"cannot read {what} (truncated or corrupt?): {exc}") from exc
 
     def read_event_columns(self, i0: int, i1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Raw columns t, x, y, p for events [i0, i1) (unvalidated: the caller validates)."""

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dv_processing as dv
 import numpy as np
 
+from edmcgs.errors import translated
 from edmcgs.sensor.sources.dv_bridge import dv_error_text, frame_image, imu_array, store_columns
 
 
@@ -25,10 +26,8 @@ class _Failed(Exception):
 
 
 def _call(what: str, fn):
-    try:
+    with translated((RuntimeError, IndexError, ValueError), lambda exc: _Failed(what, exc)):
         return fn()
-    except (RuntimeError, IndexError, ValueError) as exc:
-        raise _Failed(what, exc) from exc
 
 
 def serve(path: str, conn) -> None:

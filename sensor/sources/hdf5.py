@@ -25,7 +25,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from edmcgs.errors import InvalidInputError, ReplayFormatError
+from edmcgs.errors import InvalidInputError, ReplayFormatError, translated
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import RecordingFile, is_recording, open_hdf5
 from edmcgs.sensor.frames import Frames
@@ -204,12 +204,13 @@ class Hdf5Replay(Replay):
         return self._layout.name
 
     def _read(self, what: str, fn):
-        try:
+        # InvalidInputError passes: it says what was asked wrong (a resolution), not what the file is.
+        def corrupt(exc: BaseException) -> ReplayFormatError:
+            return ReplayFormatError(f"{self.path}: cannot {what} (truncated or corrupt?): {exc}")
+
+        with translated((OSError, KeyError, ValueError, TypeError, IndexError), corrupt,
+                        keep=(ReplayFormatError, InvalidInputError)):
             return fn()
-        except (ReplayFormatError, InvalidInputError):
-            raise
-        except (OSError, KeyError, ValueError, TypeError, IndexError) as exc:
-            raise ReplayFormatError(f"{self.path}: cannot {what} (truncated or corrupt?): {exc}") from exc
 
     def _time_range(self) -> tuple[int, int] | None:
         ends = []

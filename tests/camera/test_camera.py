@@ -11,6 +11,7 @@ from edmcgs.geometry import (
     parse_pose,
     pose_from_quat,
     project,
+    quat_multiply,
     quat_to_rotmat,
     rotmat_to_quat,
     validate_pose,
@@ -82,6 +83,17 @@ def test_quat_to_rotmat_matches_axis_angle():
     R = quat_to_rotmat([np.cos(angle / 2), 0, 0, np.sin(angle / 2)])
     expect = [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
     np.testing.assert_allclose(R, expect, atol=1e-15)
+
+
+def test_quat_multiply_composes_rotations_in_numpy_and_torch_alike():
+    a, b = random_quats(50), random_quats(50)
+    product = quat_multiply(a, b)
+    assert product.dtype == np.float64
+    np.testing.assert_allclose(quat_to_rotmat(product), quat_to_rotmat(a) @ quat_to_rotmat(b), atol=1e-12)
+    np.testing.assert_allclose(quat_multiply(a[0].tolist(), b), quat_multiply(a[:1], b))  # lists broadcast
+    torch_product = quat_multiply(torch.from_numpy(a), torch.from_numpy(b))
+    assert isinstance(torch_product, torch.Tensor)
+    np.testing.assert_allclose(torch_product.numpy(), product, atol=1e-15)
 
 
 def test_quat_to_rotmat_normalises_and_rejects_zero_and_nan():

@@ -53,9 +53,13 @@ def test_train_then_eval(recording, tmp_path, capsys):
 
     # resume: two more iterations from the finished run
     resume = ["train", str(recording), "-o", str(ckpt), "--quiet", "--resume"]
-    assert main([*resume, "--set", "iterations=8"]) == 0
-    assert main([*resume, "--set", "markov=false"]) == 1
-    assert "cannot change" in capsys.readouterr().err
+    assert main([*resume, "--set", "iterations=8", "--set", "lambda_event=0.5"]) == 0
+    for frozen in ("markov=false", "bg_layer=true", "init_points=10"):  # structure and initialisation
+        before = ckpt.read_bytes()
+        assert main([*resume, "--set", frozen]) == 1
+        err = capsys.readouterr().err
+        assert f"--resume cannot change ['{frozen.split('=')[0]}']" in err and "Traceback" not in err
+        assert ckpt.read_bytes() == before
 
 
 def test_eval_rejects_a_foreign_checkpoint(recording, tmp_path, capsys):
@@ -80,10 +84,10 @@ def test_resume_on_another_recording_fails_before_writing(recording, tmp_path, c
     assert ckpt.read_bytes() == before
 
 
-def test_list_config_prints_every_key_with_its_value_and_description(capsys):
+def test_list_config_prints_every_key_by_part_with_its_value_and_description(capsys):
     import dataclasses
 
-    from edmcgs.model.config import EdmcgsConfig, preset
+    from edmcgs.model.config import PARTS, EdmcgsConfig, preset
 
     assert main(["train", "--list-config", "--config", "real"]) == 0
     out = capsys.readouterr().out
@@ -91,6 +95,11 @@ def test_list_config_prints_every_key_with_its_value_and_description(capsys):
         value = getattr(preset("real"), f.name)
         assert f"{f.name} = {value!r}\n    " in out, f.name
     assert "Use the event stream at all." in out  # the description written under the field
+    headers = [out.index(f"# {part.__name__}") for part in PARTS]
+    assert headers == sorted(headers) and "# Structure (frozen on --resume)" in out
+    for part, start, end in zip(PARTS, headers, [*headers[1:], len(out)], strict=True):
+        for f in dataclasses.fields(part):  # each key under its part's header
+            assert start < out.index(f"\n{f.name} = ") < end, f.name
     with pytest.raises(SystemExit):
         main(["train"])
     assert "--list-config" in capsys.readouterr().err

@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from edmcgs.geometry import quat_to_rotmat
-from edmcgs.synth.cloud import Cloud, axis_angle_quat, pose_parts, quat_multiply, rotation
+from edmcgs.geometry import quat_multiply, quat_to_rotmat
+from edmcgs.synth.cloud import Cloud, axis_angle_quat, pose_parts, rotation
 from edmcgs.synth.primitives import (
     NORMAL_SIGMA,
     TANGENT_SIGMA,
