@@ -146,8 +146,8 @@ def export_sweep(client: Client, out: str | os.PathLike, *, t0: float | None = N
     scene = client.scene()
     span0, span1 = default_span_us(scene)
     start = int(scene["t_start_us"])
-    t0_us = span0 if t0 is None else start + round(float(t0) * 1e6)
-    t1_us = span1 if t1 is None else start + round(float(t1) * 1e6)
+    t0_us = span0 if t0 is None else protocol.t_us_of_seconds(float(t0), start)
+    t1_us = span1 if t1 is None else protocol.t_us_of_seconds(float(t1), start)
     times = sweep_times_us(t0_us, t1_us, fps, speed)
     if len(times) > max_frames:
         raise InvalidInputError(f"the sweep has {len(times)} frames, more than max_frames={max_frames}: "

@@ -43,12 +43,13 @@ def _run(args) -> int:
     from edmcgs.model.ply import write_ply
     from edmcgs.options import RecordingOptions
     from edmcgs.pipeline import open_recording, training_data
+    from edmcgs.protocol import t_us_of_seconds
 
     model = load_checkpoint(args.checkpoint)
     meta = model.meta
     if args.t is not None and not math.isfinite(args.t):
         raise InvalidInputError(f"--t must be a finite number of seconds, got {args.t}")
-    t_us = args.t_us if args.t is None else meta.t_start_us + round(args.t * 1e6)
+    t_us = args.t_us if args.t is None else t_us_of_seconds(args.t, meta.t_start_us)
     if not meta.t_start_us <= t_us <= meta.t_end_us:
         raise InvalidInputError(f"t = {(t_us - meta.t_start_us) / 1e6:g} s is outside the checkpoint's span "
                                 f"0..{(meta.t_end_us - meta.t_start_us) / 1e6:g} s")
