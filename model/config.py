@@ -3,8 +3,8 @@
 ``EdmcgsConfig`` is composed of the parts (a dataclass deriving from each), so every field reads flat
 (``cfg.skin_k``), ``--set key=value`` takes flat keys, and a checkpoint stores the config as one flat map
 (the format every checkpoint has had). What a part is decides what a resume may change: ``Structure`` and
-``Initialisation`` describe the saved tensors, so ``frozen_changes`` refuses them; ``Losses`` and
-``Schedule`` only steer further training.
+``Initialisation`` describe the saved tensors, so ``frozen_changes`` names them for ``--resume`` to refuse;
+``Losses`` and ``Schedule`` only steer further training.
 
 The ablations of the paper are switches, never copies of code: ``events=False`` (time-only prior),
 ``markov=False`` (events only as a training loss), ``local_sampling=False`` (global average pooling of
