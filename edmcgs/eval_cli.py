@@ -49,7 +49,7 @@ def _run(args) -> int:
 
     from edmcgs.model.checkpoint import load_checkpoint
     from edmcgs.model.devices import check_device
-    from edmcgs.model.eval.baselines import BASELINES, score_baselines
+    from edmcgs.model.eval.baselines import BASELINES, SHORT, score_baselines
     from edmcgs.model.eval.compare import Comparison
     from edmcgs.model.eval.evaluation import evaluate, summarize
     from edmcgs.model.eval.lpips import LPIPS, SKIPPED, find_weights
@@ -79,23 +79,22 @@ def _run(args) -> int:
         with open(args.csv, "w", newline="") as fh:
             writer = csv.writer(fh)
             writer.writerow(["index", "t_us", "anchor_us", "events", "psnr", "ssim", "lpips",
-                             "psnr_hold_last", "ssim_hold_last", "psnr_blend", "ssim_blend"])
-            for r, hold, blend in zip(rows, *baselines.values(), strict=True):
+                             *(f"{m}_{SHORT[name]}" for name in BASELINES for m in ("psnr", "ssim"))])
+            for r, *base in zip(rows, *baselines.values(), strict=True):
                 writer.writerow([r.index, r.t_us, r.anchor_us, r.events, f"{r.psnr:.4f}", f"{r.ssim:.5f}",
-                                 "" if r.lpips is None else f"{r.lpips:.5f}", f"{hold.psnr:.4f}",
-                                 f"{hold.ssim:.5f}", f"{blend.psnr:.4f}", f"{blend.ssim:.5f}"])
+                                 "" if r.lpips is None else f"{r.lpips:.5f}",
+                                 *(f"{v:{f}}" for b in base for v, f in ((b.psnr, ".4f"), (b.ssim, ".5f")))])
     summary = summarize(rows)
-    hold, blend = baselines.values()
     print("| frame | t (ms from first anchor) | events | PSNR (dB) | SSIM |" + (" LPIPS |" if lpips else "")
-          + " hold last: PSNR | blend: PSNR |")
-    print("|---:|---:|---:|---:|---:|" + ("---:|" if lpips else "") + "---:|---:|")
+          + "".join(f" {SHORT[name]}: PSNR |" for name in BASELINES))
+    print("|---:|---:|---:|---:|---:|" + ("---:|" if lpips else "") + "---:|" * len(BASELINES))
     t0 = model.meta.t_start_us
-    for r, h, b in zip(rows, hold, blend, strict=True):
+    for r, *base in zip(rows, *baselines.values(), strict=True):
         print(f"| {r.index} | {(r.t_us - t0) / 1000:.1f} | {r.events} | {r.psnr:.2f} | {r.ssim:.4f} |"
-              + (f" {r.lpips:.4f} |" if lpips else "") + f" {h.psnr:.2f} | {b.psnr:.2f} |")
+              + (f" {r.lpips:.4f} |" if lpips else "") + "".join(f" {b.psnr:.2f} |" for b in base))
     print(f"| **mean** ({summary['frames']} frames) | | | **{summary['psnr']:.2f}** "
           f"| **{summary['ssim']:.4f}** |" + (f" **{summary['lpips']:.4f}** |" if lpips else "")
-          + f" {np.mean([h.psnr for h in hold]):.2f} | {np.mean([b.psnr for b in blend]):.2f} |")
+          + "".join(f" {np.mean([b.psnr for b in rows_b]):.2f} |" for rows_b in baselines.values()))
     print()
     print(comparison.markdown())
     print()

@@ -76,7 +76,8 @@ def training_data(rec: Recording) -> TrainingData:
         event_map=event_map if len(events) else None, event_size=(width, height),
         held_out_t_us=None if held is None or not len(held) else held.t_us,
         held_out_images=None if held is None or not len(held) else held.images,
-        held_out_poses=None if held is None or not len(held) else held.poses)
+        held_out_poses=None if held is None or not len(held) else held.poses,
+        contrast_threshold=rec.contrast_threshold)
 
 
 def build_config(name: str, overrides: list[str], rec: Recording) -> EdmcgsConfig:

@@ -7,7 +7,7 @@ import json
 import numpy as np
 
 from bench import traffic
-from edmcgs.model.eval.baselines import score_baselines
+from edmcgs.model.eval.baselines import BASELINES, score_baselines
 from edmcgs.pipeline import open_recording, training_data
 from edmcgs.sensor.files.recording import write_recording
 from edmcgs.synth.traffic_build import TrafficConfig, build_traffic
@@ -28,7 +28,7 @@ def test_trains_measures_and_scores_beside_the_baselines(tmp_path):
     assert r["frames"] == frames > 0
     for run in r["runs"]:  # the training process itself was measured
         assert run["wall_s"] > 0 and run["cpu_s"] > 0 and 0.1 < run["peak_gb"] < 20
-    names = {"full", "bg_layer=false", *traffic.BASELINE_NAMES}
+    names = {"full", "bg_layer=false", *BASELINES, traffic.MEDIAN}
     assert set(r["scores"]) == names
     for row in r["scores"].values():
         assert row["frames"] == frames and all(np.isfinite(row[k]) for k in ("psnr", "ssim", "moving_psnr"))

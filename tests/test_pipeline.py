@@ -118,6 +118,8 @@ def test_train_and_eval_an_aedat4_with_a_split(aps, tmp_path, capsys):
     data = training_data(split_frames(open_recording(path), every=5))
     hold = score_baselines(data)[BASELINES[0]]
     assert [float(r["psnr_hold_last"]) for r in rows] == pytest.approx([h.psnr for h in hold], abs=1e-4)
+    integrated = score_baselines(data)[BASELINES[2]]
+    assert [float(r["psnr_integrate"]) for r in rows] == pytest.approx([h.psnr for h in integrated], abs=1e-4)
     printed = capsys.readouterr().out
     assert "| hold last anchor |" in printed and "| blend of neighbouring anchors |" in printed
 

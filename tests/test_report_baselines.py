@@ -21,7 +21,8 @@ def test_baselines_stand_beside_the_ablations_on_the_same_frames():
     runs = [{"scene": "square", "fps": 10.0, "variant": v, "psnr": p, "ssim": 0.9, "per_frame": scored}
             for v, p in (("full", 30.0), ("no_events", 25.0))]
     rows = baseline_rows({"square": {10.0: (rec, "key")}}, runs)
-    assert [r["baseline"] for r in rows] == ["hold last anchor", "blend of neighbouring anchors"]
+    assert [r["baseline"] for r in rows] == ["hold last anchor", "blend of neighbouring anchors",
+                                             "events integrated onto the last anchor"]
     assert all(r["frames"] == 3 and np.isfinite(r["psnr"]) for r in rows)
     table = ablation_table(runs, SMALL, rows)
     line = next(x for x in table if x.startswith("| hold last anchor (no model) |"))

@@ -1,5 +1,5 @@
 """The trivial baselines of every (scene, rate) of the report, on the frames its runs scored: hold the last
-anchor, blend the neighbouring anchors (no model at all)."""
+anchor, blend the neighbouring anchors, integrate the events onto the last anchor (no model at all)."""
 
 from __future__ import annotations
 

@@ -48,6 +48,8 @@ class TrainingData:
     """[G, H, W, C] uint8."""
     held_out_poses: np.ndarray | None = None
     """[G, 4, 4] float64 c2w, or None to use the trajectory."""
+    contrast_threshold: float | None = None
+    """The event camera's contrast threshold C when the recording states it."""
 
     def __post_init__(self) -> None:
         t = np.asarray(self.anchors_t_us)

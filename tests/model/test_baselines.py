@@ -1,0 +1,66 @@
+"""The trivial baselines: integrating events onto the last anchor follows the sensor's own model."""
+
+import numpy as np
+
+from edmcgs.geometry import Intrinsics, Trajectory
+from edmcgs.model.eval import baselines as b
+from edmcgs.model.eval.baselines import BASELINES, baseline_image, integrate_events, score_baselines
+from edmcgs.model.train.data import TrainingData
+
+INTEGRATE = BASELINES[2]
+
+
+def test_integration_is_the_log_intensity_model_and_stays_finite():
+    frame = np.full((2, 3, 1), 0.5, np.float32)
+    events = np.array([[3, 0, -2], [0, 1e6, -1e6]], np.float32)  # a burst either way saturates
+    got = integrate_events(frame, events, 0.2)
+    want = (0.5 + b.LOG_EPS) * np.exp(0.2 * np.array([[3, 0, -2], [0, 0, 0]])) - b.LOG_EPS
+    assert np.allclose(got[0, :, 0], want[0], atol=1e-6)
+    assert got[1, 1, 0] == 1.0 and got[1, 2, 0] == 0.0 and np.isfinite(got).all()
+    # events at half the frame's resolution: each pixel takes its nearest event pixel
+    big = integrate_events(np.full((4, 6, 3), 0.5, np.float32), events, 0.2)
+    assert big.shape == (4, 6, 3) and np.allclose(big[::2, ::2, 0], got[..., 0], atol=1e-6)
+
+
+def _data(contrast, events: bool = True) -> tuple[TrainingData, list]:
+    """Two anchors 100 ms apart on a 4x4 grey image; the middle pixel brightens by 5 events between
+    them (a log-intensity ramp); held-out frames every 20 ms follow the same model."""
+    c = b.DEFAULT_CONTRAST if contrast is None else contrast
+    start = np.full((4, 4), 0.3)
+    calls = []
+
+    def counts(t0: int, t1: int) -> np.ndarray:
+        calls.append((t0, t1))
+        m = np.zeros((4, 4), np.float32)
+        m[1, 2] = np.floor(5 * (min(t1, 100_000) - t0) / 100_000)
+        return m
+
+    def frame(t: int) -> np.ndarray:
+        return np.round(255 * integrate_events(start[..., None], counts(0, t), c)).astype(np.uint8)
+
+    held = np.array([20_000, 40_000, 60_000, 80_000], np.int64)
+    data = TrainingData(
+        anchors_t_us=np.array([0, 100_000], np.int64), anchor_images=np.stack([frame(0), frame(100_000)]),
+        anchor_poses=np.stack([np.eye(4)] * 2), intrinsics=Intrinsics(4.0, 4.0, 1.5, 1.5, 4, 4),
+        trajectory=Trajectory(np.array([0], np.int64), np.eye(4)[None]), t_end_us=100_000,
+        event_map=counts if events else None, held_out_t_us=held,
+        held_out_images=np.stack([frame(int(t)) for t in held]), contrast_threshold=contrast)
+    calls.clear()
+    return data, calls
+
+
+def test_integration_reads_the_events_since_the_anchor_and_beats_hold_on_its_own_model():
+    for contrast in (0.35, None):  # the recording's C, or the default when it states none
+        data, calls = _data(contrast)
+        scores = score_baselines(data)
+        assert calls == [(0, int(t)) for t in data.held_out_t_us]  # [tau, t) of each held-out frame
+        assert min(s.psnr for s in scores[INTEGRATE]) > 45
+        assert np.mean([s.psnr for s in scores[INTEGRATE]]) > np.mean([s.psnr for s in scores[BASELINES[0]]])
+
+
+def test_without_events_integration_holds_the_last_anchor():
+    data, _ = _data(0.2, events=False)
+    for t in data.held_out_t_us.tolist():
+        held, tau = baseline_image(data, t, BASELINES[0])
+        got, tau_i = baseline_image(data, t, INTEGRATE)
+        assert tau == tau_i and np.array_equal(got, held)
