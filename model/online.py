@@ -104,9 +104,16 @@ def correct(model: EdMCGS, motion: Motion, image: np.ndarray, c2w: np.ndarray, i
     extent = float(model.extent)
     delta = torch.zeros_like(trans0, requires_grad=True)
     opt = torch.optim.Adam([delta], lr=lr)
+    # Skinning is linear in the translations: sum_k w_ik (R_k (mu_i - p_k) + p_k + T_k + d_k) moves mean
+    # i by sum_k w_ik d_k, and no rotation changes. Skin once, then each step adds the blended residual.
+    with torch.no_grad():
+        base = model.state_from_motion(trans0, rot)
+        cp = model.control
+        weights = cp.weights(model.gaussians.means)[..., None]                        # [N, K, 1]
     first = last = None
     for _ in range(steps):
-        state = model.state_from_motion(trans0.detach() + delta * extent, rot.detach())
+        moved = base.means + (weights * delta[cp.bind]).sum(1) * extent
+        state = GaussianState(moved, base.quats, base.scales, base.opacities, base.colors)
         out = render_image(state, w2c, intr, bg)
         loss = (out - target).abs().mean()
         value = float(loss.detach())

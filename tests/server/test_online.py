@@ -184,3 +184,35 @@ def test_a_checkpoint_the_online_anchors_cannot_continue_gets_none(tmp_path, mon
         assert service.engine.online is None and service.online_info() is None
     finally:
         service.close()
+
+
+def test_a_correction_equals_refitting_through_the_full_skinning(long_scene):
+    # correct() skins once and adds the blended residual per step (skinning is linear in translations):
+    # the same fit as re-skinning the whole state at every step.
+    from edmcgs.geometry import world_to_camera
+    from edmcgs.model.dynamic import background_color, render_image
+
+    rec, model = long_scene
+    t = int(model.meta.t_end_us) + STEP_US
+    motion = model_online.checkpoint_motion(model, t)
+    i = int(np.searchsorted(rec.anchors.t_us, t))
+    image, c2w, intr = rec.anchors.images[i], rec.anchors.poses[i], model.meta.intrinsics
+    (got, _), first, last = model_online.correct(model, motion, image, c2w, intr, steps=4)
+
+    trans0, rot = motion
+    target = torch.as_tensor(image, dtype=torch.float32) / 255.0
+    w2c = torch.as_tensor(world_to_camera(np.asarray(c2w, np.float64)), dtype=torch.float32)
+    bg, extent = background_color(model.config, model.meta.channels), float(model.extent)
+    delta = torch.zeros_like(trans0, requires_grad=True)
+    opt = torch.optim.Adam([delta], lr=2e-3)
+    losses = []
+    for _ in range(4):
+        state = model.state_from_motion(trans0 + delta * extent, rot)
+        loss = (render_image(state, w2c, intr, bg) - target).abs().mean()
+        losses.append(float(loss.detach()))
+        opt.zero_grad()
+        (loss + 1e-2 * delta.pow(2).sum(-1).mean()).backward()
+        opt.step()
+    assert first == pytest.approx(losses[0], rel=1e-5) and last == pytest.approx(losses[-1], rel=1e-4)
+    assert torch.allclose(got, trans0 + delta.detach() * extent, atol=1e-6 * extent)
+    assert last < first  # the fit moves toward the frame
