@@ -4,7 +4,9 @@ becomes training data and config through ``edmcgs.pipeline``)."""
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from edmcgs.errors import EdmcgsError, InvalidInputError
@@ -23,8 +25,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config field, e.g. --set events=false --set iterations=500")
     parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
-    parser.add_argument("--resume", action="store_true", help="continue from the checkpoint at --output")
+    parser.add_argument("--resume", nargs="?", const=True, default=None, metavar="CKPT",
+                        help="continue the run saved in CKPT (default: the checkpoint at --output) with its "
+                             "optimizer state, inside a checkpoint written mid-run (periodic or Ctrl-C) or "
+                             "in the CKPT.train-state file beside a final one")
+    parser.add_argument("--steps", type=int, metavar="N",
+                        help="train N more steps from where the run stands (default: up to the config's "
+                             "iterations; past them every schedule stays at its end)")
     parser.add_argument("--history", help="write the periodic held-out evaluation to this CSV")
+    parser.add_argument("--tensorboard", metavar="DIR",
+                        help="write training curves (losses, Gaussians, step time, held-out PSNR / SSIM) "
+                             "for TensorBoard to DIR (the optional extra: pip install 'edmcgs[tensorboard]')")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch CPU threads (default 1: on a CPU shared with other work, OpenMP threads "
                              "that spin-wait for each other are many times slower than one thread)")
@@ -35,11 +46,49 @@ def main(argv: list[str] | None = None) -> int:
         return _list_config(args.config)
     if args.recording is None or args.output is None:
         parser.error("give RECORDING and -o CHECKPOINT (or --list-config)")
+    if args.steps is not None and args.steps < 1:
+        parser.error(f"--steps must be >= 1, got {args.steps}")
+    if args.tensorboard:
+        from edmcgs.model.train.curves import tensorboard_missing
+
+        reason = tensorboard_missing()
+        if reason:
+            print(f"edmcgs train: {reason}", file=sys.stderr)
+            return 1
+    args.argv = list(sys.argv[1:] if argv is None else argv)
     try:
         return _run(args)
     except EdmcgsError as exc:
         print(f"edmcgs train: {exc}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:  # outside the training loop (reading the recording; a second Ctrl-C)
+        print(f"edmcgs train: interrupted; {args.output} is as it was before", file=sys.stderr)
+        return INTERRUPTED
+
+
+INTERRUPTED = 130
+"""Exit status after Ctrl-C (128 + SIGINT), as shells report it."""
+
+
+def resume_command(argv: list[str], checkpoint, steps: int | None) -> str:
+    """The command line that continues a run started with ``argv`` (the arguments after ``edmcgs
+    train``) from ``checkpoint``: the same arguments, its own ``--resume`` / ``--steps`` replaced."""
+    import shlex
+
+    kept, i = [], 0
+    while i < len(argv):
+        arg = argv[i]
+        name = arg.split("=", 1)[0]
+        if name in ("--resume", "--steps"):
+            takes = "=" not in arg and i + 1 < len(argv)
+            if name == "--resume":  # an optional value: taken when it does not look like an option
+                takes = takes and not argv[i + 1].startswith("-")
+            i += 2 if takes else 1
+            continue
+        kept.append(arg)
+        i += 1
+    kept += ["--resume", str(checkpoint)] + ([] if steps is None else ["--steps", str(steps)])
+    return "edmcgs train " + shlex.join(kept)
 
 
 def _list_config(name: str) -> int:
@@ -86,6 +135,18 @@ def check_resume_fits(model, data, path) -> None:
                                 "or give its recording")
 
 
+def _on_interrupt(stop: threading.Event):
+    """SIGINT handler: the first Ctrl-C asks the trainer to stop after the current step and save; a second
+    one abandons the run at once (a checkpoint being written is left out: writes are atomic)."""
+    def handler(signum, frame) -> None:
+        if stop.is_set():
+            raise KeyboardInterrupt
+        stop.set()
+        print("\nCtrl-C: finishing this step, then saving a resumable checkpoint (Ctrl-C again to abandon "
+              "the run without saving)", file=sys.stderr, flush=True)
+    return handler
+
+
 def _run(args) -> int:
     import torch
 
@@ -95,6 +156,8 @@ def _run(args) -> int:
     from edmcgs.model.eval.baselines import BASELINES, score_baselines
     from edmcgs.model.eval.compare import Comparison
     from edmcgs.model.eval.evaluation import evaluate
+    from edmcgs.model.train.curves import TensorBoardCurves
+    from edmcgs.model.train.resume import resume_state
     from edmcgs.model.train.trainer import Trainer, write_history_csv
     from edmcgs.pipeline import build_config, open_recording, training_data
 
@@ -110,21 +173,26 @@ def _run(args) -> int:
               "the frames between anchors as held-out ground truth)")
     data = training_data(rec)
     out = Path(args.output)
+    source = out if args.resume is True else Path(args.resume) if args.resume else None
     train_state = None
-    if args.resume and out.exists():
-        payload = read_checkpoint(out)
-        model = load_checkpoint(out)
-        check_resume_fits(model, data, out)  # before anything is written over it
+    if source is not None and (source.exists() or args.resume is not True):
+        payload = read_checkpoint(source)
+        model = load_checkpoint(source)
+        check_resume_fits(model, data, source)  # before anything is written over it
         cfg = model.config.with_overrides(args.overrides)
         changed = model.config.frozen_changes(cfg)
         if changed:
             raise InvalidInputError(f"--resume cannot change {changed}: the saved tensors were built with "
                                     "them (the config's Structure and Initialisation parts; --list-config)")
+        train_state, origin = resume_state(source, payload)
         model.config = cfg
         model.meta.config = cfg.to_dict()
-        train_state = payload.get("train_state")
-        print(f"resuming from {out}" + ("" if train_state else " (no optimizer state: a fresh optimizer)"))
+        model.meta.frozen = None  # a final checkpoint's still control points: decided again at the end
+        print(f"resuming from {source} with {origin}"
+              + (f", at step {int(train_state['step'])}" if train_state else ""))
     else:
+        if source is not None:
+            print(f"--resume: no checkpoint at {out} yet: training from the start")
         cfg = build_config(args.config, args.overrides, rec)
         model = EdMCGS.from_arrays(anchors_t_us=data.anchors_t_us, anchor_images=data.anchor_images,
                                    intrinsics=data.intrinsics, anchor_poses=data.anchor_poses,
@@ -133,9 +201,28 @@ def _run(args) -> int:
     trainer = Trainer(model, data, device=args.device, progress=not args.quiet)
     if train_state:
         trainer.load_train_state(train_state)
-    history = trainer.fit(out)
+    until = cfg.iterations if args.steps is None else trainer.step + args.steps
+    if trainer.step >= until:
+        raise InvalidInputError(f"{source} is already at step {trainer.step} of {cfg.iterations}: give "
+                                "--steps N to train N more (or --set iterations=M for a longer schedule)")
+    curves = None
+    if args.tensorboard:
+        curves = TensorBoardCurves(args.tensorboard, purge_step=trainer.step + 1)
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGINT, _on_interrupt(stop))
+    try:
+        history = trainer.fit(out, until=until, stop=stop, curves=curves)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if curves is not None:
+            curves.close()
     if args.history:
         write_history_csv(history, args.history)
+    if trainer.interrupted:
+        more = None if until == cfg.iterations else until - trainer.step
+        print(f"interrupted at step {trainer.step} of {until}: saved a resumable checkpoint to {out}; "
+              f"continue with: {resume_command(args.argv, out, more)}", file=sys.stderr)
+        return INTERRUPTED
     written = f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB, {len(trainer.model.gaussians)} Gaussians)"
     if not data.evaluable().size:
         print(f"{written}; the recording has no held-out frames to score it on")

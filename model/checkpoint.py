@@ -10,6 +10,7 @@ Schema (version 2)::
      "sizes": {num_gaussians, num_control_points},
      "state_dict": {name: tensor},
      "train_state": {...} | None}   # optimizer and progress, only in checkpoints written mid-training
+                                    # (a final one: in the sidecar NAME.train-state, model/train/resume.py)
 
 Version 2 adds what the scene leaves out (``edmcgs.model.motion.leanness``): the frozen control points
 (decided when a final checkpoint is written, ``train_state`` None) and ``lean``, the record of every
@@ -44,8 +45,9 @@ VERSION = 2
 
 
 def save_checkpoint(model: EdMCGS, path: str | os.PathLike, *, train_state: dict | None = None,
-                    freeze_threshold: float | None = None) -> None:
-    """Write ``model`` (and optionally the trainer's resumable state) to ``path`` atomically.
+                    freeze_threshold: float | None = None) -> str:
+    """Write ``model`` (and optionally the trainer's resumable state) to ``path`` atomically; returns the
+    file's checksum (a sidecar of train state names the checkpoint it belongs to by it).
 
     A final checkpoint (no ``train_state``) records the frozen control points: those whose prior motion
     stays below ``freeze_threshold`` (world units; default ``leanness.FREEZE_FRACTION`` of the extent;
@@ -91,6 +93,7 @@ def save_checkpoint(model: EdMCGS, path: str | os.PathLike, *, train_state: dict
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_output(path, CheckpointError) as tmp:
         torch.save(payload, tmp)
+    return payload["checksum"]
 
 
 def read_checkpoint(path: str | os.PathLike) -> dict:

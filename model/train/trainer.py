@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -29,9 +30,11 @@ from edmcgs.model.checkpoint import save_checkpoint
 from edmcgs.model.dynamic import EdMCGS, background_color, render_image
 from edmcgs.model.eval.evaluation import evaluate, summarize
 from edmcgs.model.motion.gaussians import GaussianState
+from edmcgs.model.train.curves import Curves
 from edmcgs.model.train.data import EventGrid, TrainingData
 from edmcgs.model.train.density import GradientStats, densify_and_prune, reset_opacity, screen_space_grad
 from edmcgs.model.train.losses import event_loss, laplacian_smoothness, photometric_loss, pyramid_l1, tli_loss
+from edmcgs.model.train.resume import remove_sidecar, write_sidecar
 from edmcgs.model.train.schedule import exp_decay, ramp
 
 MAX_BAD_STEPS = 20
@@ -86,6 +89,8 @@ class Trainer:
         self.history: list[dict] = []
         self.train_seconds = 0.0
         """Wall-clock seconds spent in training steps (not in evaluation or checkpointing)."""
+        self.interrupted = False
+        """Whether the last ``fit`` stopped early at its ``stop`` event."""
 
     # ------------------------------------------------------------------ setup
     def _w2c(self, c2w: np.ndarray) -> Tensor:
@@ -143,7 +148,8 @@ class Trainer:
     def train_step(self) -> dict[str, float]:
         """One optimisation step; returns the loss terms (floats)."""
         cfg, model = self.cfg, self.model
-        progress = self.step / cfg.iterations
+        # Past ``iterations`` (``fit(until=...)`` beyond it) every schedule stays at its end.
+        progress = min(self.step / cfg.iterations, 1.0)
         self._set_schedules(progress)
         static = progress < cfg.deform_from
         terms: dict[str, Tensor] = {}
@@ -275,44 +281,77 @@ class Trainer:
         finally:
             self.model.train(was_training)
 
-    def fit(self, checkpoint_path: str | os.PathLike | None = None) -> list[dict]:
-        """Train to ``config.iterations``; periodic evaluation and resumable checkpoints. Returns the
-        evaluation history ({step, psnr, ssim, frames, seconds}); ``seconds`` counts training steps only
-        (evaluations and checkpoints are off the clock)."""
+    def fit(self, checkpoint_path: str | os.PathLike | None = None, *, until: int | None = None,
+            stop: threading.Event | None = None, curves: Curves | None = None) -> list[dict]:
+        """Train to step ``until`` (default ``config.iterations``; past it the schedules stay at their end);
+        periodic evaluation and resumable checkpoints. Returns the evaluation history ({step, psnr, ssim,
+        frames, seconds, gaussians}); ``seconds`` counts training steps only (evaluations and checkpoints
+        are off the clock).
+
+        stop: when set (a Ctrl-C handler sets it), the current step is finished, a checkpoint with the
+        optimizer state is written to ``checkpoint_path`` and ``fit`` returns with ``interrupted`` True.
+        Otherwise the final checkpoint is written, and what resuming needs beside it (``resume``).
+        curves: receives the scalars of every step and evaluation (``curves.Curves``).
+        """
         cfg = self.cfg
-        bar = tqdm(total=cfg.iterations, initial=self.step, desc="train", disable=not self.progress,
+        until = cfg.iterations if until is None else int(until)
+        self.interrupted = False
+        bar = tqdm(total=until, initial=self.step, desc="train", disable=not self.progress,
                    dynamic_ncols=True)
         last: dict[str, float] = {}
         ema: dict[str, float] = {}
-        while self.step < cfg.iterations:
+        while self.step < until:
             started = self.clock()
             last = self.train_step()
-            self.train_seconds += self.clock() - started
+            took = self.clock() - started
+            self.train_seconds += took
             for key, value in last.items():
                 if math.isfinite(value):
                     ema[key] = value if key not in ema else 0.9 * ema[key] + 0.1 * value
+            if curves is not None:
+                curves.scalars(self.step, "train", {**last, "gaussians": len(self.model.gaussians),
+                                                    "step_seconds": took})
             bar.update(1)
-            if self.step % 10 == 0 or self.step == cfg.iterations:
+            if self.step % 10 == 0 or self.step == until:
                 post = {k: f"{v:.4g}" for k, v in ema.items()}
                 post["N"] = len(self.model.gaussians)
                 bar.set_postfix(post, refresh=False)
             if cfg.eval_every and self.step % cfg.eval_every == 0 and self.data.evaluable().size:
                 result = {"step": self.step, **self.evaluate(cfg.eval_frames), "seconds": self.train_seconds,
-                          **{k: ema[k] for k in HEALTH if k in ema}}
+                          "gaussians": len(self.model.gaussians), **{k: ema[k] for k in HEALTH if k in ema}}
                 self.history.append(result)
+                if curves is not None:
+                    curves.scalars(self.step, "heldout", {k: result[k] for k in ("psnr", "ssim", "ssim_3dgs")
+                                                          if k in result})
                 bar.write(f"step {self.step}: held-out PSNR {result['psnr']:.2f} dB, "
                           f"SSIM {result['ssim']:.4f} "
                           f"({result['frames']} frames), {len(self.model.gaussians)} Gaussians"
                           + "".join(f", {k} {result[k]:.4g}" for k in HEALTH if k in result))
+            if stop is not None and stop.is_set() and self.step < until:
+                self.interrupted = True
+                break
             if checkpoint_path and cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0 \
-                    and self.step < cfg.iterations:
-                save_checkpoint(self.model, checkpoint_path, train_state=self.train_state())
+                    and self.step < until:
+                self.save_resumable(checkpoint_path)
         bar.close()
+        if curves is not None:
+            curves.flush()
+        if self.interrupted:
+            if checkpoint_path:
+                self.save_resumable(checkpoint_path)
+            return self.history
         self.model.event_scale.fill_(1.0)
         self.model.eval()
         if checkpoint_path:
-            save_checkpoint(self.model, checkpoint_path)
+            digest = save_checkpoint(self.model, checkpoint_path)
+            write_sidecar(checkpoint_path, self.train_state(), digest)
         return self.history
+
+    def save_resumable(self, path: str | os.PathLike) -> None:
+        """A mid-training checkpoint at ``path``: the model with the train state inside (a sidecar left
+        by an earlier final checkpoint there is removed: it no longer belongs to the file)."""
+        save_checkpoint(self.model, path, train_state=self.train_state())
+        remove_sidecar(path)
 
     def train_state(self) -> dict:
         """Everything besides the model needed to continue this run (plain containers and tensors)."""
@@ -343,9 +382,10 @@ and the fraction of Phi's second-layer channels never above 0 (moving averages a
 
 def write_history_csv(history: list[dict], path: str | os.PathLike) -> None:
     """The evaluation history as CSV (step, psnr, ssim, frames, seconds, then the health columns,
-    empty where a run has no event branch)."""
-    lines = ["step,psnr,ssim,frames,seconds," + ",".join(HEALTH)]
+    empty where a run has no event branch, then the Gaussian count)."""
+    lines = ["step,psnr,ssim,frames,seconds," + ",".join(HEALTH) + ",gaussians"]
     lines += [f"{h['step']},{h['psnr']:.4f},{h['ssim']:.5f},{h['frames']},{h['seconds']:.1f},"
               + ",".join("" if h.get(k) is None else f"{h[k]:.5g}" for k in HEALTH)
+              + f",{h.get('gaussians', '')}"
               for h in history]
     Path(path).write_text("\n".join(lines) + "\n")

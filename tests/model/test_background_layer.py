@@ -157,12 +157,12 @@ def test_training_with_layer_and_windows_logs_health(tmp_path):
     assert all(math.isfinite(v) for v in terms.values())
     assert 0.0 <= terms["dead"] <= 1.0
     trainer.history = [{"step": 12, "psnr": 20.0, "ssim": 0.5, "frames": 2, "seconds": 1.0, "event": 0.1,
-                        "edisp": 1e-3, "dead": 0.0}, {"step": 13, "psnr": 20.0, "ssim": 0.5, "frames": 2,
-                                                      "seconds": 1.0}]
+                        "edisp": 1e-3, "dead": 0.0, "gaussians": 900},
+                       {"step": 13, "psnr": 20.0, "ssim": 0.5, "frames": 2, "seconds": 1.0}]
     write_history_csv(trainer.history, tmp_path / "h.csv")
     lines = (tmp_path / "h.csv").read_text().splitlines()
-    assert lines[0] == "step,psnr,ssim,frames,seconds,event,edisp,dead"
-    assert lines[2].endswith(",,,")
+    assert lines[0] == "step,psnr,ssim,frames,seconds,event,edisp,dead,gaussians"
+    assert lines[1].endswith(",0,900") and lines[2].endswith(",,,,")
 
 
 def test_real_preset_switches():

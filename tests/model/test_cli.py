@@ -2,33 +2,17 @@
 
 import csv
 
-import numpy as np
 import pytest
 
 from edmcgs.cli import main
 from edmcgs.model.checkpoint import load_checkpoint
-from edmcgs.sensor.files.recording import Recording, write_recording
-from edmcgs.sensor.frames import Frames
-from edmcgs.synth.esim import simulate_frames
 from tests.support import tiny_scene
+from tests.support.recordings import write_tiny_h5
 
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
-    t = tiny_scene.T0 + np.arange(0, 200_001, 2_000, dtype=np.int64)
-    frames = np.stack([tiny_scene.image(int(ti)) for ti in t])
-    events = simulate_frames(t, frames)
-    anchors = t[::50]
-    held = t[[25, 75]]
-    rec = Recording(
-        width=tiny_scene.W, height=tiny_scene.H, events=events,
-        anchors=Frames(anchors, np.stack([tiny_scene.to_uint8(tiny_scene.image(int(a))) for a in anchors])),
-        held_out=Frames(held, np.stack([tiny_scene.to_uint8(tiny_scene.image(int(h))) for h in held])),
-        intrinsics=np.array([40.0, 40.0, (tiny_scene.W - 1) / 2, (tiny_scene.H - 1) / 2]),
-        contrast_threshold=0.2, sensor="simulated", metadata={"background": [0.1, 0.1, 0.1]})
-    path = tmp_path_factory.mktemp("rec") / "tiny.h5"
-    write_recording(path, rec)
-    return path
+    return write_tiny_h5(tmp_path_factory.mktemp("rec") / "tiny.h5")
 
 
 def test_train_then_eval(recording, tmp_path, capsys):

@@ -70,3 +70,30 @@ def write_aedat(path: Path, events: Events, frames: Frames | None, width: int, h
         writer.writeFrame(image_frame(int(frames.t_us[i]), frames.images[i]))
     del writer  # the destructor flushes and closes the file
     return path
+
+
+def write_tiny_h5(path: Path) -> Path:
+    """The tiny sliding-square scene (``tiny_scene``) as an edmcgs HDF5 recording: 200 ms of frames every
+    2 ms, events from the ESIM simulator, anchors every 100 ms and two held-out frames between them."""
+    from edmcgs.sensor.files.recording import Recording, write_recording
+    from edmcgs.synth.esim import simulate_frames
+    from tests.support import tiny_scene
+
+    t = tiny_scene.T0 + np.arange(0, 200_001, 2_000, dtype=np.int64)
+    frames = np.stack([tiny_scene.image(int(ti)) for ti in t])
+    events = simulate_frames(t, frames)
+    anchors = t[::50]
+    held = t[[25, 75]]
+    rec = Recording(
+        width=tiny_scene.W, height=tiny_scene.H, events=events,
+        anchors=Frames(anchors, np.stack([tiny_scene.to_uint8(tiny_scene.image(int(a))) for a in anchors])),
+        held_out=Frames(held, np.stack([tiny_scene.to_uint8(tiny_scene.image(int(h))) for h in held])),
+        intrinsics=np.array([40.0, 40.0, (tiny_scene.W - 1) / 2, (tiny_scene.H - 1) / 2]),
+        contrast_threshold=0.2, sensor="simulated", metadata={"background": [0.1, 0.1, 0.1]})
+    write_recording(path, rec)
+    return path
+
+
+TINY_TRAIN_SETS = ("init_points=500", "num_control_points=24", "deform_width=32", "deform_depth=2",
+                   "substeps=4", "max_pair_steps=4", "eval_frames=1", "train_scale=1.0")
+"""``edmcgs train --set`` values that make a run on ``write_tiny_h5``'s recording take milliseconds a step."""
