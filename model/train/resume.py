@@ -9,7 +9,6 @@ names the checkpoint it belongs to by its checksum, so a sidecar left from anoth
 from __future__ import annotations
 
 import os
-import pickle
 from pathlib import Path
 
 import torch
@@ -56,12 +55,10 @@ def resume_state(checkpoint: str | os.PathLike, payload: dict) -> tuple[dict | N
     remedy = f"remove {path} to resume with a fresh optimizer from step 0"
     try:
         side = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError:
-        raise CheckpointError(f"{path} refers to code a train-state file never contains; "
-                              f"it was not loaded ({remedy})") from None
-    except Exception as exc:  # torch raises RuntimeError, EOFError, zipfile errors ...
-        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
-        raise CheckpointError(f"{path} is truncated or not a torch file: {first} ({remedy})") from None
+    except Exception:  # torch raises UnpicklingError, RuntimeError, EOFError, zipfile errors ...
+        # Never torch's message: it advises weights_only=False, i.e. running the file's code.
+        raise CheckpointError(f"{path} is truncated, damaged or not a train-state file; it was not loaded "
+                              f"({remedy})") from None
     if not isinstance(side, dict) or side.get("format") != FORMAT:
         raise CheckpointError(f"{path} is not an EdMCGS train-state file (no format {FORMAT!r}; {remedy})")
     if not isinstance(side.get("version"), int) or side["version"] > VERSION:
