@@ -52,7 +52,7 @@ def _run(args) -> int:
     from edmcgs.model.eval.baselines import BASELINES, SHORT, score_baselines
     from edmcgs.model.eval.compare import Comparison
     from edmcgs.model.eval.evaluation import evaluate, summarize
-    from edmcgs.model.eval.lpips import LPIPS, SKIPPED, find_weights
+    from edmcgs.model.eval.lpips import LPIPS, find_weights, missing_weights
     from edmcgs.pipeline import open_recording, split_at, training_data
 
     if args.threads < 1:
@@ -79,21 +79,25 @@ def _run(args) -> int:
         with open(args.csv, "w", newline="") as fh:
             writer = csv.writer(fh)
             writer.writerow(["index", "t_us", "anchor_us", "events", "psnr", "ssim", "lpips",
-                             *(f"{m}_{SHORT[name]}" for name in BASELINES for m in ("psnr", "ssim"))])
+                             *(f"{m}_{SHORT[name]}" for name in BASELINES for m in ("psnr", "ssim")),
+                             "ssim_3dgs"])
             for r, *base in zip(rows, *baselines.values(), strict=True):
                 writer.writerow([r.index, r.t_us, r.anchor_us, r.events, f"{r.psnr:.4f}", f"{r.ssim:.5f}",
                                  "" if r.lpips is None else f"{r.lpips:.5f}",
-                                 *(f"{v:{f}}" for b in base for v, f in ((b.psnr, ".4f"), (b.ssim, ".5f")))])
+                                 *(f"{v:{f}}" for b in base for v, f in ((b.psnr, ".4f"), (b.ssim, ".5f"))),
+                                 f"{r.ssim_3dgs:.5f}"])
     summary = summarize(rows)
-    print("| frame | t (ms from first anchor) | events | PSNR (dB) | SSIM |" + (" LPIPS |" if lpips else "")
-          + "".join(f" {SHORT[name]}: PSNR |" for name in BASELINES))
-    print("|---:|---:|---:|---:|---:|" + ("---:|" if lpips else "") + "---:|" * len(BASELINES))
+    print("| frame | t (ms from first anchor) | events | PSNR (dB) | SSIM | SSIM (3DGS) |"
+          + (" LPIPS |" if lpips else "") + "".join(f" {SHORT[name]}: PSNR |" for name in BASELINES))
+    print("|---:|---:|---:|---:|---:|---:|" + ("---:|" if lpips else "") + "---:|" * len(BASELINES))
     t0 = model.meta.t_start_us
     for r, *base in zip(rows, *baselines.values(), strict=True):
-        print(f"| {r.index} | {(r.t_us - t0) / 1000:.1f} | {r.events} | {r.psnr:.2f} | {r.ssim:.4f} |"
-              + (f" {r.lpips:.4f} |" if lpips else "") + "".join(f" {b.psnr:.2f} |" for b in base))
+        print(f"| {r.index} | {(r.t_us - t0) / 1000:.1f} | {r.events} | {r.psnr:.2f} | {r.ssim:.4f} "
+              f"| {r.ssim_3dgs:.4f} |" + (f" {r.lpips:.4f} |" if lpips else "")
+              + "".join(f" {b.psnr:.2f} |" for b in base))
     print(f"| **mean** ({summary['frames']} frames) | | | **{summary['psnr']:.2f}** "
-          f"| **{summary['ssim']:.4f}** |" + (f" **{summary['lpips']:.4f}** |" if lpips else "")
+          f"| **{summary['ssim']:.4f}** | **{summary['ssim_3dgs']:.4f}** |"
+          + (f" **{summary['lpips']:.4f}** |" if lpips else "")
           + "".join(f" {np.mean([b.psnr for b in rows_b]):.2f} |" for rows_b in baselines.values()))
     print()
     print(comparison.markdown())
@@ -102,7 +106,8 @@ def _run(args) -> int:
         print(f"WARNING: the {line}")
     if skipped:
         print(f"{skipped} held-out frame(s) outside the trained span were skipped")
-    print(SKIPPED if lpips is None else f"LPIPS (VGG) from {weights[0]} and {weights[1]}")
+    print(missing_weights(args.lpips_vgg, args.lpips_lin) if lpips is None
+          else f"LPIPS (VGG) from {weights[0]} and {weights[1]}")
     return 0
 
 

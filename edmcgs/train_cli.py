@@ -231,8 +231,8 @@ def _run(args) -> int:
     summary = comparison.summary()
     model = summary.pop("model")
     baselines = ", ".join(f"{name}: {s['psnr']:.2f} dB / {s['ssim']:.4f}" for name, s in summary.items())
-    print(f"{written}; held-out PSNR {model['psnr']:.2f} dB, SSIM {model['ssim']:.4f} over {model['frames']} "
-          f"frames; {baselines}")
+    print(f"{written}; held-out PSNR {model['psnr']:.2f} dB, SSIM {model['ssim']:.4f} (3DGS convention "
+          f"{model['ssim_3dgs']:.4f}) over {model['frames']} frames; {baselines}")
     for line in comparison.losses("model", BASELINES):
         print(f"WARNING: the {line}")
     return 0

@@ -70,6 +70,7 @@ def score_baselines(data: TrainingData, indices: np.ndarray | None = None) -> di
             t = int(data.held_out_t_us[i])
             image, tau = baseline_image(data, t, name)
             target = data.held_out_images[i].astype(np.float32) / 255.0
-            rows.append(FrameScore(i, t, tau, 0, psnr(image, target), ssim_score(image, target)))
+            rows.append(FrameScore(i, t, tau, 0, psnr(image, target), ssim_score(image, target),
+                                   ssim_3dgs=ssim_score(image, target, "3dgs")))
         out[name] = rows
     return out

@@ -10,6 +10,10 @@ import numpy as np
 
 from edmcgs.model.eval.evaluation import FrameScore, summarize
 
+SSIM_NOTE = ("SSIM: 11x11 Gaussian windows inside the image only; SSIM (3DGS): the 3DGS papers' convention, "
+             "zero-padded windows over the full image, the one comparable with their numbers")
+"""What the two SSIM columns of every table mean (``ssim.py``)."""
+
 
 @dataclass
 class Comparison:
@@ -48,16 +52,18 @@ class Comparison:
                 for name in to if name in summary and not mine > summary[name]["psnr"]]
 
     def markdown(self, bins: int = 4) -> str:
-        """A table: mean PSNR / SSIM, then PSNR by time since the anchor."""
+        """A table: mean PSNR / SSIM (both conventions), then PSNR by time since the anchor."""
         edges = self.time_bins(bins)
         heads = [f"{a / 1000:.0f}-{b / 1000:.0f} ms" for a, b in itertools.pairwise(edges)]
         n = len(next(iter(self.rows.values()), []))
-        lines = [f"| {n} held-out frames | PSNR (dB) | SSIM | " + " | ".join(heads) + " |",
-                 "|---|---:|---:|" + "---:|" * len(heads)]
+        lines = [f"| {n} held-out frames | PSNR (dB) | SSIM | SSIM (3DGS) | " + " | ".join(heads) + " |",
+                 "|---|---:|---:|---:|" + "---:|" * len(heads)]
         timed = self.by_time(edges)
         for name, s in self.summary().items():
             cells = " | ".join("" if np.isnan(v) else f"{v:.2f}" for v in timed[name])
-            lines.append(f"| {name} | {s['psnr']:.2f} | {s['ssim']:.4f} | {cells} |")
+            s3 = f"{s['ssim_3dgs']:.4f}" if "ssim_3dgs" in s else "—"
+            lines.append(f"| {name} | {s['psnr']:.2f} | {s['ssim']:.4f} | {s3} | {cells} |")
         lines.append("")
-        lines.append("(PSNR by time since the anchor the frame is rendered from, in the last columns)")
+        lines.append("(PSNR by time since the anchor the frame is rendered from, in the last columns; "
+                     f"{SSIM_NOTE})")
         return "\n".join(lines)

@@ -26,8 +26,11 @@ class FrameScore:
     """Sum of |I_E| over [tau(t), t): how many events drove the transition (a lower bound)."""
     psnr: float
     ssim: float
+    """SSIM over windows inside the image (``ssim.py``'s "valid" convention)."""
     lpips: float | None = None
     """LPIPS-VGG, when the evaluation was given its weights."""
+    ssim_3dgs: float | None = None
+    """SSIM in the 3DGS papers' convention (zero-padded, borders included): the one to set beside theirs."""
 
 
 def render_held_out(model: EdMCGS, data: TrainingData, i: int, *,
@@ -55,16 +58,18 @@ def evaluate(model: EdMCGS, data: TrainingData, indices: np.ndarray | None = Non
         target = data.held_out_images[i].astype(np.float32) / 255.0
         score = None if lpips is None else lpips.score(image, target)
         rows.append(FrameScore(i, int(data.held_out_t_us[i]), tau, events, psnr(image, target),
-                               ssim_score(image, target), score))
+                               ssim_score(image, target), score, ssim_score(image, target, "3dgs")))
     return rows
 
 
 def summarize(rows: list[FrameScore]) -> dict[str, float]:
-    """Mean PSNR / SSIM (and LPIPS when scored) over frames (NaN when there are none)."""
+    """Mean PSNR / SSIM (both conventions) and LPIPS when scored, over frames (NaN when there are none)."""
     if not rows:
         return {"psnr": float("nan"), "ssim": float("nan"), "frames": 0}
     out = {"psnr": float(np.mean([r.psnr for r in rows])), "ssim": float(np.mean([r.ssim for r in rows])),
            "frames": len(rows)}
+    if all(r.ssim_3dgs is not None for r in rows):
+        out["ssim_3dgs"] = float(np.mean([r.ssim_3dgs for r in rows]))
     if rows[0].lpips is not None:
         out["lpips"] = float(np.mean([r.lpips for r in rows]))
     return out

@@ -113,12 +113,11 @@ class LPIPS(nn.Module):
         return float(self(batch(image).to(dev), batch(target).to(dev))[0])
 
 
-def find_weights(vgg: str | os.PathLike | None = None,
-                 lin: str | os.PathLike | None = None) -> tuple[Path, Path] | None:
-    """Paths of the two weight files, or None when either is absent.
+def _candidates(vgg, lin) -> list[tuple[str, Path | None, str]]:
+    """(what, path or None when nowhere, where it was looked for) of the VGG and the lin weights.
 
     Given paths win (and must exist); then ``EDMCGS_LPIPS_VGG`` / ``EDMCGS_LPIPS_LIN``; then torch's hub
-    cache (``$TORCH_HOME/hub/checkpoints``) and an installed ``lpips`` package's own weights.
+    cache (``$TORCH_HOME/hub/checkpoints``) and an installed ``lpips`` package's own linear weights.
     """
     def choose(given, env: str, fallback: Path | None) -> Path | None:
         path = given or os.environ.get(env)
@@ -129,8 +128,32 @@ def find_weights(vgg: str | os.PathLike | None = None,
         return fallback if fallback is not None and fallback.is_file() else None
 
     torch_home = Path(os.environ.get("TORCH_HOME", Path.home() / ".cache" / "torch"))
+    hub = torch_home / "hub" / "checkpoints" / VGG_FILE
     spec = importlib.util.find_spec("lpips")  # finds the package without importing it (nor torchvision)
     lpips_dir = Path(spec.origin).parent if spec is not None and spec.origin else None
-    vgg_path = choose(vgg, "EDMCGS_LPIPS_VGG", torch_home / "hub" / "checkpoints" / VGG_FILE)
-    lin_path = choose(lin, "EDMCGS_LPIPS_LIN", lpips_dir and lpips_dir / "weights" / "v0.1" / "vgg.pth")
+    own = lpips_dir / "weights" / "v0.1" / "vgg.pth" if lpips_dir else None
+    lin_where = (f"not at {own} (the lpips package is installed without its weights)" if own else
+                 "the lpips package is not installed (its wheel has them at lpips/weights/v0.1/vgg.pth)")
+    return [(f"torchvision's ImageNet VGG-16 weights {VGG_FILE}", choose(vgg, "EDMCGS_LPIPS_VGG", hub),
+             f"not at {hub} (put it there, or give --lpips-vgg PATH or EDMCGS_LPIPS_VGG)"),
+            ("LPIPS's linear weights weights/v0.1/vgg.pth", choose(lin, "EDMCGS_LPIPS_LIN", own),
+             f"{lin_where}; or give --lpips-lin PATH or EDMCGS_LPIPS_LIN")]
+
+
+def find_weights(vgg: str | os.PathLike | None = None,
+                 lin: str | os.PathLike | None = None) -> tuple[Path, Path] | None:
+    """Paths of the two weight files, or None when either is absent (``missing_weights`` says which).
+
+    Given paths win (and must exist); then ``EDMCGS_LPIPS_VGG`` / ``EDMCGS_LPIPS_LIN``; then torch's hub
+    cache (``$TORCH_HOME/hub/checkpoints``) and an installed ``lpips`` package's own linear weights.
+    """
+    (_, vgg_path, _), (_, lin_path, _) = _candidates(vgg, lin)
     return (vgg_path, lin_path) if vgg_path and lin_path else None
+
+
+def missing_weights(vgg: str | os.PathLike | None = None, lin: str | os.PathLike | None = None) -> str:
+    """One line naming each weight file LPIPS still lacks and where to put it ('' when none is missing)."""
+    gone = [f"{what}: {where}" for what, path, where in _candidates(vgg, lin) if path is None]
+    if not gone:
+        return ""
+    return "LPIPS (VGG) skipped (edmcgs never downloads weights); missing " + "; ".join(gone)

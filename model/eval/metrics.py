@@ -14,8 +14,9 @@ def psnr(image: np.ndarray, target: np.ndarray) -> float:
     return 100.0 if mse <= 1e-10 else -10.0 * math.log10(mse)
 
 
-def ssim_score(image: np.ndarray, target: np.ndarray) -> float:
-    """Mean SSIM (11x11 Gaussian window, sigma 1.5)."""
+def ssim_score(image: np.ndarray, target: np.ndarray, convention: str = "valid") -> float:
+    """Mean SSIM (11x11 Gaussian window, sigma 1.5) in ``convention``: "valid" (windows inside the image)
+    or "3dgs" (the 3DGS papers' zero-padded full image; see ``ssim.py``)."""
     with torch.no_grad():
         return float(ssim(torch.as_tensor(np.asarray(image, np.float32)),
-                          torch.as_tensor(np.asarray(target, np.float32))))
+                          torch.as_tensor(np.asarray(target, np.float32)), convention=convention))

@@ -1,7 +1,16 @@
-"""Structural similarity (Wang et al. 2004): 11x11 Gaussian window, sigma 1.5, as in 3DGS.
+"""Structural similarity (Wang et al. 2004): 11x11 Gaussian window, sigma 1.5, C1 = 0.01^2, C2 = 0.03^2,
+in two conventions that differ only at the image border:
 
-An image smaller than the window gets the largest odd window that fits, its sigma shrunk in proportion,
-so that tiny renders (a low training scale) still have a defined SSIM.
+- ``"valid"`` (ours, the default and the training loss's): only windows that lie wholly inside the image,
+  so the border carries no zero-padding bias; the mean is over the (H - 10) x (W - 10) window centres.
+- ``"3dgs"``: the convention of the 3DGS papers' numbers (Inria's ``utils/loss_utils.py``): the same window
+  zero-padded by 5 pixels (``conv2d(..., padding=5)``), every pixel a centre, the mean over the full image.
+  A border window then sees the same zeros in both images, which makes them look more alike: the scores
+  are higher than ``"valid"``'s (by about 0.01 on our scenes), so a number set beside a paper's must be
+  this one.
+
+An image smaller than the window gets, in ``"valid"``, the largest odd window that fits, its sigma shrunk in
+proportion, so that tiny renders (a low training scale) still have a defined SSIM.
 """
 
 import torch
@@ -10,6 +19,8 @@ from torch import Tensor
 
 _C1 = 0.01 ** 2
 _C2 = 0.03 ** 2
+CONVENTIONS = ("valid", "3dgs")
+"""``ssim``'s conventions: windows inside the image only, or the 3DGS papers' zero-padded full image."""
 
 
 def _window(size: int, sigma: float, dtype, device) -> Tensor:
@@ -18,16 +29,24 @@ def _window(size: int, sigma: float, dtype, device) -> Tensor:
     return g / g.sum()
 
 
-def ssim_map(a: Tensor, b: Tensor, *, size: int = 11, sigma: float = 1.5) -> Tensor:
+def ssim_map(a: Tensor, b: Tensor, *, size: int = 11, sigma: float = 1.5,
+             convention: str = "valid") -> Tensor:
     """Per-pixel SSIM of two images.
 
     a, b: Tensor  # [H, W, C] in [0, 1]
-    returns Tensor  # [H - size + 1, W - size + 1, C] ('valid' windows, no padding bias at borders)
+    returns Tensor  # "valid": [H - size + 1, W - size + 1, C] (no padding bias at borders);
+                    # "3dgs": [H, W, C] (zero-padded by size // 2, as the 3DGS papers compute it)
     """
-    fit = min(size, a.shape[0], a.shape[1])
-    fit -= 1 - fit % 2
-    if fit < size:
-        size, sigma = fit, sigma * fit / size
+    if convention not in CONVENTIONS:
+        raise ValueError(f"SSIM convention {convention!r}: one of {CONVENTIONS}")
+    pad = 0
+    if convention == "3dgs":
+        pad = size // 2
+    else:
+        fit = min(size, a.shape[0], a.shape[1])
+        fit -= 1 - fit % 2
+        if fit < size:
+            size, sigma = fit, sigma * fit / size
     x = torch.stack([a, b]).permute(0, 3, 1, 2)  # [2, C, H, W]
     c = x.shape[1]
     g = _window(size, sigma, x.dtype, x.device)
@@ -35,7 +54,8 @@ def ssim_map(a: Tensor, b: Tensor, *, size: int = 11, sigma: float = 1.5) -> Ten
     ky = g.view(1, 1, size, 1).expand(c, 1, size, 1)
 
     def blur(t: Tensor) -> Tensor:
-        return F.conv2d(F.conv2d(t, kx, groups=c), ky, groups=c)
+        # Separable: the same as one conv2d with the outer-product window (Inria's), zeros outside.
+        return F.conv2d(F.conv2d(t, kx, groups=c, padding=(0, pad)), ky, groups=c, padding=(pad, 0))
 
     mu = blur(x)
     mu_a, mu_b = mu[0], mu[1]
@@ -47,6 +67,6 @@ def ssim_map(a: Tensor, b: Tensor, *, size: int = 11, sigma: float = 1.5) -> Ten
     return (num / den).permute(1, 2, 0)
 
 
-def ssim(a: Tensor, b: Tensor) -> Tensor:
-    """Mean SSIM of two [H, W, C] images in [0, 1] (a scalar tensor)."""
-    return ssim_map(a, b).mean()
+def ssim(a: Tensor, b: Tensor, *, convention: str = "valid") -> Tensor:
+    """Mean SSIM of two [H, W, C] images in [0, 1] (a scalar tensor) in ``convention`` (``CONVENTIONS``)."""
+    return ssim_map(a, b, convention=convention).mean()

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from edmcgs.errors import InvalidInputError
-from edmcgs.model.eval.lpips import LPIPS, find_weights
+from edmcgs.model.eval.lpips import LPIPS, find_weights, missing_weights
 from tests.support.lpips_weights import image_pair, random_weights
 
 # The reference package (lpips 0.1.4, torchvision's vgg16 layout) on random_weights(0) and image_pair(1),
@@ -69,6 +69,32 @@ def test_find_weights(tmp_path, monkeypatch):
     assert find_weights() == (hub / "vgg16-397923af.pth", tmp_path / "lin.pth")
     with pytest.raises(InvalidInputError, match="no such file"):
         find_weights(vgg=tmp_path / "missing.pth")
+
+
+def test_missing_weights_names_each_file_and_where_it_goes(tmp_path, monkeypatch):
+    import importlib.machinery
+
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    monkeypatch.delenv("EDMCGS_LPIPS_VGG", raising=False)
+    monkeypatch.delenv("EDMCGS_LPIPS_LIN", raising=False)
+    monkeypatch.setattr("importlib.util.find_spec", lambda name: None)
+    hub = tmp_path / "torch" / "hub" / "checkpoints" / "vgg16-397923af.pth"
+    line = missing_weights()
+    assert len(line.splitlines()) == 1
+    assert f"vgg16-397923af.pth: not at {hub}" in line and "--lpips-vgg" in line
+    assert "weights/v0.1/vgg.pth: the lpips package is not installed" in line
+    # An installed lpips package: its own linear weights are the ones used, found beside its code.
+    package = tmp_path / "site" / "lpips"
+    (package / "weights" / "v0.1").mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    spec = importlib.machinery.ModuleSpec("lpips", None, origin=str(package / "__init__.py"))
+    monkeypatch.setattr("importlib.util.find_spec", lambda name: spec if name == "lpips" else None)
+    assert f"not at {package / 'weights' / 'v0.1' / 'vgg.pth'}" in missing_weights()
+    (package / "weights" / "v0.1" / "vgg.pth").write_bytes(b"x")
+    hub.parent.mkdir(parents=True)
+    hub.write_bytes(b"x")
+    assert missing_weights() == ""
+    assert find_weights() == (hub, package / "weights" / "v0.1" / "vgg.pth")
 
 
 def test_evaluation_scores_lpips_when_given_weights(metric, tmp_path, capsys):
