@@ -19,5 +19,5 @@ def baseline_rows(recs: dict, runs: list[dict]) -> list[dict]:
         for name, rows in score_baselines(training_data(recs[scene][fps][0]), frames).items():
             s = summarize(rows)
             out.append({"scene": scene, "fps": fps, "baseline": name, "psnr": s["psnr"], "ssim": s["ssim"],
-                        "frames": s["frames"]})
+                        "ssim_3dgs": s.get("ssim_3dgs"), "frames": s["frames"]})
     return out

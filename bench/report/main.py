@@ -171,11 +171,12 @@ def write_outputs(out: Path, s: ReportSettings, r: dict, *, command: str, minute
     runs = r["runs"]
     ident = ("scene", "fps", "variant")
     curves = [{k: run[k] for k in ident} | c for run in runs for c in run["curve"]]
+    # ssim_3dgs: absent from runs cached before it was recorded; every row gets the column all the same.
     frames = [{k: run[k] for k in ident} | {"ms_since_anchor": (f["t_us"] - f["anchor_us"]) / 1000} | f
-              for run in runs for f in run["per_frame"]]
+              | {"ssim_3dgs": f.get("ssim_3dgs")} for run in runs for f in run["per_frame"]]
     columns = (*ident, "psnr", "ssim", "frames", "iterations", "train_seconds", "gaussians", "control_points",
                "nonfinite_steps")
-    table = [{k: run[k] for k in columns} for run in runs]
+    table = [{k: run[k] for k in columns} | {"ssim_3dgs": run.get("ssim_3dgs")} for run in runs]
     write_csv(out / "ablation.csv", table)
     write_csv(out / "baselines.csv", r["baselines"])
     write_csv(out / "training_curves.csv", curves)

@@ -96,10 +96,12 @@ def train_run(rec: Recording, rec_key: str, switches: dict, *, preset: str, iter
         "final_eval_seconds": final_eval_seconds,
         "nonfinite_steps": nonfinite, "gaussians": len(trainer.model.gaussians),
         "control_points": trainer.model.control.num_points, "psnr": summary["psnr"], "ssim": summary["ssim"],
-        "lpips": summary.get("lpips"), "frames": summary["frames"], "curve": curve,
+        "ssim_3dgs": summary.get("ssim_3dgs"), "lpips": summary.get("lpips"), "frames": summary["frames"],
+        "curve": curve,
         "checkpoint": ckpt_path.name,
         "per_frame": [{"index": r.index, "t_us": r.t_us, "anchor_us": r.anchor_us, "events": r.events,
-                       "psnr": r.psnr, "ssim": r.ssim, "lpips": r.lpips} for r in rows],
+                       "psnr": r.psnr, "ssim": r.ssim, "ssim_3dgs": r.ssim_3dgs, "lpips": r.lpips}
+                      for r in rows],
     }
     result_path.write_text(json.dumps(result, indent=1))
     return result | {"cached": False}
