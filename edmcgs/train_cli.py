@@ -209,11 +209,18 @@ def _run(args) -> int:
     if args.tensorboard:
         curves = TensorBoardCurves(args.tensorboard, purge_step=trainer.step + 1)
     stop = threading.Event()
-    previous = signal.signal(signal.SIGINT, _on_interrupt(stop))
+    handle = threading.current_thread() is threading.main_thread()  # signal handlers live there only
+    previous = signal.signal(signal.SIGINT, _on_interrupt(stop)) if handle else None
     try:
         history = trainer.fit(out, until=until, stop=stop, curves=curves)
+    except KeyboardInterrupt:  # the second Ctrl-C
+        saved = f"{out} holds step {trainer.saved_step}" if trainer.saved_step is not None else \
+            f"nothing was saved by this run ({out} is as it was before)"
+        print(f"edmcgs train: abandoned at step {trainer.step}; {saved}", file=sys.stderr)
+        return INTERRUPTED
     finally:
-        signal.signal(signal.SIGINT, previous)
+        if handle:
+            signal.signal(signal.SIGINT, previous)
         if curves is not None:
             curves.close()
     if args.history:

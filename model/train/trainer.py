@@ -91,6 +91,8 @@ class Trainer:
         """Wall-clock seconds spent in training steps (not in evaluation or checkpointing)."""
         self.interrupted = False
         """Whether the last ``fit`` stopped early at its ``stop`` event."""
+        self.saved_step: int | None = None
+        """The step of the last checkpoint ``fit`` wrote (None: none yet)."""
 
     # ------------------------------------------------------------------ setup
     def _w2c(self, c2w: np.ndarray) -> Tensor:
@@ -345,6 +347,7 @@ class Trainer:
         if checkpoint_path:
             digest = save_checkpoint(self.model, checkpoint_path)
             write_sidecar(checkpoint_path, self.train_state(), digest)
+            self.saved_step = self.step
         return self.history
 
     def save_resumable(self, path: str | os.PathLike) -> None:
@@ -352,6 +355,7 @@ class Trainer:
         by an earlier final checkpoint there is removed: it no longer belongs to the file)."""
         save_checkpoint(self.model, path, train_state=self.train_state())
         remove_sidecar(path)
+        self.saved_step = self.step
 
     def train_state(self) -> dict:
         """Everything besides the model needed to continue this run (plain containers and tensors)."""

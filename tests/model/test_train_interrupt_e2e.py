@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import re
 import shlex
 import signal
 import subprocess
@@ -122,4 +123,7 @@ def test_a_second_ctrl_c_abandons_the_run_without_a_partial_file(recording, tmp_
     assert proc.returncode == 130, stderr
     assert "Traceback" not in stderr
     assert not list(tmp_path.glob(".*tmp-*"))  # no partial file
-    assert read_checkpoint(out)["train_state"]["step"] >= 3  # the last complete checkpoint, whichever
+    step = read_checkpoint(out)["train_state"]["step"]
+    assert step >= 3  # the last complete checkpoint, whichever it is
+    said = re.search(r"abandoned at step \d+; \S+ holds step (\d+)", stderr)
+    assert said is None or int(said.group(1)) == step, stderr
