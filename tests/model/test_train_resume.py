@@ -52,6 +52,13 @@ def test_a_final_checkpoint_keeps_its_train_state_beside_it(tmp_path):
     for group in resumed.optimizer.param_groups:
         if group["name"] == "means":
             assert group["lr"] == pytest.approx(CFG.lr_means * float(resumed.model.extent) * 0.01)
+    straight_model, _ = build(CFG)
+    straight = Trainer(straight_model, data, progress=False)
+    straight.fit(until=10)
+    for (name, a), b in zip(resumed.model.state_dict().items(), straight.model.state_dict().values(),
+                            strict=True):
+        if a.is_floating_point():
+            assert torch.allclose(a, b, rtol=1e-4, atol=1e-6), name
     # A mid-training checkpoint over it carries its own state: the sidecar no longer belongs, and goes.
     resumed.save_resumable(path)
     assert not sidecar_path(path).exists()
