@@ -214,6 +214,10 @@ def markdown(r: dict, command: str) -> str:
             f"`--set {name}`" if VARIANTS[name] else "full model (`--config real`)")
         lines.append(f"| {label} | {row['psnr']:.2f} | {row['ssim']:.3f} | {row['moving_psnr']:.2f} "
                      f"| {cost} |")
+    for run in r["runs"]:
+        if "measured_by" in run:
+            lines.append(f"\n`{run['name']}` was trained at {run['trained_at']}; its cost was measured by "
+                         f"{run['measured_by']}.")
     lines += ["", f"Moving pixels: where the held-out frame differs from the anchors' median by more than "
               f"{MOVING:g} (the cars, {100 * r['moving_fraction']:.1f} % of the pixels). Training: "
               "`edmcgs train REC --config real --threads 1`, each variant in its own process (wall time "
