@@ -50,6 +50,7 @@ from enum import StrEnum
 from typing import Any, Literal
 
 import msgpack
+from typing_extensions import TypedDict  # not typing's: schema generators read it on Python 3.11 too
 
 
 def t_us_of_seconds(t: float, t_start_us: int) -> int:
@@ -211,31 +212,33 @@ def negotiate_format(accept: str | None) -> str:
 
 @dataclass
 class Subscription:
-    """What a websocket client asks the server to push.
-
-    mode: ``"live"`` follows the head of the event stream; ``"sweep"`` runs t0..t1 in scene time.
-    t0, t1: sweep range in seconds from the scene's start (``None``: the scene's start / end).
-    t0_us, t1_us: the same in absolute µs (take precedence over t0 / t1 when given).
-    fps: frames per second pushed (live: at most; the server caps it).
-    speed: sweep only, scene seconds per wall second (1.0 = real time).
-    loop: sweep only, start over at t1 instead of ending.
-    pose: 16 or 7 numbers (see ``check_pose_numbers``), or ``None`` for the event camera's own pose.
-    width, height: output size (``None``: the event camera's size; one alone keeps the aspect ratio).
-    format: ``"jpeg"`` | ``"png"`` | ``"raw"`` (uint8 pixels).
-    """
+    """What a websocket client asks the server to push (each field's docstring says what it means)."""
 
     mode: Literal["live", "sweep"] = "live"
+    """``"live"`` follows the head of the event stream; ``"sweep"`` runs t0..t1 in scene time."""
     t0: float | None = None
+    """Sweep start in seconds from the scene's start (``None``: the scene's start)."""
     t1: float | None = None
+    """Sweep end in seconds from the scene's start (``None``: the scene's end)."""
     t0_us: int | None = None
+    """Sweep start in absolute µs (takes precedence over t0)."""
     t1_us: int | None = None
+    """Sweep end in absolute µs (takes precedence over t1)."""
     fps: float = 30.0
+    """Frames per second pushed (live: at most; the server caps it)."""
     speed: float = 1.0
+    """Sweep only: scene seconds per wall second (1.0 = real time)."""
     loop: bool = False
+    """Sweep only: start over at t1 instead of ending."""
     pose: list[float] | None = None
+    """Camera-to-world, 16 numbers (row-major 4x4, OpenCV convention) or 7 (tx,ty,tz,qw,qx,qy,qz), or a
+    nested 4x4 (see ``check_pose_numbers``); ``None``: the event camera's own pose."""
     width: int | None = None
+    """Output width in pixels (``None``: the event camera's; one side alone keeps the aspect ratio)."""
     height: int | None = None
+    """Output height in pixels (``None``: the event camera's; one side alone keeps the aspect ratio)."""
     format: Literal["jpeg", "png", "raw"] = "jpeg"
+    """``"jpeg"`` | ``"png"`` | ``"raw"`` (uint8 pixels [height, width, channels], row-major)."""
 
     def to_message(self) -> dict:
         """The map to send (``None`` fields left out)."""
@@ -399,15 +402,32 @@ STATUS = {ErrorCode.INVALID_INPUT: 422, ErrorCode.TIME_UNAVAILABLE: 416, ErrorCo
 """The HTTP status of each error code."""
 
 
+class ValidRange(TypedDict):
+    """An interval of scene time that can be rendered now (inclusive bounds), in both units."""
+
+    t_min: float
+    """Seconds from the scene's start."""
+    t_max: float
+    """Seconds from the scene's start."""
+    t_us_min: int
+    """Absolute µs on the checkpoint's clock."""
+    t_us_max: int
+    """Absolute µs on the checkpoint's clock."""
+
+
 @dataclass(frozen=True)
 class ErrorBody:
-    """The error map of HTTP bodies and websocket ``error`` messages (``ERROR_KEYS``)."""
+    """The error map of HTTP bodies and websocket ``error`` messages (``ERROR_KEYS``; its ``type`` is
+    ``"error"``)."""
 
     error: ErrorCode
+    """What went wrong (each code has one HTTP status)."""
     detail: str
+    """A message for a person."""
     param: str | None = None
-    valid_range: dict | None = None
-    """``{"t_min", "t_max", "t_us_min", "t_us_max"}`` (seconds from the scene's start, absolute µs)."""
+    """The offending parameter or field (invalid_input), else null."""
+    valid_range: ValidRange | None = None
+    """What can be rendered now (time_unavailable), else null."""
 
     def to_message(self) -> dict:
         return {"type": "error", "error": self.error.value, "detail": self.detail, "param": self.param,
@@ -447,7 +467,9 @@ class FrameMeta:
     render_ms: float
     """Server time of the render and its encoding."""
     width: int
+    """Image width, px."""
     height: int
+    """Image height, px."""
     channels: int
     """1 (grey) or 3 (RGB)."""
     format: str
@@ -485,3 +507,9 @@ class FrameMeta:
                    int(message["events"]), float(message["render_ms"]), int(message["width"]),
                    int(message["height"]), int(message["channels"]), format or message["format"],
                    message.get("anchor", "checkpoint"))
+
+
+# The OpenAPI and AsyncAPI documents are generated from these types (server/wire_schema.py, by pydantic):
+# let the generator read each field's docstring as its description.
+for _documented in (Subscription, ValidRange, ErrorBody, FrameMeta):
+    _documented.__pydantic_config__ = {"use_attribute_docstrings": True}

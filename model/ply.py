@@ -52,8 +52,8 @@ def ply_fields(state: GaussianState) -> dict[str, np.ndarray]:
     return fields
 
 
-def write_ply(state: GaussianState, path: str | os.PathLike) -> Path:
-    """Write ``state`` to ``path`` (atomically); returns the path."""
+def ply_bytes(state: GaussianState) -> bytes:
+    """The PLY file of ``state`` (header and binary table) in memory."""
     fields = ply_fields(state)
     n = len(next(iter(fields.values())))
     table = np.empty(n, dtype=[(k, "<f4") for k in fields])
@@ -61,8 +61,13 @@ def write_ply(state: GaussianState, path: str | os.PathLike) -> Path:
         table[k] = v
     header = "\n".join(["ply", "format binary_little_endian 1.0", f"element vertex {n}",
                         *(f"property float {k}" for k in fields), "end_header"]) + "\n"
+    return header.encode("ascii") + table.tobytes()
+
+
+def write_ply(state: GaussianState, path: str | os.PathLike) -> Path:
+    """Write ``state`` to ``path`` (atomically); returns the path."""
+    data = ply_bytes(state)
     path = Path(path)
     with atomic_output(path, InvalidInputError) as tmp, open(tmp, "wb") as fh:
-        fh.write(header.encode("ascii"))
-        fh.write(table.tobytes())
+        fh.write(data)
     return path

@@ -101,8 +101,8 @@ def _record(scope, status: int, seconds: float) -> None:
     route = scope.get("route")
     # Label by route template, never by raw path: a scanner must not create unbounded series.
     name = "unmatched" if route is None else getattr(route, "path", "") or "/"
-    service.metrics.requests.inc(1, name, str(status))
-    service.metrics.latency.observe(seconds, name)
+    service.metrics.requests.labels(name, str(status)).inc()
+    service.metrics.latency.labels(name).observe(seconds)
 
 
 def _header(scope, name: bytes) -> str | None:

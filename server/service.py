@@ -36,7 +36,7 @@ from edmcgs.server.clock import Timeline
 from edmcgs.server.encode import encode
 from edmcgs.server.engine import Engine
 from edmcgs.server.live import Arrivals, HeadSignal
-from edmcgs.server.metrics import CallbackCounter, Counter, Gauge, Histogram, Registry
+from edmcgs.server.metrics import Metrics
 from edmcgs.server.online import OnlineAnchors
 from edmcgs.server.playback import Playback
 from edmcgs.server.render_pool import RenderPool
@@ -71,31 +71,6 @@ def resolve_inputs(settings: Settings) -> Inputs:
         ckpt, rec = demo.files()
         return Inputs(ckpt, rec, live=False, loop=True)
     return Inputs(settings.checkpoint, settings.replay, settings.live, settings.loop)
-
-
-class Metrics:
-    """The service's series (see ``GET /metrics``)."""
-
-    def __init__(self):
-        self.registry = Registry()
-        add = self.registry.add
-        self.requests = add(Counter("edmcgs_http_requests_total", "HTTP requests by route and status code.",
-                                    ("route", "code")))
-        self.latency = add(Histogram("edmcgs_http_request_duration_seconds",
-                                     "HTTP request latency by route (seconds).", ("route",)))
-        self.render = add(Histogram("edmcgs_render_seconds", "Render + encode time by path (seconds).",
-                                    ("path",)))
-        self.frames_sent = add(Counter("edmcgs_stream_frames_sent_total", "Websocket frames sent."))
-        self.frames_dropped = add(Counter("edmcgs_stream_frames_dropped_total",
-                                          "Websocket frames dropped because the client read slower than "
-                                          "they were rendered (latest wins)."))
-        self.fit = add(Histogram("edmcgs_online_fit_seconds", "Time of one online anchor's correction "
-                                 "(seconds)."))
-        self.fit_loss = add(Histogram("edmcgs_online_fit_loss_l1", "L1 photometric loss of each online "
-                                      "anchor after its correction.",
-                                      buckets=(0.01, 0.02, 0.05, 0.1, 0.2, 0.5)))
-        self.stream_clients = 0
-        self.streams_refused = 0
 
 
 @dataclass(frozen=True)
@@ -364,58 +339,56 @@ class Service:
 
     # ------------------------------------------------------------------ metrics
     def _register_metrics(self) -> None:
-        add, ring = self.metrics.registry.add, self.ring
+        """The series read when scraped (metrics.Readings): counts kept by the ring, the pool, the cache
+        and the online anchors."""
+        gauge, counter, ring = self.metrics.readings.gauge, self.metrics.readings.counter, self.ring
 
         def dropped() -> dict[str, float]:
             s = ring.stats()
             return {"overflow": s.overflowed, "late": s.late,
                     "invalid": 0 if self.source is None else self.source.stats.dropped}
 
-        add(Gauge("edmcgs_up", "1 when the service is ready (model loaded, source delivering).",
-                  lambda: float(self.health()[0])))
-        add(CallbackCounter("edmcgs_events_ingested_total", "Events offered to the ring buffer.",
-                            lambda: ring.stats().pushed))
-        add(CallbackCounter("edmcgs_events_dropped_total",
-                            "Events dropped: ring overflow (oldest first), late (behind the "
-                            "watermark), invalid (rejected by the source's validation).", dropped, "reason"))
-        add(CallbackCounter("edmcgs_events_expired_total",
-                            "Events aged out of the ring's retention (a looping replay keeps two passes): "
-                            "older than any render can use, so not dropped.", lambda: ring.stats().expired))
-        add(Gauge("edmcgs_ring_events", "Events held in the ring buffer.", lambda: len(ring)))
-        add(Gauge("edmcgs_ring_capacity_events", "Capacity of the ring buffer.", lambda: ring.capacity))
-        add(Gauge("edmcgs_ring_fill_ratio", "Ring buffer fill (0..1).", lambda: ring.stats().fill))
-        add(CallbackCounter("edmcgs_deform_cache_total", "Deformed-state lookups by result.",
-                            lambda: {"hit": self.engine.cache.hits, "miss": self.engine.cache.misses},
-                            "result"))
-        add(CallbackCounter("edmcgs_renders_rejected_total",
-                            "GET /render refused with 503: every render worker and queue slot taken.",
-                            lambda: self.pool.rejected))
-        add(Gauge("edmcgs_renders_in_flight", "Renders running or waiting for a worker.",
-                  lambda: self.pool.in_flight))
+        gauge("edmcgs_up", "1 when the service is ready (model loaded, source delivering).",
+              lambda: float(self.health()[0]))
+        counter("edmcgs_events_ingested_total", "Events offered to the ring buffer.",
+                lambda: ring.stats().pushed)
+        counter("edmcgs_events_dropped_total", "Events dropped: ring overflow (oldest first), late "
+                "(behind the watermark), invalid (rejected by the source's validation).", dropped, "reason")
+        counter("edmcgs_events_expired_total", "Events aged out of the ring's retention (a looping replay "
+                "keeps two passes): older than any render can use, so not dropped.",
+                lambda: ring.stats().expired)
+        gauge("edmcgs_ring_events", "Events held in the ring buffer.", lambda: len(ring))
+        gauge("edmcgs_ring_capacity_events", "Capacity of the ring buffer.", lambda: ring.capacity)
+        gauge("edmcgs_ring_fill_ratio", "Ring buffer fill (0..1).", lambda: ring.stats().fill)
+        counter("edmcgs_deform_cache_total", "Deformed-state lookups by result.",
+                lambda: {"hit": self.engine.cache.hits, "miss": self.engine.cache.misses}, "result")
+        counter("edmcgs_renders_rejected_total", "GET /render refused with 503: every render worker and "
+                "queue slot taken.", lambda: self.pool.rejected)
+        gauge("edmcgs_renders_in_flight", "Renders running or waiting for a worker.",
+              lambda: self.pool.in_flight)
         online = self.engine.online
         if online is not None:
-            add(Gauge("edmcgs_online_anchors", "Online anchors held past the checkpoint's span.",
-                      lambda: float(len(online.anchors()))))
-            add(CallbackCounter("edmcgs_online_anchors_total", "Online anchors by outcome: predicted, "
-                                "corrected (fitted to their frame), expired (out of the bounded store).",
-                                lambda: {"predicted": online.predicted, "corrected": online.corrected,
-                                         "expired": online.expired}, "result"))
-            add(CallbackCounter("edmcgs_online_anchors_skipped_total",
-                                "Online anchors not corrected (superseded: a newer frame took the one-slot "
-                                "fit queue) or not made (events_gone: their events left the ring).",
-                                lambda: dict(online.skipped), "reason"))
-            add(CallbackCounter("edmcgs_frames_refused_total", "Stream frames refused as anchors, by "
-                                "reason (size, channels, timestamp: not after the newest frame).",
-                                lambda: dict(online.refused), "reason"))
-            add(Gauge("edmcgs_online_fit_queue_depth", "Online anchors waiting for or in a fit (0..2).",
-                      lambda: float(online.queue_depth)))
-            add(Gauge("edmcgs_online_fit_loss", "L1 photometric loss of the last correction, after its "
-                      "steps.", lambda: float("nan") if online.last_loss is None else online.last_loss[1]))
-        add(Gauge("edmcgs_stream_clients", "Open websocket streams.", lambda: self.metrics.stream_clients))
-        add(CallbackCounter("edmcgs_streams_refused_total", "Websocket streams refused: max_streams open.",
-                            lambda: self.metrics.streams_refused))
-        add(Gauge("edmcgs_stream_renders_in_flight", "Stream frames rendering or waiting for a worker.",
-                  lambda: self.pool.stream_in_flight))
+            gauge("edmcgs_online_anchors", "Online anchors held past the checkpoint's span.",
+                  lambda: float(len(online.anchors())))
+            counter("edmcgs_online_anchors_total", "Online anchors by outcome: predicted, corrected (fitted "
+                    "to their frame), expired (out of the bounded store).",
+                    lambda: {"predicted": online.predicted, "corrected": online.corrected,
+                             "expired": online.expired}, "result")
+            counter("edmcgs_online_anchors_skipped_total", "Online anchors not corrected (superseded: a "
+                    "newer frame took the one-slot fit queue) or not made (events_gone: their events left "
+                    "the ring).", lambda: dict(online.skipped), "reason")
+            counter("edmcgs_frames_refused_total", "Stream frames refused as anchors, by reason (size, "
+                    "channels, timestamp: not after the newest frame).", lambda: dict(online.refused),
+                    "reason")
+            gauge("edmcgs_online_fit_queue_depth", "Online anchors waiting for or in a fit (0..2).",
+                  lambda: float(online.queue_depth))
+            gauge("edmcgs_online_fit_loss", "L1 photometric loss of the last correction, after its steps.",
+                  lambda: float("nan") if online.last_loss is None else online.last_loss[1])
+        gauge("edmcgs_stream_clients", "Open websocket streams.", lambda: self.metrics.stream_clients)
+        counter("edmcgs_streams_refused_total", "Websocket streams refused: max_streams open.",
+                lambda: self.metrics.streams_refused)
+        gauge("edmcgs_stream_renders_in_flight", "Stream frames rendering or waiting for a worker.",
+              lambda: self.pool.stream_in_flight)
 
 
 def retain_passes(ring: EventRingBuffer, timeline: Timeline) -> None:

@@ -27,24 +27,12 @@ POSE_DOC = ("Camera-to-world pose, OpenCV convention (x right, y down, z forward
 SIZE_DOC = "Output {} in pixels (default: the camera's; one side alone keeps the aspect ratio; capped)."
 FORMAT_DOC = "png (default), jpeg, or msgpack (a frame map with raw uint8 pixels); else from Accept."
 
-ERROR_SCHEMA = {
-    "type": "object", "title": "ErrorBody", "required": ["type", "error", "detail"],
-    "properties": {
-        "type": {"type": "string", "enum": ["error"]},
-        "error": {"type": "string", "enum": [c.value for c in protocol.ErrorCode]},
-        "detail": {"type": "string"},
-        "param": {"type": ["string", "null"]},
-        "valid_range": {"anyOf": [{"type": "null"}, {
-            "type": "object", "required": ["t_min", "t_max", "t_us_min", "t_us_max"],
-            "properties": {"t_min": {"type": "number"}, "t_max": {"type": "number"},
-                           "t_us_min": {"type": "integer"}, "t_us_max": {"type": "integer"}}}]},
-    },
-}
-"""The error body of every route (``protocol.ErrorBody``), as JSON Schema."""
+ERROR_REF = {"$ref": "#/components/schemas/ErrorBody"}
+"""The error body of every route, ``protocol.ErrorBody`` (its schema is added by ``server/openapi.py``)."""
 
 
 def error(description: str) -> dict:
-    return {"description": description, "content": {"application/json": {"schema": ERROR_SCHEMA}}}
+    return {"description": description, "content": {"application/json": {"schema": ERROR_REF}}}
 
 
 ERRORS = {
@@ -106,7 +94,8 @@ def pose_query(pose: Annotated[str | None, Query(description=POSE_DOC,
 
 @router.get(
     "/render", response_class=Response, summary="Render the scene at time t from a pose",
-    responses={200: {"content": {"image/png": {}, "image/jpeg": {}, "application/msgpack": {}},
+    responses={200: {"content": {media: {"schema": {"type": "string", "format": "binary"}}
+                                 for media in protocol.MEDIA_TYPES.values()},
                      "description": "the image; headers " + ", ".join(protocol.HEADERS)}, **ERRORS})
 async def render(
     service: ServiceDep,
@@ -121,7 +110,7 @@ async def render(
     fmt = format or protocol.negotiate_format(accept)
     frame = await service.pool.run(partial(service.render_frame, scene_t, c2w, w, h,
                                            "raw" if fmt == "msgpack" else fmt))
-    service.metrics.render.observe(frame.meta.render_ms / 1e3, "http")
+    service.metrics.render.labels("http").observe(frame.meta.render_ms / 1e3)
     headers = {**frame.meta.headers(), "Cache-Control": "no-store"}
     body = protocol.pack(frame.meta.to_message(frame.data)) if fmt == "msgpack" else frame.data
     return Response(body, media_type=protocol.MEDIA_TYPES[fmt], headers=headers)

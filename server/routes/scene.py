@@ -4,10 +4,13 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Request
 
+from edmcgs.server.responses import Scene
+
 router = APIRouter()
 
 
-@router.get("/scene", summary="The scene: time span, anchors, intrinsics, trajectory, live head")
+@router.get("/scene", response_model=Scene,
+            summary="The scene: time span, anchors, intrinsics, trajectory, live head")
 async def scene(request: Request) -> dict:
     """Times are absolute µs on the checkpoint's clock (`*_us`) or seconds from `t_start_us` (`t`, `head_t`).
 

@@ -203,7 +203,7 @@ class StreamSession:
             except EdmcgsError as exc:
                 self._control(body_of(exc))
                 continue
-            self.service.metrics.render.observe(frame.meta.render_ms / 1e3, "stream")
+            self.service.metrics.render.labels("stream").observe(frame.meta.render_ms / 1e3)
             window_start, window_end = frame.window
             message = frame.meta.to_message(frame.data)
             if sub.mode == "live":

@@ -1,0 +1,175 @@
+"""The JSON bodies of GET /scene and GET /healthz as pydantic models: their schemas in the OpenAPI, and
+GET /scene's body checked against them (a key the service adds without adding it here fails loudly in
+the tests rather than being left out of the docs). Times follow ``edmcgs.protocol``: ``*_us`` absolute
+µs on the checkpoint's clock, ``t*`` seconds from the scene's start.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict
+
+from edmcgs.protocol import TauSource, ValidRange
+
+
+class _Body(BaseModel):
+    model_config = ConfigDict(use_attribute_docstrings=True, extra="forbid")
+
+
+class Intrinsics(_Body):
+    """The render camera's pinhole intrinsics at its native size (pixels)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+
+class Size(_Body):
+    width: int
+    height: int
+
+
+class Trajectory(_Body):
+    """The event camera's poses over the span (the default pose of a render)."""
+
+    t_us: list[int]
+    c2w: list[list[float]]
+    """Camera-to-world 4x4 matrices, row-major (16 numbers each), OpenCV convention."""
+
+
+class TauRange(_Body):
+    """Where tau(t) comes from over one range of scene time (inclusive bounds)."""
+
+    source: TauSource
+    t_min: float
+    t_max: float
+    t_us_min: int
+    t_us_max: int
+
+
+class OnlineAnchor(_Body):
+    t_us: int
+    stream_us: int
+    """The anchor's time on the stream's clock."""
+    corrected: bool
+    """Fitted to its frame (else: the event transition's prediction)."""
+
+
+class FitLoss(_Body):
+    before: float
+    after: float
+
+
+class Fit(_Body):
+    steps: int
+    """Steps of each correction (0: corrections are off)."""
+    scale: float
+    """Resolution of the correction against the frame (1: full)."""
+    last_s: float | None
+    median_s: float | None
+    last_loss: FitLoss | None
+    """L1 photometric loss of the last correction, before and after its steps."""
+
+
+class Online(_Body):
+    """Online anchors past the checkpoint's span (predicted by the event transition, then corrected)."""
+
+    span: ValidRange | None
+    anchors: list[OnlineAnchor]
+    capacity: int
+    predicted: int
+    corrected: int
+    expired: int
+    skipped: dict[str, int]
+    """Not corrected or not made, by reason (superseded, events_gone)."""
+    refused: dict[str, int]
+    """Stream frames refused as anchors, by reason."""
+    queue_depth: int
+
+
+class Source(_Body):
+    """The event source."""
+
+    sensor: str
+    live: bool
+    width: int
+    height: int
+    has_frames: bool
+    loop: bool
+    speed: float | None
+    """Replay speed (real-time factor); null for a live camera."""
+    period_us: int | None
+    """A looping replay's period on the stream clock (null: no loop, or the clock is not known yet)."""
+
+
+class Playback(_Body):
+    """Without a sensor: the clock that moves the head over the span, in a loop."""
+
+    speed: float
+    period_us: int
+    loop: bool
+
+
+class Limits(_Body):
+    max_width: int
+    max_height: int
+    stream_max_fps: float
+
+
+class Scene(_Body):
+    """What the service serves: span, anchors, camera, trajectory and what can be rendered now."""
+
+    t_start_us: int
+    """The scene's start (its first anchor); ``t`` counts seconds from it."""
+    t_end_us: int
+    duration_s: float
+    anchors_us: list[int]
+    """The checkpoint's anchors: the frames it was trained on."""
+    intrinsics: Intrinsics
+    event_size: Size
+    """The event camera's sensor size."""
+    trajectory: Trajectory | None
+    channels: int
+    """1 (grey) or 3 (RGB)."""
+    has_event_branch: bool
+    num_gaussians: int
+    head_us: int | None
+    """The live head: the newest time whose events have all arrived (null: none yet)."""
+    head_t: float | None
+    stream_head_us: int | None
+    """The head on the stream's clock."""
+    renderable: ValidRange | None
+    """The most recent interval GET /render accepts now."""
+    renderable_ranges: list[ValidRange]
+    """Every interval GET /render accepts now, oldest first."""
+    tau_sources: list[TauRange]
+    """Where tau(t), the anchor of each render's events window [tau, t), comes from: within the
+    checkpoint's span its own anchors (checkpoint), where it has none the stream's frames (stream), past
+    its end online anchors (online)."""
+    online: Online | None
+    source: Source | None
+    playback: Playback | None
+    limits: Limits
+    formats: list[Literal["png", "jpeg", "msgpack"]]
+    """GET /render's formats."""
+    stream_formats: list[Literal["jpeg", "png", "raw"]]
+    """The websocket's frame formats."""
+
+
+class Health(_Body):
+    """GET /healthz: ready when the model is loaded and the source delivers (no sensor: once loaded)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    ready: bool
+    model: str
+    device: str
+    source: Literal["none", "streaming", "ended", "stopped", "error"]
+    source_error: str | None
+    events_in_ring: int
+    head_us: int | None
+    uptime_s: float
