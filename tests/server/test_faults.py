@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
 import functools
 import types
 
@@ -16,6 +15,7 @@ from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.sources.pacing import Pacer
 from edmcgs.server.service import Service
 from edmcgs.server.settings import LOOPBACK
+from tests.support.stub import StubService
 
 
 class _Failing:
@@ -91,35 +91,6 @@ def test_token_redacted_by_its_decoded_name(query):
 
 
 # ----------------------------------------------------------------------------- an app around a stub
-
-
-class StubService:
-    """What the routes and middleware touch before a render; renders are never reached here."""
-
-    def __init__(self, settings):
-        from edmcgs.server.render_pool import RenderPool
-        from edmcgs.server.service import Metrics
-
-        self.settings = settings
-        self.metrics = Metrics()
-        self.pool = RenderPool(settings.render_workers, settings.render_queue)
-        self.signal = types.SimpleNamespace(wait=lambda timeout: asyncio.sleep(timeout))
-        t0 = 1_600_000_000_000_000
-        self.engine = types.SimpleNamespace(
-            head=lambda: None, first_us=t0, end_us=t0 + 2_000_000,
-            t_us_of_seconds=lambda t: t0 + round(t * 1e6), seconds_of=lambda t_us: (t_us - t0) / 1e6)
-
-    def start(self, loop):
-        pass
-
-    def close(self):
-        self.pool.close()
-
-    def health(self):
-        return True, {"ready": True}
-
-    def size(self, width, height):
-        return 8, 8
 
 
 @pytest.fixture
@@ -334,11 +305,14 @@ def test_openapi_states_the_real_limits_and_error_bodies(stub_client):
     assert bound("height", "maximum") == 1920
     assert bound("pose", "maxLength") == 4096
     assert bound("t_us", "maximum") == 2**62 and bound("t_us", "minimum") == -(2**62)
-    for path in ("/render", "/scene", "/healthz", "/metrics"):
+    error_body = {"$ref": "#/components/schemas/ErrorBody"}
+    for path in ("/render", "/scene", "/healthz", "/metrics", "/ply"):
         responses = schema["paths"][path]["get"]["responses"]
         for status in ("401", "421", "500"):
-            body = responses[status]["content"]["application/json"]["schema"]
-            assert body["title"] == "ErrorBody" and "error" in body["required"]
-    render = schema["paths"]["/render"]["get"]["responses"]
-    for status in ("416", "422", "503"):
-        assert "schema" in render[status]["content"]["application/json"]
+            assert responses[status]["content"]["application/json"]["schema"] == error_body
+    for path in ("/render", "/ply"):
+        responses = schema["paths"][path]["get"]["responses"]
+        for status in ("416", "422", "503"):
+            assert responses[status]["content"]["application/json"]["schema"] == error_body
+    body = schema["components"]["schemas"]["ErrorBody"]
+    assert body["title"] == "ErrorBody" and "error" in body["required"]

@@ -1,4 +1,4 @@
-"""Unit tests of the service's pure parts: state cache, metrics text, wire schema."""
+"""Unit tests of the service's pure parts: state cache, wire schema."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ import pytest
 
 from edmcgs import protocol
 from edmcgs.server.encode import to_uint8
-from edmcgs.server.metrics import CallbackCounter, Counter, Gauge, Histogram, Registry
 from edmcgs.server.state_cache import StateCache
 
 T0 = 1_600_000_000_000_000
@@ -49,29 +48,6 @@ def test_state_cache_does_not_keep_failures():
     with pytest.raises(RuntimeError):
         cache.get("k", boom)
     assert cache.get("k", lambda: 3) == 3
-
-
-def test_metrics_text_format():
-    reg = Registry()
-    c = reg.add(Counter("x_total", "Things.", ("route", "code")))
-    c.inc(1, "/render", "200")
-    c.inc(2, "/render", "200")
-    c.inc(1, 'a"b', "500")
-    h = reg.add(Histogram("lat_seconds", "Latency.", ("route",), buckets=(0.1, 1.0)))
-    h.observe(0.05, "/r")
-    h.observe(0.5, "/r")
-    h.observe(5.0, "/r")
-    reg.add(Gauge("fill", "Fill.", lambda: 0.25))
-    reg.add(CallbackCounter("dropped_total", "Dropped.", lambda: {"late": 3, "overflow": 0}, "reason"))
-    lines = reg.render().splitlines()
-    assert "# TYPE x_total counter" in lines
-    assert 'x_total{route="/render",code="200"} 3' in lines
-    assert 'x_total{route="a\\"b",code="500"} 1' in lines
-    assert 'lat_seconds_bucket{route="/r",le="0.1"} 1' in lines
-    assert 'lat_seconds_bucket{route="/r",le="1"} 2' in lines
-    assert 'lat_seconds_bucket{route="/r",le="+Inf"} 3' in lines
-    assert 'lat_seconds_count{route="/r"} 3' in lines and 'lat_seconds_sum{route="/r"} 5.55' in lines
-    assert "fill 0.25" in lines and 'dropped_total{reason="late"} 3' in lines
 
 
 def test_subscription_validation_names_the_field():

@@ -226,3 +226,19 @@ class ThreadServer:
         self.server.should_exit = True
         self.thread.join(15)
         assert not self.thread.is_alive(), "uvicorn did not stop"
+
+
+def metric_values(text: str) -> dict[str, float]:
+    """GET /metrics parsed by prometheus-client's own parser: ``name{label="value",...}`` (labels in
+    name order, as the exposition writes them) -> value."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    def escape(value: str) -> str:
+        return value.replace("\\", "\\\\").replace("\n", "\\n").replace('"', '\\"')
+
+    out = {}
+    for family in text_string_to_metric_families(text):
+        for sample in family.samples:
+            labels = ",".join(f'{k}="{escape(v)}"' for k, v in sorted(sample.labels.items()))
+            out[sample.name + (f"{{{labels}}}" if labels else "")] = sample.value
+    return out
