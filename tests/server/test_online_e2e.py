@@ -12,7 +12,7 @@ import pytest
 
 from edmcgs import protocol
 from edmcgs.clients.client import Client
-from tests.support.server import HEIGHT, WIDTH, ServerProcess, build_scene
+from tests.support.server import HEIGHT, WIDTH, ServerProcess, build_scene, metric_values
 
 TRAIN_S, DURATION_S = 0.5, 2.5  # the stream is 5x the checkpoint's span
 
@@ -23,15 +23,6 @@ def scene(tmp_path_factory):
     return build_scene(tmp_path_factory.mktemp("online_e2e"), width=WIDTH, height=HEIGHT,
                        duration_s=DURATION_S, anchor_every_s=0.1, frames_per_anchor=2, event_rate=20_000,
                        init_points=1500, control_points=48, event_branch_seed=0, train_s=TRAIN_S)
-
-
-def metric_values(text: str) -> dict[str, float]:
-    out = {}
-    for line in text.splitlines():
-        if line and not line.startswith("#"):
-            name, value = line.rsplit(" ", 1)
-            out[name] = float(value)
-    return out
 
 
 def test_a_stream_five_times_the_span_renders_at_its_head_to_the_end(scene):

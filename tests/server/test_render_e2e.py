@@ -12,7 +12,7 @@ from PIL import Image
 from edmcgs import protocol
 from edmcgs.clients.client import Client, InvalidRequest, TimeUnavailable, Unauthorized
 from edmcgs.sensor.files.recording import read_recording
-from tests.support.server import HEIGHT, TOKEN, WIDTH
+from tests.support.server import HEIGHT, TOKEN, WIDTH, metric_values
 
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 # A pose looking at the scene from 5 cm to the right and tilted by ~11 degrees about y.
@@ -175,18 +175,14 @@ def test_healthz_and_metrics(client):
     assert health["events_in_ring"] > 0
     client.render(t=0.1)
     text = client.metrics()
-    values = {}
-    for line in text.splitlines():
-        if line and not line.startswith("#"):
-            name, value = line.rsplit(" ", 1)
-            values[name] = float(value)
+    values = metric_values(text)
     assert values["edmcgs_up"] == 1.0
     assert values["edmcgs_events_ingested_total"] > 0
     assert values['edmcgs_events_dropped_total{reason="overflow"}'] == 0
     assert 0 < values["edmcgs_ring_fill_ratio"] <= 1
-    assert values['edmcgs_http_requests_total{route="/render",code="200"}'] >= 1
+    assert values['edmcgs_http_requests_total{code="200",route="/render"}'] >= 1
     assert values['edmcgs_http_request_duration_seconds_count{route="/render"}'] >= 1
-    assert values['edmcgs_http_request_duration_seconds_bucket{route="/render",le="+Inf"}'] >= 1
+    assert values['edmcgs_http_request_duration_seconds_bucket{le="+Inf",route="/render"}'] >= 1
     assert values['edmcgs_render_seconds_count{path="http"}'] >= 1
     assert "edmcgs_stream_frames_dropped_total" in values
     assert "# TYPE edmcgs_render_seconds histogram" in text

@@ -14,7 +14,7 @@ from websockets.sync.client import connect
 from edmcgs import protocol
 from edmcgs.clients.client import InvalidRequest
 from edmcgs.sensor.files.recording import read_recording
-from tests.support.server import HEIGHT, TOKEN, WIDTH
+from tests.support.server import HEIGHT, TOKEN, WIDTH, metric_values
 
 SIDE_POSE = [0.05, 0.0, 0.0, 0.995, 0.0, 0.0998, 0.0]
 
@@ -112,12 +112,7 @@ def test_raw_json_and_msgpack_subscriptions(server):
 
 
 def _metrics(client) -> dict[str, float]:
-    values = {}
-    for line in client.metrics().splitlines():
-        if line and not line.startswith("#"):
-            name, value = line.rsplit(" ", 1)
-            values[name] = float(value)
-    return values
+    return metric_values(client.metrics())
 
 
 def test_a_client_that_stops_reading_gets_frames_dropped_not_queued(client, server):
