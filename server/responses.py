@@ -89,6 +89,8 @@ class Online(_Body):
     refused: dict[str, int]
     """Stream frames refused as anchors, by reason."""
     queue_depth: int
+    """Online anchors waiting for or in a correction."""
+    fit: Fit
 
 
 class Source(_Body):

@@ -131,3 +131,52 @@ def test_replay_renders_every_held_out_time_as_edmcgs_eval_scores_it(server, sce
             target = data.held_out_images[row.index].astype(np.float32) / 255.0
             # The same pixels, so the same score, up to the uint8 rounding of the wire.
             assert psnr(pixels / 255.0, target) == pytest.approx(row.psnr, abs=2e-3)
+
+
+def test_ply_download_is_what_export_ply_writes(server, scene, offline, tmp_path):
+    """GET /ply at a held-out time: the Gaussians deformed by the same events window as the render, the
+    file ``edmcgs export-ply --recording`` writes (and not the one without events)."""
+    import httpx
+    from plyfile import PlyData
+
+    from edmcgs.cli import main
+
+    rec_path, ckpt = scene
+    model, rec, _data, rows, _images = offline
+    row = rows[2]  # 120 ms of events since its anchor: the event branch moves the Gaussians
+    with Client(server.url, timeout=30) as client:
+        wait_for_second_pass(client, row.t_us)
+    response = httpx.get(server.url + "/ply", params={"t_us": row.t_us}, timeout=60)
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"] == "application/octet-stream"
+    assert response.headers["content-disposition"].startswith("attachment; filename=")
+    assert int(response.headers[protocol.HEADER_T_US]) == row.t_us
+    assert int(response.headers[protocol.HEADER_ANCHOR_US]) == row.anchor_us
+    events = len(rec.events.time_slice(row.anchor_us, row.t_us))
+    assert int(response.headers[protocol.HEADER_EVENTS]) == events > 1000
+    served = tmp_path / "served.ply"
+    served.write_bytes(response.content)
+    exported, no_events = tmp_path / "exported.ply", tmp_path / "no_events.ply"
+    assert main(["export-ply", str(ckpt), "--t-us", str(row.t_us), "--recording", str(rec_path),
+                 "-o", str(exported)]) == 0
+    assert main(["export-ply", str(ckpt), "--t-us", str(row.t_us), "-o", str(no_events)]) == 0
+    tables = [PlyData.read(str(p))["vertex"].data for p in (served, exported, no_events)]
+    names = tables[0].dtype.names
+    assert names == tables[1].dtype.names and len(tables[0]) == len(tables[1]) == len(model.gaussians)
+    for name in names:
+        np.testing.assert_allclose(tables[0][name], tables[1][name], rtol=1e-5, atol=1e-6, err_msg=name)
+    moved = np.abs(tables[0]["x"] - tables[2]["x"]).max()
+    assert moved > 1e-4, "the events window does not move the Gaussians: the comparison proves nothing"
+
+
+def test_ply_outside_the_span_is_a_416_with_the_valid_range(server):
+    import httpx
+
+    response = httpx.get(server.url + "/ply", params={"t": 1e6}, timeout=30)
+    assert response.status_code == 416
+    body = response.json()
+    valid = body["valid_range"]
+    assert body["error"] == "time_unavailable" and valid["t_us_min"] <= valid["t_us_max"]
+    assert valid["t_max"] < 1e6  # the renderable span, in seconds from the start
+    bad = httpx.get(server.url + "/ply", params={"t": "soon"}, timeout=30)
+    assert bad.status_code == 422 and bad.json()["param"] == "t"
