@@ -129,16 +129,16 @@ def page(doc: dict) -> str:
 
 def _schema_table(schema: dict, schemas: dict) -> str:
     if "properties" not in schema:
-        return f"<p>{_e(schema.get('description', ''))}</p>"
+        return f"<p>{_text(schema.get('description', ''))}</p>"
     required = set(schema.get("required", ()))
     rows = []
     for name, prop in schema["properties"].items():
         default = f"<code>{_e(json.dumps(prop['default']))}</code>" if "default" in prop else ""
         rows.append(f"<tr><td><code>{_e(name)}</code>{' *' if name in required else ''}</td>"
                     f"<td>{_type_text(prop)}</td><td>{default}</td>"
-                    f"<td>{_e(_description(prop, schemas))}</td></tr>")
-    return (f"<p>{_e(schema.get('description', ''))}</p><table><tr><th>field (* required)</th><th>type</th>"
-            f"<th>default</th><th>description</th></tr>{''.join(rows)}</table>")
+                    f"<td>{_text(_description(prop, schemas))}</td></tr>")
+    head = "<tr><th>field (* required)</th><th>type</th><th>default</th><th>description</th></tr>"
+    return f"<p>{_text(schema.get('description', ''))}</p><table>{head}{''.join(rows)}</table>"
 
 
 def _description(prop: dict, schemas: dict) -> str:
@@ -171,8 +171,12 @@ def _type_text(prop: dict) -> str:
 
 def _paragraphs(text: str) -> str:
     """Plain text with `code` spans as HTML paragraphs."""
-    return "".join("<p>" + re.sub(r"`([^`]+)`", r"<code>\1</code>", _e(p)) + "</p>"
-                   for p in text.split("\n\n"))
+    return "".join(f"<p>{_text(p)}</p>" for p in text.split("\n\n"))
+
+
+def _text(text: str) -> str:
+    """Escaped text, its ``code`` and `code` spans as HTML."""
+    return re.sub(r"``(.+?)``|`([^`]+)`", lambda m: f"<code>{m.group(1) or m.group(2)}</code>", _e(text))
 
 
 def _e(text: object) -> str:

@@ -35,9 +35,19 @@ _STREAM_ONLY = ("seq", "dropped", "arrived_unix_us")
 
 
 def _schema_of(tp: Any, ref_template: str) -> tuple[dict, dict]:
-    """(schema, its $defs) of a protocol type."""
-    schema = TypeAdapter(tp).json_schema(ref_template=ref_template)
+    """(schema, its $defs) of a protocol type, its Python docstrings said in the wire's words."""
+    schema = _wire_words(TypeAdapter(tp).json_schema(ref_template=ref_template))
     return schema, schema.pop("$defs", {})
+
+
+def _wire_words(node: Any) -> Any:
+    """Descriptions as the wire says them: ``None`` is null (the docstrings are the Python API's)."""
+    if isinstance(node, dict):
+        return {k: v.replace("``None``", "null") if k == "description" and isinstance(v, str)
+                else _wire_words(v) for k, v in node.items()}
+    if isinstance(node, list):
+        return [_wire_words(v) for v in node]
+    return node
 
 
 def schemas(ref_template: str = REF_TEMPLATE) -> dict[str, dict]:
