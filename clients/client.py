@@ -190,6 +190,16 @@ class Client:
             return image, protocol.FrameMeta.from_message(body, format)
         return response.content, protocol.FrameMeta.from_headers(response.headers, format)
 
+    def ply(self, t: float | None = None, *, t_us: int | None = None) -> bytes:
+        """GET /ply: the Gaussians at ``t`` seconds from the scene's start, or ``t_us`` absolute (neither:
+        the live head), as a 3DGS PLY file (what ``edmcgs export-ply`` writes)."""
+        params = {}
+        if t is not None:
+            params["t"] = repr(float(t))
+        if t_us is not None:
+            params["t_us"] = str(int(t_us))
+        return self._get("/ply", params=params).content
+
     def _get(self, path: str, params: dict | None = None) -> httpx.Response:
         response = self._http.get(path, params=params)
         _raise_for(response)

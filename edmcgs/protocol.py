@@ -24,6 +24,11 @@ HTTP ``GET /scene``
     (``"checkpoint"``: the windows it was trained on, however many frames the stream carries); a
     stream's frames (``"stream"``) only where the checkpoint has no anchor.
 
+HTTP ``GET /ply``
+    Query: ``t`` | ``t_us`` as ``GET /render``. The body is the deformed Gaussians at that instant as a
+    3DGS PLY file (an attachment); the headers ``HEADER_T_US``, ``HEADER_T``, ``HEADER_ANCHOR_US``,
+    ``HEADER_EVENTS`` and ``HEADER_ANCHOR`` describe the instant.
+
 Websocket ``/stream``
     Client -> server: a subscription map (msgpack binary or JSON text), see ``Subscription``. It may
     be re-sent at any time, whole or in part (e.g. only ``{"pose": [...]}``); the fields sent replace

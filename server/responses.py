@@ -165,8 +165,6 @@ class Scene(_Body):
 class Health(_Body):
     """GET /healthz: ready when the model is loaded and the source delivers (no sensor: once loaded)."""
 
-    model_config = ConfigDict(extra="allow")
-
     ready: bool
     model: str
     device: str

@@ -31,7 +31,6 @@ _STREAM_FRAME_KEYS = {
              "description": "The encoded image (jpeg, png), or for raw uint8 pixels "
                             "[height, width, channels] row-major (msgpack bin)."},
 }
-_STREAM_ONLY = ("seq", "dropped", "arrived_unix_us")
 
 
 def _schema_of(tp: Any, ref_template: str) -> tuple[dict, dict]:
@@ -101,7 +100,3 @@ def schemas(ref_template: str = REF_TEMPLATE) -> dict[str, dict]:
                                "description": "The seq the next frame would have had."}}}, {})
     return out
 
-
-def http_frame_keys() -> tuple[str, ...]:
-    """The keys of GET /render's msgpack body (a frame map without the websocket's own keys)."""
-    return tuple(k for k in protocol.FRAME_KEYS if k not in _STREAM_ONLY)

@@ -169,14 +169,19 @@ def test_ply_download_is_what_export_ply_writes(server, scene, offline, tmp_path
     assert moved > 1e-4, "the events window does not move the Gaussians: the comparison proves nothing"
 
 
-def test_ply_outside_the_span_is_a_416_with_the_valid_range(server):
+def test_ply_outside_the_span_is_a_416_with_the_valid_range(server, scene, tmp_path):
     import httpx
+    from plyfile import PlyData
 
-    response = httpx.get(server.url + "/ply", params={"t": 1e6}, timeout=30)
-    assert response.status_code == 416
-    body = response.json()
-    valid = body["valid_range"]
-    assert body["error"] == "time_unavailable" and valid["t_us_min"] <= valid["t_us_max"]
-    assert valid["t_max"] < 1e6  # the renderable span, in seconds from the start
+    from edmcgs.clients.client import TimeUnavailable
+
+    with Client(server.url, timeout=30) as client:
+        with pytest.raises(TimeUnavailable) as info:
+            client.ply(t=1e6)
+        valid = info.value.valid_range
+        assert info.value.status == 416 and valid["t_us_min"] <= valid["t_us_max"]
+        assert valid["t_max"] < 1e6  # the renderable span, in seconds from the start
+        (tmp_path / "head.ply").write_bytes(client.ply())  # no time: the live head
+        assert len(PlyData.read(str(tmp_path / "head.ply"))["vertex"].data) > 0
     bad = httpx.get(server.url + "/ply", params={"t": "soon"}, timeout=30)
     assert bad.status_code == 422 and bad.json()["param"] == "t"
