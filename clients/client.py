@@ -200,6 +200,26 @@ class Client:
             params["t_us"] = str(int(t_us))
         return self._get("/ply", params=params).content
 
+    def events(self, t: float | None = None, *, t_us: int | None = None,
+               format: str = "msgpack") -> tuple[np.ndarray | bytes, protocol.EventMapMeta]:
+        """GET /events: the event map I_E of the window a render at ``t`` / ``t_us`` uses (neither: the
+        live head). format "msgpack" returns the signed polarity sum per pixel, int32 [H, W]; "png" the
+        DV-style RGBA picture's bytes."""
+        if format not in protocol.EVENT_FORMATS:
+            raise ValueError(f"format must be one of {protocol.EVENT_FORMATS}, got {format!r}")
+        params: dict = {"format": format}
+        if t is not None:
+            params["t"] = repr(float(t))
+        if t_us is not None:
+            params["t_us"] = str(int(t_us))
+        response = self._get("/events", params=params)
+        if format == "msgpack":
+            body = protocol.unpack(response.content)
+            meta = protocol.EventMapMeta.from_message(body)
+            emap = np.frombuffer(body["data"], dtype=protocol.EVENT_MAP_DTYPE)
+            return emap.reshape(meta.height, meta.width).astype(np.int32), meta
+        return response.content, protocol.EventMapMeta.from_headers(response.headers)
+
     def _get(self, path: str, params: dict | None = None) -> httpx.Response:
         response = self._http.get(path, params=params)
         _raise_for(response)

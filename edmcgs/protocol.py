@@ -29,6 +29,16 @@ HTTP ``GET /ply``
     3DGS PLY file (an attachment); the headers ``HEADER_T_US``, ``HEADER_T``, ``HEADER_ANCHOR_US``,
     ``HEADER_EVENTS`` and ``HEADER_ANCHOR`` describe the instant.
 
+HTTP ``GET /events``
+    The event map I_E of the window a render at the same time uses (``[tau(t), t)``, the events the
+    model's event branch sees): query ``t`` | ``t_us`` as for ``/render`` (the same time rules and
+    errors), ``format`` (``EVENT_FORMATS``; absent: from ``Accept``, default png). ``png``: an RGBA
+    picture at the event sensor's size, DV-style: ``EVENT_ON_RGB`` where the window's signed polarity
+    sum is positive, ``EVENT_OFF_RGB`` where it is negative, transparent where it is zero (draw it
+    over a render or on white). ``msgpack``: an event-map map (``EVENT_MAP_KEYS``) whose ``data`` is
+    the signed sum itself, ``EVENT_MAP_DTYPE`` [height, width] row-major. The headers
+    ``EVENT_HEADERS`` describe the window (``EventMapMeta``).
+
 Websocket ``/stream``
     Client -> server: a subscription map (msgpack binary or JSON text), see ``Subscription``. It may
     be re-sent at any time, whole or in part (e.g. only ``{"pose": [...]}``); the fields sent replace
@@ -453,6 +463,68 @@ def error_body(error: ErrorCode, detail: str, param: str | None = None,
                valid_range: dict | None = None) -> dict:
     """The error map of HTTP bodies and websocket ``error`` messages."""
     return ErrorBody(ErrorCode(error), detail, param, valid_range).to_message()
+
+
+# --- event maps (GET /events) ------------------------------------------------------------------
+
+EVENT_FORMATS = ("png", "msgpack")
+EVENT_ON_RGB = (20, 90, 255)
+"""Colour of a pixel whose window sums to a positive polarity (more ON than OFF events): blue."""
+EVENT_OFF_RGB = (235, 40, 40)
+"""Colour of a pixel whose window sums to a negative polarity: red."""
+EVENT_MAP_DTYPE = "<i4"
+"""The msgpack event map's ``data``: little-endian int32, the signed polarity sum per pixel."""
+EVENT_HEADERS = (HEADER_T_US, HEADER_T, HEADER_ANCHOR_US, HEADER_EVENTS, HEADER_WIDTH, HEADER_HEIGHT)
+EVENT_MAP_KEYS = (
+    "type",  # "event_map"
+    "t_us",  # absolute µs: the window's end (exclusive), the time a render at it shows
+    "t",  # seconds from the scene's start
+    "anchor_us",  # tau(t): the window's start (inclusive)
+    "events",  # events in the window
+    "width",  # the event sensor's width, px
+    "height",
+    "dtype",  # EVENT_MAP_DTYPE
+    "data",  # bytes: the signed polarity sum per pixel, [height, width] row-major
+)
+
+
+@dataclass(frozen=True)
+class EventMapMeta:
+    """What the server says about one event map: the ``EVENT_HEADERS`` of GET /events, the keys of its
+    msgpack map."""
+
+    t_us: int
+    t: float
+    anchor_us: int
+    events: int
+    width: int
+    height: int
+
+    def headers(self) -> dict[str, str]:
+        return {HEADER_T_US: str(self.t_us), HEADER_T: repr(self.t), HEADER_ANCHOR_US: str(self.anchor_us),
+                HEADER_EVENTS: str(self.events), HEADER_WIDTH: str(self.width),
+                HEADER_HEIGHT: str(self.height)}
+
+    @classmethod
+    def from_headers(cls, headers) -> EventMapMeta:
+        return cls(int(headers[HEADER_T_US]), float(headers[HEADER_T]), int(headers[HEADER_ANCHOR_US]),
+                   int(headers[HEADER_EVENTS]), int(headers[HEADER_WIDTH]), int(headers[HEADER_HEIGHT]))
+
+    def to_message(self, data: bytes) -> dict:
+        """The msgpack event map (``EVENT_MAP_KEYS``); ``data`` is the ``EVENT_MAP_DTYPE`` array's bytes."""
+        if len(data) != 4 * self.width * self.height:
+            raise ValueError(f"an event map of {self.width}x{self.height} is {4 * self.width * self.height} "
+                             f"bytes, got {len(data)}")
+        return {"type": "event_map", **asdict(self), "dtype": EVENT_MAP_DTYPE, "data": data}
+
+    @classmethod
+    def from_message(cls, message: dict) -> EventMapMeta:
+        """Read an event-map map (its ``data`` is left to the caller)."""
+        if message.get("type") != "event_map" or message.get("dtype") != EVENT_MAP_DTYPE:
+            raise ProtocolError("type", f"not an event map of {EVENT_MAP_DTYPE}: "
+                                        f"type={message.get('type')!r} dtype={message.get('dtype')!r}")
+        return cls(int(message["t_us"]), float(message["t"]), int(message["anchor_us"]),
+                   int(message["events"]), int(message["width"]), int(message["height"]))
 
 
 # --- frames -------------------------------------------------------------------------------------

@@ -15,7 +15,7 @@ from fastapi.staticfiles import StaticFiles
 
 from edmcgs.server import docs, errors, openapi
 from edmcgs.server.middleware import AccessMiddleware
-from edmcgs.server.routes import health, ply, render, scene, stream
+from edmcgs.server.routes import events, health, ply, render, scene, stream
 from edmcgs.server.service import Service
 from edmcgs.server.settings import Settings
 
@@ -62,7 +62,7 @@ def create_app(settings: Settings | None = None, *, service_factory=Service.open
     app.add_middleware(AccessMiddleware, token=token, allowed_hosts=settings.host_allowlist,
                        open_paths=frozenset(open_paths))
     errors.install(app)
-    for module in (render, scene, health, stream, ply):
+    for module in (render, events, scene, health, stream, ply):
         app.include_router(module.router, responses=render.AUTH_ERRORS)
     app.openapi = lambda: openapi.build(app, settings, frozenset(open_paths))
     viewer = files("edmcgs.clients") / "viewer"

@@ -1,4 +1,4 @@
-"""Rendered float images -> bytes on the wire (PNG, JPEG, raw uint8)."""
+"""Rendered float images -> bytes on the wire (PNG, JPEG, raw uint8); event maps -> DV-style RGBA."""
 
 from __future__ import annotations
 
@@ -6,6 +6,8 @@ import io
 
 import numpy as np
 from PIL import Image
+
+from edmcgs import protocol
 
 
 def to_uint8(image: np.ndarray) -> np.ndarray:
@@ -28,3 +30,16 @@ def encode(pixels: np.ndarray, fmt: str, *, jpeg_quality: int = 90, png_compress
     else:
         raise ValueError(f"unknown image format {fmt!r}")
     return buf.getvalue()
+
+
+def event_rgba(emap: np.ndarray) -> np.ndarray:
+    """Signed event map [H, W] -> uint8 RGBA [H, W, 4]: ``protocol.EVENT_ON_RGB`` where the sum is
+    positive, ``EVENT_OFF_RGB`` where negative, transparent where zero (DV's polarity colours, so that
+    it reads over a render as well as on white)."""
+    emap = np.asarray(emap)
+    if emap.ndim != 2:
+        raise ValueError(f"an event map is [H, W], got shape {emap.shape}")
+    out = np.zeros((*emap.shape, 4), np.uint8)
+    out[emap > 0] = (*protocol.EVENT_ON_RGB, 255)
+    out[emap < 0] = (*protocol.EVENT_OFF_RGB, 255)
+    return out

@@ -211,6 +211,17 @@ class Engine:
             return model_online.state_of(self.model, motion), len(events)
         return self.model.deform(instant.t_us, emap), len(events)
 
+    def event_map(self, t_us: int | None) -> tuple[Instant, int, np.ndarray]:
+        """(instant, events, I_E) of the window a render at ``t_us`` (None: the head) uses: the signed
+        polarity sum per pixel, int32 [event_height, event_width]; the same time rules as ``render``."""
+        instant = self.resolve(t_us)
+        try:
+            events = self.ring.slice(*instant.window)
+        except WindowUnavailable as exc:
+            self._unavailable(f"the events for t={self._fmt(instant.t_us)} are gone: {exc}")
+        emap = accumulate(events, self.meta.event_width, self.meta.event_height)
+        return instant, len(events), np.rint(emap).astype(np.int32)
+
     def default_pose(self, t_us: int) -> np.ndarray:
         """The event camera's own pose at scene time ``t_us`` (the checkpoint's trajectory)."""
         if self.online is not None and int(t_us) > self.end_us:

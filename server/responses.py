@@ -41,6 +41,19 @@ class Trajectory(_Body):
     """Camera-to-world 4x4 matrices, row-major (16 numbers each), OpenCV convention."""
 
 
+class TrainingViews(_Body):
+    """Where the checkpoint's cameras were (``server/views.py``): a view far from all of them shows what
+    no training camera saw."""
+
+    center: list[float]
+    """The point the training cameras look at (the model's scene centre), world coordinates."""
+    scale: float
+    """The training cameras' median distance from the centre: the scene's scale."""
+    c2w: list[list[float]]
+    """The training poses (the trajectory over the span, at most 256 evenly spaced), camera-to-world
+    4x4 row-major (16 numbers each)."""
+
+
 class TauRange(_Body):
     """Where tau(t) comes from over one range of scene time (inclusive bounds)."""
 
@@ -152,6 +165,8 @@ class Scene(_Body):
     """Where tau(t), the anchor of each render's events window [tau, t), comes from: within the
     checkpoint's span its own anchors (checkpoint), where it has none the stream's frames (stream), past
     its end online anchors (online)."""
+    training_views: TrainingViews | None
+    """The training cameras (null: the checkpoint has no trajectory)."""
     online: Online | None
     source: Source | None
     playback: Playback | None

@@ -33,7 +33,7 @@ from edmcgs.sensor.sources.open import open_source
 from edmcgs.sensor.sources.pacing import Pacing
 from edmcgs.server import demo
 from edmcgs.server.clock import Timeline
-from edmcgs.server.encode import encode
+from edmcgs.server.encode import encode, event_rgba
 from edmcgs.server.engine import Engine
 from edmcgs.server.live import Arrivals, HeadSignal
 from edmcgs.server.metrics import Metrics
@@ -41,6 +41,7 @@ from edmcgs.server.online import OnlineAnchors
 from edmcgs.server.playback import Playback
 from edmcgs.server.render_pool import RenderPool
 from edmcgs.server.settings import Settings
+from edmcgs.server.views import training_views
 
 log = logging.getLogger("edmcgs.server")
 
@@ -274,6 +275,23 @@ class Service:
                                   format=fmt, anchor=rendered.anchor)
         return RenderedFrame(meta, data, inst.window)
 
+    def event_map(self, t_us: int | None, fmt: str) -> tuple[protocol.EventMapMeta, bytes]:
+        """Blocking (run on the pool): GET /events' body, I_E of the window a render at ``t_us`` uses,
+        as DV-style RGBA PNG or as the msgpack event map (protocol.py)."""
+        try:
+            instant, n_events, emap = self.engine.event_map(t_us)
+            height, width = emap.shape
+            meta = protocol.EventMapMeta(t_us=instant.t_us, t=self.engine.seconds_of(instant.t_us),
+                                         anchor_us=instant.anchor_us, events=n_events, width=width,
+                                         height=height)
+            if fmt == "msgpack":
+                return meta, protocol.pack(meta.to_message(emap.astype(protocol.EVENT_MAP_DTYPE).tobytes()))
+            return meta, encode(event_rgba(emap), "png", png_compress_level=self.settings.png_compress_level)
+        except EdmcgsError:
+            raise
+        except Exception as exc:  # numba / Pillow failures: a 500 with a message, not a crash
+            raise RenderError(f"event map failed: {type(exc).__name__}: {exc}") from exc
+
     def scene(self) -> dict:
         """The body of GET /scene."""
         meta, engine = self.model.meta, self.engine
@@ -301,6 +319,7 @@ class Service:
             "renderable": engine.range_dict(ranges[-1]) if ranges else None,
             "renderable_ranges": [engine.range_dict(r) for r in ranges],
             "tau_sources": engine.tau_ranges(),
+            "training_views": training_views(self.model),
             "online": self.online_info(),
             "source": None if info is None else {
                 "sensor": info.sensor, "live": info.live, "width": info.width, "height": info.height,

@@ -197,14 +197,46 @@ class Orbit {
   }
 }
 
-// How far in front of the camera to orbit: the scene's centre if the server states it, else the
-// world origin's depth (synthetic scenes sit around it), else the camera's distance from the origin.
+// How far in front of the camera to orbit: the depth of the scene's centre (the point the training
+// cameras look at) if the server states it, else of the world origin (synthetic scenes sit around
+// it), else the camera's distance from the origin.
 function orbitDepth(scene, c2w) {
   const { R, C } = splitPose(c2w);
-  const centre = scene.scene_center || scene.center || [0, 0, 0];
+  const centre = (scene.training_views && scene.training_views.center) || [0, 0, 0];
   const d = dot(col(R, 2), centre.map((v, i) => v - C[i]));
   if (Number.isFinite(d) && d > 1e-3) return d;
   return Math.max(norm(C), 1);
+}
+
+// ---------------------------------------------------------------- far from the training views
+// A view is near a training view when its camera centre moved at most FAR_DISTANCE scene scales from
+// it (the training cameras' median distance from the scene's centre) and its optical axis turned at
+// most FAR_ANGLE_DEG from it; a roll about the axis keeps the same rays and counts for nothing. An
+// orbit of 20 degrees about the centre reaches both limits together (2 sin(10 deg) = 0.35). Near no
+// training view, the render shows surfaces no training camera saw: the model smears them.
+
+const FAR_ANGLE_DEG = 20;
+const FAR_DISTANCE = 0.35;
+
+// The nearest training view to c2w: {distance (scene scales), angleDeg, ratio, far}, ratio being
+// the larger of distance / FAR_DISTANCE and angleDeg / FAR_ANGLE_DEG (far: ratio > 1). Null when the
+// scene lists no training views.
+function nearestTrainingView(views, c2w) {
+  if (!views || !views.c2w || views.c2w.length === 0 || !(views.scale > 0)) return null;
+  const { R, C } = splitPose(c2w);
+  const z = col(R, 2), zn = norm(z);
+  let best = null;
+  for (const m of views.c2w) {
+    const v = splitPose(m);
+    const d = norm(add(C, scale(v.C, -1))) / views.scale;
+    const zv = col(v.R, 2);
+    const cos = Math.max(-1, Math.min(1, dot(z, zv) / (zn * norm(zv))));
+    const a = (Math.acos(cos) * 180) / Math.PI;
+    const ratio = Math.max(d / FAR_DISTANCE, a / FAR_ANGLE_DEG);
+    if (best === null || ratio < best.ratio) best = { distance: d, angleDeg: a, ratio };
+  }
+  best.far = best.ratio > 1;
+  return best;
 }
 
 // ---------------------------------------------------------------- the viewer
@@ -230,6 +262,11 @@ const state = {
   rendering: false,       // a GET /render in flight
   renderAgain: false,     // ... and the inputs changed since it was sent
   pending: null,          // the newest frame not yet drawn (older ones are dropped: only the newest matters)
+  image: null,            // the render on screen, decoded (ImageBitmap, or ImageData for raw frames)
+  eventsLayer: "off",     // the events layer: off, over the render, or beside it
+  events: null,           // {tUs, bitmap}: the newest event map drawn (GET /events, DV-style PNG)
+  eventsWanted: null,     // the time whose event map is wanted next (newest wins)
+  eventsFetching: false,
   drawing: false,
 };
 
@@ -267,10 +304,29 @@ async function errorText(response) {
 
 function currentPose() { return state.orbit ? state.orbit.c2w() : null; }
 
+// The render's size: "fit" asks the server for the canvas' size on screen in device pixels (the
+// splats are drawn at that resolution, not a small image stretched), within the server's limits and
+// the camera's aspect ratio; else a multiple of the camera's size.
 function renderSize() {
-  const k = Number($("scale").value);
   const intr = state.scene.intrinsics;
-  return [Math.max(1, Math.round(intr.width * k)), Math.max(1, Math.round(intr.height * k))];
+  const choice = $("scale").value;
+  let k;
+  if (choice === "fit") {
+    const main = document.querySelector("main");
+    const pad = 16;  // main's padding, both sides
+    const beside = state.eventsLayer === "beside";
+    const w = Math.max(1, (main.clientWidth - pad - (beside ? 8 : 0)) / (beside ? 2 : 1));
+    const h = Math.max(1, main.clientHeight - pad);
+    k = Math.min(w / intr.width, h / intr.height) * (window.devicePixelRatio || 1);
+    const limits = state.scene.limits || {};
+    if (limits.max_width) k = Math.min(k, limits.max_width / intr.width);
+    if (limits.max_height) k = Math.min(k, limits.max_height / intr.height);
+  } else {
+    k = Number(choice);
+  }
+  const size = (n, cap) => Math.max(1, Math.min(cap || Infinity, Math.floor(n * k + 1e-9)));
+  const limits = choice === "fit" ? state.scene.limits || {} : {};
+  return [size(intr.width, limits.max_width), size(intr.height, limits.max_height)];
 }
 
 const secondsOf = (tUs) => (tUs - state.scene.t_start_us) / 1e6;
@@ -336,9 +392,8 @@ function current(frame) {
 }
 
 async function drawFrame(frame) {
-  const canvas = $("view");
-  const ctx = canvas.getContext("2d");
   if (!current(frame)) return false;
+  let image;
   if (frame.format === "raw") {
     // uint8, row-major [height, width, channels] with 1 (grey), 3 (RGB) or 4 (RGBA) channels
     const { width, height, channels, data } = frame;
@@ -349,21 +404,145 @@ async function drawFrame(frame) {
       rgba[4 * i + 2] = data[channels >= 3 ? j + 2 : j];
       rgba[4 * i + 3] = channels === 4 ? data[j + 3] : 255;
     }
-    if (canvas.width !== width || canvas.height !== height) { canvas.width = width; canvas.height = height; }
-    ctx.putImageData(new ImageData(rgba, width, height), 0, 0);
+    image = new ImageData(rgba, width, height);
   } else {
     const type = frame.format === "png" ? "image/png" : "image/jpeg";
-    const bitmap = await createImageBitmap(new Blob([frame.data], { type }));
-    if (!current(frame)) { bitmap.close(); return false; }
-    if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
-      canvas.width = bitmap.width;
-      canvas.height = bitmap.height;
-    }
-    ctx.drawImage(bitmap, 0, 0);
-    bitmap.close();
+    image = await createImageBitmap(new Blob([frame.data], { type }));
+    if (!current(frame)) { image.close(); return false; }
   }
+  if (state.image instanceof ImageBitmap) state.image.close();
+  state.image = image;
+  paint();
   shown(frame);
   return true;
+}
+
+// The render, and the events layer over it or beside it. The event map is at the sensor's size:
+// drawn pixel for pixel (nearest neighbour), each sensor pixel a crisp block of the render's pixels.
+function paint() {
+  const canvas = $("view");
+  const image = state.image;
+  if (!image) return;
+  if (canvas.width !== image.width || canvas.height !== image.height) {
+    canvas.width = image.width;
+    canvas.height = image.height;
+  }
+  const ctx = canvas.getContext("2d");
+  if (image instanceof ImageData) ctx.putImageData(image, 0, 0);
+  else ctx.drawImage(image, 0, 0);
+  const events = state.eventsLayer !== "off" ? state.events : null;
+  if (events && state.eventsLayer === "over") {
+    ctx.imageSmoothingEnabled = false;
+    ctx.drawImage(events.bitmap, 0, 0, canvas.width, canvas.height);
+  }
+  const side = $("events-view");
+  side.hidden = state.eventsLayer !== "beside";
+  if (!side.hidden) {
+    if (side.width !== canvas.width || side.height !== canvas.height) {
+      side.width = canvas.width;
+      side.height = canvas.height;
+    }
+    const sctx = side.getContext("2d");
+    sctx.fillStyle = "#fff";
+    sctx.fillRect(0, 0, side.width, side.height);
+    if (events) {
+      sctx.imageSmoothingEnabled = false;
+      sctx.drawImage(events.bitmap, 0, 0, side.width, side.height);
+    }
+  }
+}
+
+// ---- the events layer: GET /events for the time on screen, one request in flight, the newest wins.
+// Live, the map of a frame arrives just after the frame: the layer lags the render by one event map.
+
+function wantEvents(tUs) {
+  if (state.eventsLayer === "off" || tUs === undefined || tUs === null) return;
+  if (state.events && state.events.tUs === tUs) return;
+  state.eventsWanted = tUs;
+  if (!state.eventsFetching) fetchEvents();
+}
+
+async function fetchEvents() {
+  state.eventsFetching = true;
+  try {
+    while (state.eventsWanted !== null && state.eventsLayer !== "off") {
+      const tUs = state.eventsWanted;
+      state.eventsWanted = null;
+      const url = new URL("events", location.href);
+      url.search = "";
+      url.searchParams.set("t_us", String(tUs));
+      url.searchParams.set("format", "png");
+      const response = await fetch(url, { headers: authHeaders });
+      if (!response.ok) {
+        showError(`events: ${await errorText(response)}`);
+        continue;
+      }
+      const bitmap = await createImageBitmap(await response.blob());
+      if (state.events) state.events.bitmap.close();
+      state.events = { tUs: Number(response.headers.get("X-Edmcgs-T-Us")), bitmap };
+      paint();
+    }
+  } catch (err) {
+    showError(`events: ${err.message}`);
+  } finally {
+    state.eventsFetching = false;
+  }
+}
+
+function setEventsLayer(layer) {
+  const resized = (layer === "beside") !== (state.eventsLayer === "beside");
+  state.eventsLayer = layer;
+  $("events-layer").value = layer;
+  document.querySelector("main").classList.toggle("beside", layer === "beside");
+  paint();
+  wantEvents(state.tUs);
+  if (resized && $("scale").value === "fit") viewChanged();  // the render's share of the width changed
+}
+
+// ---- the screenshot: the canvas as it is (the render, the events layer over it), or the render and
+// the events side by side, as a PNG download named for the time on screen.
+
+function screenshotCanvas() {
+  const view = $("view");
+  if (state.eventsLayer !== "beside") return view;
+  const side = $("events-view");
+  const out = document.createElement("canvas");
+  out.width = view.width + side.width;
+  out.height = Math.max(view.height, side.height);
+  const ctx = out.getContext("2d");
+  ctx.drawImage(view, 0, 0);
+  ctx.drawImage(side, view.width, 0);
+  return out;
+}
+
+function saveScreenshot() {
+  if (!state.image) { showError("screenshot: nothing on screen yet"); return; }
+  const t = state.tUs === null || state.tUs === undefined ? "head" : `${secondsOf(state.tUs).toFixed(3)}s`;
+  screenshotCanvas().toBlob((blob) => {
+    if (!blob) { showError("screenshot: the browser could not encode the PNG"); return; }
+    const link = document.createElement("a");
+    link.href = URL.createObjectURL(blob);
+    link.download = `edmcgs-t${t}.png`;
+    document.body.append(link);
+    link.click();
+    link.remove();
+    setTimeout(() => URL.revokeObjectURL(link.href), 10_000);
+  }, "image/png");
+}
+
+// ---- the far-view notice
+
+function updateFarNotice() {
+  const notice = $("far-notice");
+  const pose = currentPose();
+  const near = pose && state.scene ? nearestTrainingView(state.scene.training_views, pose) : null;
+  notice.hidden = !(near && near.far);
+  if (!notice.hidden) {
+    $("far-text").textContent = `This view is far from every training view (the nearest is ` +
+      `${near.angleDeg.toFixed(0)}° turned and ${near.distance.toFixed(2)}× the scene's distance away). ` +
+      "The model only saw the scene from its training cameras: from here it shows surfaces no camera saw, " +
+      "smeared. Reset (r) goes back to the event camera.";
+  }
 }
 
 function shown(frame) {
@@ -390,6 +569,7 @@ function shown(frame) {
     }
   }
   if (frame.events !== undefined) $("events").textContent = String(frame.events);
+  wantEvents(frame.t_us);
   if (frame.render_ms !== undefined) $("render-ms").textContent = `${frame.render_ms.toFixed(1)} ms`;
   if (frame.dropped !== undefined) $("dropped").textContent = String(frame.dropped);
   $("frames").textContent = String(state.frames);
@@ -542,6 +722,7 @@ function viewChanged() {
   state.viewDirty = true;
   requestAnimationFrame(() => {
     state.viewDirty = false;
+    updateFarNotice();
     if (state.playing) subscribe();
     else renderStill();
   });
@@ -609,6 +790,15 @@ function bindControls() {
   $("play").addEventListener("click", () => setPlaying(!state.playing));
   $("reset").addEventListener("click", () => { state.orbit = null; viewChanged(); });
   $("scale").addEventListener("change", viewChanged);
+  $("events-layer").addEventListener("change", () => setEventsLayer($("events-layer").value));
+  $("screenshot").addEventListener("click", saveScreenshot);
+  // A new window size is a new render size in "fit"; the observer fires for every step of a drag.
+  let lastSize = "";
+  new ResizeObserver(() => {
+    if (!state.scene || $("scale").value !== "fit") return;
+    const size = renderSize().join("x");
+    if (size !== lastSize) { lastSize = size; viewChanged(); }
+  }).observe(document.querySelector("main"));
   $("error-close").addEventListener("click", () => { $("error").hidden = true; });
   $("slider").addEventListener("input", () => {
     if (state.playing) setPlaying(false);  // grabbing the slider leaves the live head
@@ -619,6 +809,7 @@ function bindControls() {
     if (e.target instanceof HTMLInputElement || e.target instanceof HTMLSelectElement) return;
     if (e.key === " ") { e.preventDefault(); setPlaying(!state.playing); }
     if (e.key === "r") { state.orbit = null; viewChanged(); }
+    if (e.key === "e") setEventsLayer(state.eventsLayer === "off" ? "over" : "off");
   });
 }
 
@@ -642,7 +833,10 @@ async function start() {
 }
 
 // The pure parts, for a console or a test page.
-window.edmcgsViewer = { state, unpack, poseAt, Orbit, quatFromRot, rotFromQuat, currentPose };
+window.edmcgsViewer = {
+  state, unpack, poseAt, Orbit, quatFromRot, rotFromQuat, currentPose, renderSize, nearestTrainingView,
+  FAR_ANGLE_DEG, FAR_DISTANCE,
+};
 
 // index.html inserts this script from <head>: wait for the page's elements.
 if (document.readyState === "loading") document.addEventListener("DOMContentLoaded", start);
