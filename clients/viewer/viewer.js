@@ -264,7 +264,7 @@ const state = {
   pending: null,          // the newest frame not yet drawn (older ones are dropped: only the newest matters)
   image: null,            // the render on screen, decoded (ImageBitmap, or ImageData for raw frames)
   eventsLayer: "off",     // the events layer: off, over the render, or beside it
-  events: null,           // {tUs, bitmap}: the newest event map drawn (GET /events, DV-style PNG)
+  events: null,           // {tUs, pixels}: the newest event map (GET /events' DV-style PNG, decoded)
   eventsWanted: null,     // the time whose event map is wanted next (newest wins)
   eventsFetching: false,
   drawing: false,
@@ -431,10 +431,7 @@ function paint() {
   if (image instanceof ImageData) ctx.putImageData(image, 0, 0);
   else ctx.drawImage(image, 0, 0);
   const events = state.eventsLayer !== "off" ? state.events : null;
-  if (events && state.eventsLayer === "over") {
-    ctx.imageSmoothingEnabled = false;
-    ctx.drawImage(events.bitmap, 0, 0, canvas.width, canvas.height);
-  }
+  if (events && state.eventsLayer === "over") overlayEvents(ctx, events.pixels);
   const side = $("events-view");
   side.hidden = state.eventsLayer !== "beside";
   if (!side.hidden) {
@@ -445,11 +442,31 @@ function paint() {
     const sctx = side.getContext("2d");
     sctx.fillStyle = "#fff";
     sctx.fillRect(0, 0, side.width, side.height);
-    if (events) {
-      sctx.imageSmoothingEnabled = false;
-      sctx.drawImage(events.bitmap, 0, 0, side.width, side.height);
+    if (events) overlayEvents(sctx, events.pixels);
+  }
+}
+
+// The event map's coloured pixels over what ctx holds, scaled nearest-neighbour: each output pixel
+// takes the sensor pixel under its centre (a canvas' own scaling leaves the rounding to the browser).
+function overlayEvents(ctx, events) {
+  const { width: w, height: h } = ctx.canvas;
+  const sw = events.width, sh = events.height, src = events.data;
+  const out = ctx.getImageData(0, 0, w, h);
+  const xs = new Int32Array(w);
+  for (let x = 0; x < w; x++) xs[x] = Math.min(sw - 1, Math.floor(((x + 0.5) * sw) / w));
+  for (let y = 0; y < h; y++) {
+    const row = Math.min(sh - 1, Math.floor(((y + 0.5) * sh) / h)) * sw;
+    for (let x = 0; x < w; x++) {
+      const s = 4 * (row + xs[x]);
+      if (src[s + 3] === 0) continue;  // no events at this sensor pixel: the render shows through
+      const d = 4 * (y * w + x);
+      out.data[d] = src[s];
+      out.data[d + 1] = src[s + 1];
+      out.data[d + 2] = src[s + 2];
+      out.data[d + 3] = 255;
     }
   }
+  ctx.putImageData(out, 0, 0);
 }
 
 // ---- the events layer: GET /events for the time on screen, one request in flight, the newest wins.
@@ -477,9 +494,13 @@ async function fetchEvents() {
         showError(`events: ${await errorText(response)}`);
         continue;
       }
+      // The sensor's pixels as they are (opaque colours or fully transparent: no rounding).
       const bitmap = await createImageBitmap(await response.blob());
-      if (state.events) state.events.bitmap.close();
-      state.events = { tUs: Number(response.headers.get("X-Edmcgs-T-Us")), bitmap };
+      const decode = new OffscreenCanvas(bitmap.width, bitmap.height).getContext("2d");
+      decode.drawImage(bitmap, 0, 0);
+      bitmap.close();
+      const pixels = decode.getImageData(0, 0, decode.canvas.width, decode.canvas.height);
+      state.events = { tUs: Number(response.headers.get("X-Edmcgs-T-Us")), pixels };
       paint();
     }
   } catch (err) {

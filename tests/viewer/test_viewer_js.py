@@ -201,3 +201,64 @@ def test_page_hands_its_token_to_every_request(page, static_url):
     assert by_name["viewer.css"][0].endswith("viewer.css?token=s3cret%2Fx")
     scene_url, scene_auth = by_name["scene"]
     assert "token" not in scene_url and scene_auth == "Bearer s3cret/x"  # a header, not in the URL
+
+
+def _nearest_reference(views: dict, pose: np.ndarray, far_deg: float, far_dist: float) -> dict:
+    train = np.array(views["c2w"]).reshape(-1, 4, 4)
+    d = np.linalg.norm(train[:, :3, 3] - pose[:3, 3], axis=1) / views["scale"]
+    cos = np.clip(train[:, :3, 2] @ pose[:3, 2], -1, 1)
+    a = np.degrees(np.arccos(cos))
+    ratio = np.maximum(d / far_dist, a / far_deg)
+    i = int(np.argmin(ratio))
+    return {"distance": d[i], "angleDeg": a[i], "ratio": ratio[i], "far": bool(ratio[i] > 1)}
+
+
+def _orbit_about(pose: np.ndarray, center: np.ndarray, degrees: float) -> np.ndarray:
+    """``pose`` turned by ``degrees`` about the vertical axis through ``center``."""
+    turn = Rotation.from_euler("y", degrees, degrees=True).as_matrix()
+    out = np.eye(4)
+    out[:3, :3] = turn @ pose[:3, :3]
+    out[:3, 3] = center + turn @ (pose[:3, 3] - center)
+    return out
+
+
+def test_nearest_training_view_matches_numpy_and_draws_the_line_at_its_limits(viewer):
+    far_deg, far_dist = viewer.evaluate(
+        "[window.edmcgsViewer.FAR_ANGLE_DEG, window.edmcgsViewer.FAR_DISTANCE]")
+    center = np.array([0.0, 0.0, 2.0])
+    train = []
+    for x in np.linspace(-0.1, 0.1, 9):  # a camera sliding along x, looking down +z at the centre
+        m = np.eye(4)
+        m[0, 3] = x
+        train.append(m)
+    views = {"center": center.tolist(), "scale": 2.0, "c2w": [m.reshape(-1).tolist() for m in train]}
+
+    def nearest(pose: np.ndarray) -> dict:
+        return viewer.evaluate("([v, p]) => window.edmcgsViewer.nearestTrainingView(v, p)",
+                               [views, pose.reshape(-1).tolist()])
+
+    rng = np.random.default_rng(7)
+    poses = []
+    for rot in Rotation.random(40, random_state=8):
+        m = np.eye(4)
+        m[:3, :3] = rot.as_matrix() if rng.random() < 0.5 else Rotation.from_rotvec(
+            rng.normal(scale=0.2, size=3)).as_matrix()
+        m[:3, 3] = rng.normal(scale=0.4, size=3)
+        poses.append(m)
+    for pose in poses:
+        got, want = nearest(pose), _nearest_reference(views, pose, far_deg, far_dist)
+        assert got["far"] == want["far"]
+        for key in ("distance", "angleDeg", "ratio"):
+            assert got[key] == pytest.approx(want[key], abs=1e-6), key
+
+    at = train[4]
+    assert nearest(at) == {"distance": 0, "angleDeg": 0, "ratio": 0, "far": False}
+    rolled = at.copy()
+    rolled[:3, :3] = at[:3, :3] @ Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    assert not nearest(rolled)["far"]  # a roll about the optical axis sees the same rays
+    assert not nearest(_orbit_about(at, center, 0.8 * far_deg))["far"]
+    assert nearest(_orbit_about(at, center, 1.25 * far_deg))["far"]
+    back = at.copy()
+    back[2, 3] -= 1.2 * far_dist * views["scale"]  # straight back, along the axis
+    assert nearest(back)["far"]
+    assert viewer.evaluate("window.edmcgsViewer.nearestTrainingView(null, [])") is None

@@ -1,0 +1,190 @@
+"""The viewer's events layer, far-view notice and screenshot button in a real headless Chromium against
+the real service (edmcgs-serve in a subprocess, a token required)."""
+
+from __future__ import annotations
+
+import base64
+import io
+import re
+
+import numpy as np
+from PIL import Image
+
+from edmcgs import protocol
+from edmcgs.clients.client import Client
+
+FRAMES = "Number(document.getElementById('frames').textContent)"
+IDLE = "!edmcgsViewer.state.rendering && !edmcgsViewer.state.viewDirty"
+EVENTS_SHOWN = ("edmcgsViewer.state.events !== null && !edmcgsViewer.state.eventsFetching && "
+                "edmcgsViewer.state.events.tUs === edmcgsViewer.state.tUs")
+
+
+def _pixels(page, selector: str) -> np.ndarray:
+    """A canvas' own pixels, uint8 [H, W, 3]."""
+    url = page.evaluate(f"document.querySelector({selector!r}).toDataURL('image/png')")
+    return np.asarray(Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1]))).convert("RGB"))
+
+
+def _paused(page, served):
+    page.goto(f"{served.url}/?token={served.token}")
+    page.wait_for_function(f"{FRAMES} >= 3", timeout=30_000)
+    page.click("#play")
+    page.wait_for_function(f"{IDLE} && document.getElementById('status').textContent === 'paused' && "
+                           "edmcgsViewer.state.tUs !== null", timeout=20_000)
+
+
+def _event_map(served, t_us: int) -> np.ndarray:
+    with Client(served.url, served.token) as client:
+        emap, meta = client.events(t_us=t_us)
+    assert meta.t_us == t_us and meta.events > 0
+    return emap
+
+
+def _nearest(emap: np.ndarray, height: int, width: int) -> np.ndarray:
+    """The event map at another size, nearest neighbour (sample at each output pixel's centre)."""
+    ys = ((np.arange(height) + 0.5) * emap.shape[0] / height).astype(int)
+    xs = ((np.arange(width) + 0.5) * emap.shape[1] / width).astype(int)
+    return emap[ys[:, None], xs[None, :]]
+
+
+def test_events_layer_shows_the_windows_events_and_the_toggle_hides_them(page, served, tmp_path):
+    _paused(page, served)
+    render = _pixels(page, "#view")
+    box = page.locator("#view").bounding_box()
+
+    def screen(emap_shape) -> np.ndarray:
+        """The page as a person sees it, at each sensor pixel's centre on the screen, int [H, W, 3]."""
+        path = tmp_path / "shot.png"
+        page.screenshot(path=str(path))
+        shot = np.asarray(Image.open(path).convert("RGB")).astype(np.int64)
+        h, w = emap_shape
+        ys = np.floor(box["y"] + (np.arange(h) + 0.5) * box["height"] / h).astype(int)
+        xs = np.floor(box["x"] + (np.arange(w) + 0.5) * box["width"] / w).astype(int)
+        return shot[ys[:, None], xs[None, :]]
+
+    page.select_option("#events-layer", "over")
+    page.wait_for_function(EVENTS_SHOWN, timeout=10_000)
+    t_us = page.evaluate("edmcgsViewer.state.tUs")
+    emap = _event_map(served, t_us)
+
+    # the canvas: each sensor pixel a block of the event colour where the window's sum is non-zero,
+    # the render untouched elsewhere
+    over = _pixels(page, "#view")
+    up = _nearest(emap, *over.shape[:2])
+    assert (over[up > 0] == protocol.EVENT_ON_RGB).all() and (over[up < 0] == protocol.EVENT_OFF_RGB).all()
+    np.testing.assert_array_equal(over[up == 0], render[up == 0])
+    seen = screen(emap.shape)
+
+    # the toggle: off, and the render is back as it was, on the canvas and on the screen
+    page.keyboard.press("e")
+    assert page.locator("#events-layer").input_value() == "off"
+    np.testing.assert_array_equal(_pixels(page, "#view"), render)
+    hidden = screen(emap.shape)
+
+    # on the screen, the layer turned the pixels of the window's events blue (ON won) or red (OFF won),
+    # and left the others as the render shows them (the browser scales the canvas up smoothly: a
+    # neighbour of an event pixel may take a tint)
+    gain = seen - hidden
+    blue, red = gain[..., 2] - gain[..., 0], gain[..., 0] - gain[..., 2]
+    assert (blue[emap > 0] > 40).mean() > 0.95 and (red[emap < 0] > 40).mean() > 0.95
+    assert (np.abs(gain[emap == 0]).max(-1) < 30).mean() > 0.9
+    on, off = np.array(protocol.EVENT_ON_RGB), np.array(protocol.EVENT_OFF_RGB)
+    assert np.abs(seen[emap > 0] - on).max(-1).mean() < np.abs(hidden[emap > 0] - on).max(-1).mean() - 60
+    assert np.abs(seen[emap < 0] - off).max(-1).mean() < np.abs(hidden[emap < 0] - off).max(-1).mean() - 60
+
+    # beside: the render alone, and the events on white next to it
+    page.select_option("#events-layer", "beside")
+    page.wait_for_function(f"{IDLE} && {EVENTS_SHOWN}", timeout=10_000)
+    side = page.locator("#events-view")
+    assert side.is_visible()
+    assert side.bounding_box()["x"] >= page.locator("#view").bounding_box()["x"] + 10
+    beside = _pixels(page, "#events-view")
+    t_us = page.evaluate("edmcgsViewer.state.tUs")
+    up = _nearest(_event_map(served, t_us), *beside.shape[:2])
+    assert (beside[up > 0] == protocol.EVENT_ON_RGB).all()
+    assert (beside[up < 0] == protocol.EVENT_OFF_RGB).all()
+    assert (beside[up == 0] == 255).all()
+    view = _pixels(page, "#view")  # the render itself carries no events: the camera's size, no event colour
+    assert view.shape == over.shape and not (view == protocol.EVENT_ON_RGB).all(-1).any()
+    page.select_option("#events-layer", "off")
+    assert side.is_hidden()
+    assert page.errors == []
+
+
+def test_far_view_notice_after_an_orbit_away_and_not_at_a_training_view(page, served):
+    page.goto(f"{served.url}/?token={served.token}")
+    page.wait_for_function(f"{FRAMES} >= 3", timeout=30_000)
+    notice = page.locator("#far-notice")
+    assert notice.is_hidden()  # the event camera's own pose
+
+    # a small orbit stays near the training views
+    box = page.locator("#view").bounding_box()
+    x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    page.mouse.move(x, y)
+    page.mouse.down()
+    page.mouse.move(x + 6, y)
+    page.mouse.up()
+    page.wait_for_function("edmcgsViewer.currentPose() !== null && !edmcgsViewer.state.viewDirty")
+    near = page.evaluate("edmcgsViewer.nearestTrainingView(edmcgsViewer.state.scene.training_views, "
+                         "edmcgsViewer.currentPose())")
+    assert 0 < near["angleDeg"] < 5 and not near["far"]
+    assert notice.is_hidden()
+
+    # a long drag turns the camera about 50 degrees about the scene: far, and the notice says why
+    page.mouse.move(x, y)
+    page.mouse.down()
+    for k in range(1, 11):
+        page.mouse.move(x + 12 * k, y)
+    page.mouse.up()
+    notice.wait_for(state="visible", timeout=5000)
+    text = page.locator("#far-text").inner_text()
+    assert "far from every training view" in text
+    assert re.search(r"nearest is \d+° turned", text) and "no camera saw" in text, text
+
+    # another training view than the event camera's at this time: near, no notice
+    page.evaluate("""() => {
+        const v = edmcgsViewer.state.scene.training_views;
+        edmcgsViewer.state.orbit = new edmcgsViewer.Orbit(v.c2w[v.c2w.length - 1], 1.0);
+    }""")
+    page.mouse.move(x, y)
+    page.mouse.down()
+    page.mouse.move(x + 1, y)  # a pixel's orbit: a view change the page reacts to
+    page.mouse.up()
+    page.wait_for_function("!edmcgsViewer.state.viewDirty")
+    notice.wait_for(state="hidden", timeout=5000)
+
+    # and the reset goes back to the event camera: no notice
+    page.mouse.move(x, y)
+    page.mouse.down()
+    for k in range(1, 11):
+        page.mouse.move(x, y + 15 * k)
+    page.mouse.up()
+    notice.wait_for(state="visible", timeout=5000)
+    page.click("#reset")
+    notice.wait_for(state="hidden", timeout=5000)
+    assert page.errors == []
+
+
+def test_screenshot_button_downloads_the_view_as_png(page, served):
+    _paused(page, served)
+    with page.expect_download(timeout=10_000) as info:
+        page.click("#screenshot")
+    download = info.value
+    seconds = page.evaluate("(edmcgsViewer.state.tUs - edmcgsViewer.state.scene.t_start_us) / 1e6")
+    assert download.suggested_filename == f"edmcgs-t{seconds:.3f}s.png"
+    data = open(download.path(), "rb").read()
+    assert data.startswith(b"\x89PNG\r\n\x1a\n")
+    shot = np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
+    np.testing.assert_array_equal(shot, _pixels(page, "#view"))  # exactly the view on screen
+
+    # beside: the render and the events side by side in one picture
+    page.select_option("#events-layer", "beside")
+    page.wait_for_function(f"{IDLE} && {EVENTS_SHOWN}", timeout=10_000)
+    with page.expect_download(timeout=10_000) as info:
+        page.click("#screenshot")
+    both = np.asarray(Image.open(info.value.path()).convert("RGB"))
+    view, side = _pixels(page, "#view"), _pixels(page, "#events-view")
+    assert both.shape == (view.shape[0], view.shape[1] + side.shape[1], 3)
+    np.testing.assert_array_equal(both[:, :view.shape[1]], view)
+    np.testing.assert_array_equal(both[:, view.shape[1]:], side)
+    assert page.errors == []
