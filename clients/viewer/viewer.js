@@ -305,8 +305,12 @@ async function errorText(response) {
 function currentPose() { return state.orbit ? state.orbit.c2w() : null; }
 
 // The render's size: "fit" asks the server for the canvas' size on screen in device pixels (the
-// splats are drawn at that resolution, not a small image stretched), within the server's limits and
-// the camera's aspect ratio; else a multiple of the camera's size.
+// splats are drawn at that resolution, not a small image stretched), in the camera's aspect ratio,
+// within the server's limits and at most MAX_FIT_SCALE times the camera's size: the model learned
+// the scene at the camera's resolution, and past a few times it a render costs more and shows no more
+// than the browser's smooth scaling of it; else a multiple of the camera's size.
+const MAX_FIT_SCALE = 4;
+
 function renderSize() {
   const intr = state.scene.intrinsics;
   const choice = $("scale").value;
@@ -317,16 +321,14 @@ function renderSize() {
     const beside = state.eventsLayer === "beside";
     const w = Math.max(1, (main.clientWidth - pad - (beside ? 8 : 0)) / (beside ? 2 : 1));
     const h = Math.max(1, main.clientHeight - pad);
-    k = Math.min(w / intr.width, h / intr.height) * (window.devicePixelRatio || 1);
+    k = Math.min(MAX_FIT_SCALE, Math.min(w / intr.width, h / intr.height) * (window.devicePixelRatio || 1));
     const limits = state.scene.limits || {};
     if (limits.max_width) k = Math.min(k, limits.max_width / intr.width);
     if (limits.max_height) k = Math.min(k, limits.max_height / intr.height);
   } else {
-    k = Number(choice);
+    k = Number(choice);  // may pass the server's limits: it says so, and the page shows its answer
   }
-  const size = (n, cap) => Math.max(1, Math.min(cap || Infinity, Math.floor(n * k + 1e-9)));
-  const limits = choice === "fit" ? state.scene.limits || {} : {};
-  return [size(intr.width, limits.max_width), size(intr.height, limits.max_height)];
+  return [Math.max(1, Math.floor(intr.width * k + 1e-9)), Math.max(1, Math.floor(intr.height * k + 1e-9))];
 }
 
 const secondsOf = (tUs) => (tUs - state.scene.t_start_us) / 1e6;
@@ -856,7 +858,7 @@ async function start() {
 // The pure parts, for a console or a test page.
 window.edmcgsViewer = {
   state, unpack, poseAt, Orbit, quatFromRot, rotFromQuat, currentPose, renderSize, nearestTrainingView,
-  FAR_ANGLE_DEG, FAR_DISTANCE,
+  FAR_ANGLE_DEG, FAR_DISTANCE, MAX_FIT_SCALE,
 };
 
 // index.html inserts this script from <head>: wait for the page's elements.

@@ -262,3 +262,26 @@ def test_nearest_training_view_matches_numpy_and_draws_the_line_at_its_limits(vi
     back[2, 3] -= 1.2 * far_dist * views["scale"]  # straight back, along the axis
     assert nearest(back)["far"]
     assert viewer.evaluate("window.edmcgsViewer.nearestTrainingView(null, [])") is None
+
+
+def test_fit_asks_for_the_canvas_size_on_screen_within_the_limits(viewer):
+    size = """([intr, limits, layer]) => {
+        const v = window.edmcgsViewer;
+        v.state.scene = {intrinsics: intr, limits};
+        v.state.eventsLayer = layer;
+        const main = document.querySelector('main');
+        return [v.renderSize(), main.clientWidth - 16, main.clientHeight - 16];
+    }"""
+    intr = {"width": 173, "height": 130}
+    big = {"max_width": 1920, "max_height": 1920}
+    viewer.set_viewport_size({"width": 700, "height": 560})
+    (w, h), avail_w, avail_h = viewer.evaluate(size, [intr, big, "off"])
+    k = min(avail_w / 173, avail_h / 130)
+    assert 1 < k < 4 and (w, h) == (int(173 * k), int(130 * k))  # the space on screen, its aspect kept
+    (w2, h2), *_ = viewer.evaluate(size, [intr, big, "beside"])
+    assert w2 < w and w2 <= (avail_w - 8) / 2 and abs(w2 / h2 - 173 / 130) < 0.02  # half the width
+    assert viewer.evaluate(size, [intr, {"max_width": 200, "max_height": 1920}, "off"])[0] == [200, 150]
+    viewer.set_viewport_size({"width": 3000, "height": 2000})
+    assert viewer.evaluate(size, [intr, big, "off"])[0] == [4 * 173, 4 * 130]  # MAX_FIT_SCALE
+    viewer.select_option("#scale", "0.5")
+    assert viewer.evaluate(size, [intr, big, "off"])[0] == [86, 65]
