@@ -492,6 +492,7 @@ async function fetchEvents() {
       url.searchParams.set("t_us", String(tUs));
       url.searchParams.set("format", "png");
       const response = await fetch(url, { headers: authHeaders });
+      if (response.status === 503 && state.playing) continue;  // busy: the next frame asks again
       if (!response.ok) {
         showError(`events: ${await errorText(response)}`);
         continue;

@@ -16,21 +16,15 @@ router = APIRouter()
 FORMAT_DOC = ("png (default): RGBA at the event sensor's size, positive sums blue, negative red, "
               "transparent where zero; msgpack: the signed sums (an event-map map); else from Accept.")
 
-EVENT_MAP_SCHEMA = {
-    "type": "object", "title": "EventMap", "required": list(protocol.EVENT_MAP_KEYS),
-    "properties": {
-        "type": {"type": "string", "enum": ["event_map"]},
-        "t_us": {"type": "integer", "description": "the window's end (exclusive): the time a render shows"},
-        "t": {"type": "number", "description": "the same, seconds from the scene's start"},
-        "anchor_us": {"type": "integer", "description": "tau(t): the window's start (inclusive)"},
-        "events": {"type": "integer", "description": "events in the window"},
-        "width": {"type": "integer"}, "height": {"type": "integer"},
-        "dtype": {"type": "string", "enum": [protocol.EVENT_MAP_DTYPE]},
-        "data": {"type": "string", "format": "binary",
-                 "description": "signed polarity sum per pixel, [height, width] row-major"},
-    },
-}
-"""The msgpack body (``protocol.EventMapMeta.to_message``), as JSON Schema."""
+MSGPACK_DOC = ("a msgpack map: type \"event_map\", t_us (the window's end, exclusive: the time a render "
+               "shows), t, anchor_us (tau(t), the window's start), events (in the window), width, height "
+               "(the event sensor's), dtype \"" + protocol.EVENT_MAP_DTYPE + "\" and data (bytes: the "
+               "signed polarity sum per pixel, [height, width] row-major); protocol.EVENT_MAP_KEYS")
+BODIES = {"image/png": {"schema": {"type": "string", "format": "binary",
+                                   "description": "RGBA at the event sensor's size: ON blue, OFF red"}},
+          "application/msgpack": {"schema": {"type": "string", "format": "binary",
+                                             "description": MSGPACK_DOC}}}
+"""The two bodies: bytes, as every binary body of this API (a msgpack map is no JSON)."""
 
 HEADERS_DOC = {name: {"schema": {"type": "number" if name == protocol.HEADER_T else "integer"}}
                for name in protocol.EVENT_HEADERS}
@@ -42,7 +36,7 @@ HEADERS_DOC = {name: {"schema": {"type": "number" if name == protocol.HEADER_T e
     description=("The events the model's event branch sees for a render at t, summed per pixel with "
                  "their polarity. The same time rules and errors as GET /render; the headers say the "
                  "window (`X-Edmcgs-Anchor-Us` .. `X-Edmcgs-T-Us`) and its event count."),
-    responses={200: {"content": {"image/png": {}, "application/msgpack": {"schema": EVENT_MAP_SCHEMA}},
+    responses={200: {"content": BODIES,
                      "headers": HEADERS_DOC,
                      "description": "the event map; headers " + ", ".join(protocol.EVENT_HEADERS)},
                **{s: ERRORS[s] for s in (416, 422, 503)}})

@@ -47,6 +47,35 @@ def _nearest(emap: np.ndarray, height: int, width: int) -> np.ndarray:
     return emap[ys[:, None], xs[None, :]]
 
 
+def test_events_layer_follows_the_live_stream(page, served):
+    page.goto(f"{served.url}/?token={served.token}")
+    page.wait_for_function(f"{FRAMES} >= 3", timeout=30_000)
+    page.keyboard.press("e")
+    assert page.locator("#events-layer").input_value() == "over"
+    seen = set()
+    for _ in range(3):  # the map of each new frame's window, a moment after the frame
+        page.wait_for_function(f"edmcgsViewer.state.events !== null && "
+                               f"![{','.join(map(str, seen)) or ''}].includes(edmcgsViewer.state.events.tUs)",
+                               timeout=10_000)
+        seen.add(page.evaluate("edmcgsViewer.state.events.tUs"))
+    assert len(seen) == 3 and page.locator("#status").inner_text() == "live"
+    # the canvas and the map it shows, read in one turn of the page's event loop (frames keep coming)
+    url, on_map, off_map = page.evaluate(f"""() => {{
+        const px = edmcgsViewer.state.events.pixels.data;
+        let on = 0, off = 0;
+        for (let i = 0; i < px.length; i += 4) {{
+            if (px[i + 3] === 0) continue;
+            if (px[i + 2] === {protocol.EVENT_ON_RGB[2]}) on++; else off++;
+        }}
+        return [document.getElementById('view').toDataURL('image/png'), on, off];
+    }}""")
+    view = np.asarray(Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1]))).convert("RGB"))
+    on, off = (view == protocol.EVENT_ON_RGB).all(-1).sum(), (view == protocol.EVENT_OFF_RGB).all(-1).sum()
+    assert (on > 0) == (on_map > 0) and (off > 0) == (off_map > 0), (on, off, on_map, off_map)
+    assert on >= on_map and off >= off_map  # the canvas is larger: each sensor pixel takes 1 or 2 pixels
+    assert page.errors == [] and page.locator("#error").is_hidden()
+
+
 def test_events_layer_shows_the_windows_events_and_the_toggle_hides_them(page, served, tmp_path):
     _paused(page, served)
     render = _pixels(page, "#view")
