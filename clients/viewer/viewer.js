@@ -516,6 +516,7 @@ async function fetchEvents() {
 function setEventsLayer(layer) {
   const resized = (layer === "beside") !== (state.eventsLayer === "beside");
   state.eventsLayer = layer;
+  if (layer === "off") state.events = null;  // switched on again, it shows no stale map meanwhile
   $("events-layer").value = layer;
   document.querySelector("main").classList.toggle("beside", layer === "beside");
   paint();
