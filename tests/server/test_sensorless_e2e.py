@@ -125,3 +125,12 @@ def test_a_checkpoint_with_an_event_branch_alone_is_refused_naming_the_fix(scene
                            "--port", "0"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 1 and "Traceback" not in done.stderr
     assert "has an event branch" in done.stderr and "--replay REC" in done.stderr
+
+
+def test_event_maps_are_empty_without_a_sensor(client):
+    emap, meta = client.events(t=0.6)
+    assert emap.shape == (HEIGHT, WIDTH) and not emap.any() and meta.events == 0
+    _image, render = client.render(t=0.6)
+    assert (meta.t_us, meta.anchor_us) == (render.t_us, render.anchor_us)
+    with pytest.raises(TimeUnavailable):
+        client.events(t=5.0)
