@@ -6,6 +6,7 @@ Imports nothing of the project but the wire schema (``edmcgs.protocol``)::
         scene = c.scene()
         image, meta = c.render(t=0.5)                          # uint8 [H, W, C] and RenderMeta
         png, meta = c.render(t=0.5, pose=[...16...], format="png")
+        emap, meta = c.events(t=0.5)                           # I_E of its window: int32 [H, W], EventMapMeta
         with c.stream({"mode": "sweep", "t0": 0, "t1": 1, "fps": 30}) as frames:
             for frame in frames:                               # Frame, newest first when slow
                 ...
