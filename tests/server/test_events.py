@@ -3,7 +3,6 @@ map, the route's parameter errors and schema (no render reached), and the traini
 
 from __future__ import annotations
 
-import asyncio
 import io
 import types
 
@@ -17,6 +16,7 @@ from edmcgs.geometry import Trajectory
 from edmcgs.server.encode import encode, event_rgba
 from edmcgs.server.settings import LOOPBACK
 from edmcgs.server.views import MAX_VIEWS, training_views
+from tests.support.stub import StubService
 
 
 def test_event_picture_is_blue_for_on_red_for_off_and_clear_elsewhere():
@@ -95,25 +95,7 @@ def test_cameras_at_the_centre_take_the_models_extent_and_no_trajectory_gives_no
 
 # ------------------------------------------------------------------ the route, before any render
 
-class _Service:
-    """What the routes touch before a render; an event map is never reached here."""
-
-    def __init__(self, settings):
-        from edmcgs.server.render_pool import RenderPool
-        from edmcgs.server.service import Metrics
-
-        self.settings, self.metrics = settings, Metrics()
-        self.pool = RenderPool(1, 1)
-        self.signal = types.SimpleNamespace(wait=lambda timeout: asyncio.sleep(timeout))
-        t0 = 1_600_000_000_000_000
-        self.engine = types.SimpleNamespace(t_us_of_seconds=lambda t: t0 + round(t * 1e6))
-
-    def start(self, loop):
-        pass
-
-    def close(self):
-        self.pool.close()
-
+class _Service(StubService):
     def event_map(self, t_us, fmt):
         raise AssertionError("a malformed request reached the event map")
 
@@ -155,4 +137,5 @@ def test_openapi_documents_the_route_its_bodies_and_errors(app_client):
                for key in protocol.EVENT_MAP_KEYS)
     assert set(ok["headers"]) == set(protocol.EVENT_HEADERS)
     for status in ("401", "416", "422", "503"):
-        assert get["responses"][status]["content"]["application/json"]["schema"]["title"] == "ErrorBody"
+        body = get["responses"][status]["content"]["application/json"]["schema"]
+        assert body == {"$ref": "#/components/schemas/ErrorBody"}
