@@ -540,19 +540,42 @@ function screenshotCanvas() {
   return out;
 }
 
+function download(blob, name) {
+  const link = document.createElement("a");
+  link.href = URL.createObjectURL(blob);
+  link.download = name;
+  document.body.append(link);
+  link.click();
+  link.remove();
+  setTimeout(() => URL.revokeObjectURL(link.href), 10_000);
+}
+
+function timeName() {
+  return state.tUs === null || state.tUs === undefined ? "head" : `${secondsOf(state.tUs).toFixed(3)}s`;
+}
+
 function saveScreenshot() {
   if (!state.image) { showError("screenshot: nothing on screen yet"); return; }
-  const t = state.tUs === null || state.tUs === undefined ? "head" : `${secondsOf(state.tUs).toFixed(3)}s`;
   screenshotCanvas().toBlob((blob) => {
     if (!blob) { showError("screenshot: the browser could not encode the PNG"); return; }
-    const link = document.createElement("a");
-    link.href = URL.createObjectURL(blob);
-    link.download = `edmcgs-t${t}.png`;
-    document.body.append(link);
-    link.click();
-    link.remove();
-    setTimeout(() => URL.revokeObjectURL(link.href), 10_000);
+    download(blob, `edmcgs-t${timeName()}.png`);
   }, "image/png");
+}
+
+// ---- the PLY download: GET /ply at the time on screen (the deformed Gaussians, 3DGS layout)
+
+async function savePly() {
+  if (state.tUs === null || state.tUs === undefined) { showError("PLY: nothing on screen yet"); return; }
+  const url = new URL("ply", location.href);
+  url.search = "";
+  url.searchParams.set("t_us", String(state.tUs));
+  try {
+    const response = await fetch(url, { headers: authHeaders });
+    if (!response.ok) { showError(`PLY: ${await errorText(response)}`); return; }
+    download(await response.blob(), `edmcgs-t${timeName()}.ply`);
+  } catch (err) {
+    showError(`PLY: ${err.message}`);
+  }
 }
 
 // ---- the far-view notice
@@ -817,6 +840,7 @@ function bindControls() {
   $("scale").addEventListener("change", viewChanged);
   $("events-layer").addEventListener("change", () => setEventsLayer($("events-layer").value));
   $("screenshot").addEventListener("click", saveScreenshot);
+  $("ply").addEventListener("click", savePly);
   // A new window size is a new render size in "fit"; the observer fires for every step of a drag.
   let lastSize = "";
   new ResizeObserver(() => {

@@ -229,3 +229,17 @@ def test_screenshot_button_downloads_the_view_as_png(page, served):
     np.testing.assert_array_equal(both[:, :view.shape[1]], view)
     np.testing.assert_array_equal(both[:, view.shape[1]:], side)
     assert page.errors == []
+
+
+def test_ply_button_downloads_the_gaussians_at_the_time_on_screen(page, served):
+    _paused(page, served)
+    with page.expect_download(timeout=20_000) as info:
+        page.click("#ply")
+    download = info.value
+    t_us = page.evaluate("edmcgsViewer.state.tUs")
+    seconds = page.evaluate("(edmcgsViewer.state.tUs - edmcgsViewer.state.scene.t_start_us) / 1e6")
+    assert download.suggested_filename == f"edmcgs-t{seconds:.3f}s.ply"
+    data = open(download.path(), "rb").read()
+    with Client(served.url, served.token) as client:
+        assert data == client.ply(t_us=t_us)  # what GET /ply gives for that time, byte for byte
+    assert data.startswith(b"ply\n") and page.errors == []
