@@ -32,4 +32,4 @@ bench:  ## every benchmark, JSON into reports/bench/
 demo:   ## regenerate the bundled demo scene (server/demo/) from the synthetic benchmark
 	scripts/bootstrap.sh
 	.venv/bin/edmcgs synth jumpingjack --fps 5 --size small --seed 0 --compress -q -o server/demo/scene.h5
-	.venv/bin/edmcgs train server/demo/scene.h5 --config demo -o server/demo/scene.ckpt
+	.venv/bin/edmcgs train server/demo/scene.h5 --config demo --force -o server/demo/scene.ckpt

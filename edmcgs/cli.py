@@ -26,6 +26,9 @@ def main(argv: list[str] | None = None) -> int:
             f"{name}: {text}" for name, (_, text) in COMMANDS.items()))
         parser.parse_args(argv[:1])
         return 2
+    if "--version" in argv[1:]:  # every subcommand answers it, the same way
+        print(f"edmcgs {__version__}")
+        return 0
     module = importlib.import_module(COMMANDS[argv[0]][0])
     return int(module.main(argv[1:]) or 0)
 

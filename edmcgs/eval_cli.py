@@ -20,6 +20,8 @@ def main(argv: list[str] | None = None) -> int:
                              "checkpoint's anchors are scored")
     parser.add_argument("--demo", action="store_true", help="evaluate the bundled demo scene")
     parser.add_argument("--csv", help="write one row per held-out frame here")
+    parser.add_argument("-q", "--quiet", action="store_true",
+                        help="only the comparison with the baselines (no per-frame table)")
     parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     parser.add_argument("--lpips-vgg", metavar="PTH",
@@ -87,10 +89,29 @@ def _run(args) -> int:
                                  *(f"{v:{f}}" for b in base for v, f in ((b.psnr, ".4f"), (b.ssim, ".5f"))),
                                  f"{r.ssim_3dgs:.5f}"])
     summary = summarize(rows)
+    if not args.quiet:
+        _frame_table(rows, baselines, summary, model.meta.t_start_us, lpips is not None)
+    print(comparison.markdown())
+    print()
+    for line in comparison.losses("model", BASELINES):
+        print(f"WARNING: the {line}")
+    if skipped:
+        print(f"{skipped} held-out frame(s) outside the trained span were skipped")
+    if not args.quiet:
+        print(missing_weights(args.lpips_vgg, args.lpips_lin) if lpips is None
+              else f"LPIPS (VGG) from {weights[0]} and {weights[1]}")
+    return 0
+
+
+def _frame_table(rows, baselines: dict, summary: dict, t0: int, lpips: bool) -> None:
+    """One line per held-out frame: the model's scores beside each baseline's PSNR, then the means."""
+    import numpy as np
+
+    from edmcgs.model.eval.baselines import BASELINES, SHORT
+
     print("| frame | t (ms from first anchor) | events | PSNR (dB) | SSIM | SSIM (3DGS) |"
           + (" LPIPS |" if lpips else "") + "".join(f" {SHORT[name]}: PSNR |" for name in BASELINES))
     print("|---:|---:|---:|---:|---:|---:|" + ("---:|" if lpips else "") + "---:|" * len(BASELINES))
-    t0 = model.meta.t_start_us
     for r, *base in zip(rows, *baselines.values(), strict=True):
         print(f"| {r.index} | {(r.t_us - t0) / 1000:.1f} | {r.events} | {r.psnr:.2f} | {r.ssim:.4f} "
               f"| {r.ssim_3dgs:.4f} |" + (f" {r.lpips:.4f} |" if lpips else "")
@@ -100,15 +121,6 @@ def _run(args) -> int:
           + (f" **{summary['lpips']:.4f}** |" if lpips else "")
           + "".join(f" {np.mean([b.psnr for b in rows_b]):.2f} |" for rows_b in baselines.values()))
     print()
-    print(comparison.markdown())
-    print()
-    for line in comparison.losses("model", BASELINES):
-        print(f"WARNING: the {line}")
-    if skipped:
-        print(f"{skipped} held-out frame(s) outside the trained span were skipped")
-    print(missing_weights(args.lpips_vgg, args.lpips_lin) if lpips is None
-          else f"LPIPS (VGG) from {weights[0]} and {weights[1]}")
-    return 0
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("-o", "--output", required=True, type=Path, help="PLY file to write (atomically)")
     parser.add_argument("--recording", help="the checkpoint's recording: its events drive the event branch")
     parser.add_argument("--force", action="store_true", help="replace OUTPUT if it exists")
+    parser.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
     args = parser.parse_args(argv)
     if args.output.exists() and not args.force:
         parser.error(f"{args.output} exists (use --force to replace it)")
@@ -59,10 +60,12 @@ def _run(args) -> int:
         data = training_data(open_recording(args.recording, RecordingOptions()))
         if data.event_map is not None and t_us > tau:
             emap = np.asarray(data.event_map(tau, t_us), dtype=np.float32)
-    elif model.transition is not None and t_us > tau:
+    elif model.transition is not None and t_us > tau and not args.quiet:
         print("no --recording: the event branch sees no events (the time prior alone)")
     state = model.deform(t_us, emap)
     write_ply(state, args.output)
+    if args.quiet:
+        return 0
     if model.bg_layer is not None:
         print("the checkpoint's distant background layer is not a set of Gaussians: it is not in the PLY")
     events = 0 if emap is None else int(np.abs(emap).sum())

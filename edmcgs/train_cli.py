@@ -4,6 +4,7 @@ becomes training data and config through ``edmcgs.pipeline``)."""
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import threading
@@ -40,12 +41,15 @@ def main(argv: list[str] | None = None) -> int:
                         help="torch CPU threads (default 1: on a CPU shared with other work, OpenMP threads "
                              "that spin-wait for each other are many times slower than one thread)")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--force", action="store_true", help="replace OUTPUT if it exists (else --resume it)")
     add_recording_arguments(parser)
     args = parser.parse_args(argv)
     if args.list_config:
         return _list_config(args.config)
     if args.recording is None or args.output is None:
         parser.error("give RECORDING and -o CHECKPOINT (or --list-config)")
+    if args.resume is None and not args.force and os.path.exists(args.output):
+        parser.error(f"{args.output} exists: --force replaces it, --resume continues its run")
     if args.steps is not None and args.steps < 1:
         parser.error(f"--steps must be >= 1, got {args.steps}")
     if args.tensorboard:

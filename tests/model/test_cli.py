@@ -35,6 +35,18 @@ def test_train_then_eval(recording, tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "| **mean** (2 frames)" in printed and "LPIPS (VGG) skipped" in printed
 
+    # eval -q: the comparison with the baselines alone
+    assert main(["eval", str(ckpt), str(recording), "-q"]) == 0
+    quiet = capsys.readouterr().out
+    assert "| **mean**" not in quiet and "| hold last anchor |" in quiet and "LPIPS" not in quiet
+
+    # an existing checkpoint is replaced only with --force (and continued with --resume)
+    before = ckpt.read_bytes()
+    with pytest.raises(SystemExit) as exc:
+        main(args)
+    assert exc.value.code == 2 and "--force replaces it" in capsys.readouterr().err
+    assert ckpt.read_bytes() == before
+
     # resume: two more iterations from the finished run
     resume = ["train", str(recording), "-o", str(ckpt), "--quiet", "--resume"]
     assert main([*resume, "--set", "iterations=8", "--set", "lambda_event=0.5"]) == 0
@@ -87,3 +99,12 @@ def test_list_config_prints_every_key_by_part_with_its_value_and_description(cap
     with pytest.raises(SystemExit):
         main(["train"])
     assert "--list-config" in capsys.readouterr().err
+
+
+def test_every_subcommand_answers_version(capsys):
+    from edmcgs import __version__
+    from edmcgs.cli import COMMANDS
+
+    for command in COMMANDS:
+        assert main([command, "--version"]) == 0
+        assert capsys.readouterr().out == f"edmcgs {__version__}\n"

@@ -84,6 +84,8 @@ def test_the_export_ply_command(tmp_path, capsys):
     assert "use --force" in capsys.readouterr().err
     assert main(["export-ply", str(ckpt), "--t", "9", "-o", str(out), "--force"]) == 1
     assert "outside the checkpoint's span" in capsys.readouterr().err
+    assert main(["export-ply", str(ckpt), "--t", "0.05", "-o", str(out), "--force", "-q"]) == 0
+    assert capsys.readouterr().out == "" and out.stat().st_size > 0
 
 
 def test_gaussians_of_other_anchor_windows_are_left_out(tmp_path):
