@@ -13,7 +13,7 @@ PYTHON=${PYTHON:-python3}
 TORCH_SPEC=${EDMCGS_TORCH_SPEC:-torch==2.13.0}
 TORCH_INDEX=${EDMCGS_TORCH_INDEX-https://download.pytorch.org/whl/cpu}
 mode=serve extras=""
-if [[ "${1:-}" == "--test" ]]; then mode=test extras="[dev]"; fi
+if [[ "${1:-}" == "--test" ]]; then mode=test extras="[dev,ray]"; fi
 
 if [[ $mode == test ]] && ! command -v chromium >/dev/null 2>&1; then
   if [[ $(id -u) -eq 0 ]] && command -v apt-get >/dev/null 2>&1; then

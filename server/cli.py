@@ -6,6 +6,7 @@
     edmcgs-serve --live --checkpoint scene.ckpt              # a DAVIS346 over USB
     edmcgs-serve --checkpoint scene.ckpt                     # no sensor: a checkpoint without events,
                                                              # its span played in a loop (--speed)
+    edmcgs-serve --ray scenes.yaml                           # many scenes on Ray Serve (extra: ray)
 
 Every flag is also an ``EDMCGS_<NAME>`` environment variable (flags win); ``EDMCGS_TOKEN`` makes every
 route require ``Authorization: Bearer <token>``.
@@ -38,6 +39,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--host", help="interface to bind (default 127.0.0.1)")
     p.add_argument("--port", type=int, help="TCP port (default 8000; 0: any free port)")
     p.add_argument("--device", help="torch device of the model: cpu (default), cuda, cuda:1 ...")
+    p.add_argument("--ray", metavar="CONFIG", help="serve the scenes of a YAML config on Ray Serve (the "
+                                                   "'ray' extra; joins RAY_ADDRESS, else a local Ray)")
+    p.add_argument("--ray-cpus", type=int, metavar="N", help="CPUs of the local Ray --ray starts")
     p.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
     p.add_argument("--version", action="version", version=f"edmcgs-serve {__version__}")
     return p
@@ -57,6 +61,8 @@ class _RedactToken(logging.Filter):
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    if args.ray is not None:
+        return _main_ray(args)
     # Before torch and numba start their OpenMP pools: waiting threads sleep instead of spinning. On a
     # small shared CPU, spinning workers of two pools (torch's, numba's) and two render threads starve
     # each other, and the deformation slows by an order of magnitude. An explicit OMP_WAIT_POLICY in the
@@ -103,6 +109,29 @@ def main(argv: list[str] | None = None) -> int:
         if not server.started:  # the lifespan never ran: close what was opened here
             service.close()
     return 0 if server.started else 1
+
+
+def _main_ray(args: argparse.Namespace) -> int:
+    """``--ray CONFIG``: the scenes' own settings come from the config, so the one-scene flags are refused."""
+    given = [f"--{k.replace('_', '-')}" for k, v in vars(args).items()
+             if v is not None and k not in ("ray", "ray_cpus", "log_level")]
+    if given:
+        print(f"edmcgs-serve: {', '.join(given)} cannot be combined with --ray: each scene's settings are in "
+              "its config", file=sys.stderr)
+        return 2
+    logging.basicConfig(level=args.log_level.upper(),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        from edmcgs.server.ray_serve.app import main as ray_main
+    except ImportError as exc:
+        print(f"edmcgs-serve: --ray needs the 'ray' extra (pip install 'edmcgs[ray]'): {exc}",
+              file=sys.stderr)
+        return 2
+    try:
+        return ray_main(args.ray, num_cpus=args.ray_cpus)
+    except EdmcgsError as exc:
+        print(f"edmcgs-serve: {exc}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -1,0 +1,115 @@
+"""The Serve application built from a config: one deployment per scene, behind the gateway.
+
+    edmcgs-serve --ray scenes.yaml          # a local Ray, or the cluster at RAY_ADDRESS
+    serve run edmcgs.server.ray_serve.app:app_builder config=scenes.yaml
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+from ray import serve
+
+from edmcgs.errors import InvalidInputError
+from edmcgs.server.ray_serve.config import RayConfig, SceneConfig, load_config
+from edmcgs.server.ray_serve.gateway import Gateway
+from edmcgs.server.ray_serve.scene import SceneReplica
+
+log = logging.getLogger("edmcgs.server.ray")
+
+APP_NAME = "edmcgs"
+HEALTH_CHECK_PERIOD_S = 2.0
+"""Serve's probe of each replica: how soon a hung replica is replaced (a dead one is noticed at once)."""
+
+
+def _check_settings(scene: SceneConfig) -> dict[str, Any]:
+    """The scene's settings, validated here (the driver) so a typo fails before any replica starts."""
+    from edmcgs.server.settings import Settings
+
+    values = scene.settings_dict()
+    try:
+        settings = Settings(**values)
+    except ValidationError as exc:
+        lines = [f"{'.'.join(str(p) for p in e['loc']) or 'settings'}: {e['msg']}" for e in exc.errors()]
+        raise InvalidInputError(f"scene {scene.name!r}: " + "; ".join(lines)) from None
+    values["_concurrency"] = settings.render_workers + settings.render_queue + settings.max_streams
+    return values
+
+
+def describe(scene: SceneConfig) -> dict[str, Any]:
+    """What ``GET /scenes`` says of a scene besides its health."""
+    if scene.demo:
+        source = {"kind": "replay", "file": "bundled demo", "loop": True}
+        checkpoint = "bundled demo"
+    else:
+        checkpoint = scene.checkpoint.name
+        source = ({"kind": "live"} if scene.live else
+                  {"kind": "replay", "file": scene.replay.name, "loop": scene.loop} if scene.replay else
+                  {"kind": "none"})
+    return {"name": scene.name, "checkpoint": checkpoint, "source": source, "replicas": scene.replicas}
+
+
+def build(config: RayConfig):
+    """The application: the gateway (ingress) bound to one deployment per scene."""
+    scenes, info = {}, {}
+    for scene in config.scenes:
+        values = _check_settings(scene)
+        concurrency = values.pop("_concurrency")
+        deployment = serve.deployment(SceneReplica).options(
+            name=f"scene-{scene.name}", num_replicas=scene.replicas,
+            ray_actor_options={"num_cpus": scene.cpus_per_replica},
+            # Each open stream holds a call for its life; renders past the pool's queue get its 503.
+            max_ongoing_requests=concurrency, max_queued_requests=scene.max_queued,
+            health_check_period_s=HEALTH_CHECK_PERIOD_S, graceful_shutdown_timeout_s=5)
+        scenes[scene.name] = deployment.bind(scene.name, values)
+        info[scene.name] = describe(scene)
+    gateway = serve.deployment(Gateway).options(name="gateway", num_replicas=1,
+                                                ray_actor_options={"num_cpus": 0},
+                                                max_ongoing_requests=1000)
+    return gateway.bind(scenes, info)
+
+
+def app_builder(args: dict[str, str]):
+    """``serve run edmcgs.server.ray_serve.app:app_builder config=PATH``."""
+    if "config" not in args:
+        raise InvalidInputError("give the scenes' YAML: serve run ...:app_builder config=PATH")
+    return build(load_config(args["config"]))
+
+
+def start(config: RayConfig, *, name: str = APP_NAME) -> None:
+    """Start Serve's proxy where the config says and run the application (Ray must be initialised);
+    returns once every scene's replicas are up."""
+    serve.start(http_options={"host": config.http.host, "port": config.http.port})
+    serve.run(build(config), name=name, route_prefix="/")
+
+
+def main(config_path: str | Path, *, num_cpus: int | None = None) -> int:
+    """``edmcgs-serve --ray CONFIG``: serve until Ctrl-C, then shut Serve (and a Ray started here) down."""
+    import ray
+
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    config = load_config(config_path)
+    # SIGTERM (a container's stop, timeout, kill) ends as Ctrl-C does: Serve and Ray shut down.
+    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
+    joined = bool(os.environ.get("RAY_ADDRESS"))
+    ray.init(num_cpus=None if joined else num_cpus, include_dashboard=False)
+    try:
+        start(config)
+        log.info("serving %d scene(s) on http://%s:%d/scenes", len(config.scenes), config.http.host,
+                 config.http.port)
+        print(f"edmcgs-serve --ray: {', '.join(s.name for s in config.scenes)} on "
+              f"http://{config.http.host}:{config.http.port}/scenes", flush=True)
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        serve.shutdown()
+        if not joined:
+            ray.shutdown()

@@ -1,0 +1,114 @@
+"""A render replica of one scene: the single-process service (its source, ring, deformation cache and
+render pool) running in-process, answering the gateway's forwarded requests and websocket sessions.
+
+A replica whose checkpoint or source fails to open stays up and says so: its ``/healthz`` answers 503
+with the error (``source: "error"``), every other route 503 ``not_ready``. Failing its constructor
+instead would have Serve restart it in a loop and mark the whole application failed; this way the
+failure stays the scene's own and the other scenes keep serving.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import os
+import time
+from collections.abc import AsyncIterator
+
+from edmcgs import protocol
+from edmcgs.server.ray_serve.asgi import HttpResult, WebSocketSession, WsMessage, http_request
+
+log = logging.getLogger("edmcgs.server.ray")
+
+
+REPLICA_HEADER = "X-Edmcgs-Replica"
+"""Response header naming the replica that answered (its Ray actor's name, in Serve's namespace)."""
+
+
+def _replica_name() -> str:
+    """This replica's actor name (``ray.get_actor(name, namespace="serve")`` finds it)."""
+    from ray import serve
+
+    try:
+        return serve.get_replica_context().replica_id.to_full_id_str()
+    except Exception:  # constructed outside Serve (a unit test)
+        return "local"
+
+
+class SceneReplica:
+    """Serve deployment class of a scene (``app.py`` wraps it with ``serve.deployment``)."""
+
+    async def __init__(self, name: str, settings: dict):
+        # As edmcgs-serve does, before torch and numba start their pools (see server/cli.py).
+        os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+        from edmcgs.errors import EdmcgsError
+        from edmcgs.server.app import create_app
+        from edmcgs.server.service import Service
+        from edmcgs.server.settings import Settings
+
+        self.name = name
+        self.replica = _replica_name()
+        self.failure: str | None = None
+        self.started_unix = time.time()
+        self._service = None
+        self.app = None
+        try:
+            parsed = Settings(**settings)
+            self._service = await asyncio.to_thread(Service.open, parsed)
+        except (EdmcgsError, OSError, ValueError) as exc:
+            self.failure = f"{type(exc).__name__}: {exc}"
+            log.error("scene %s failed to open: %s", name, self.failure)
+            return
+        service = self._service
+        self.app = create_app(parsed, service_factory=lambda _settings: service)
+        # The app's lifespan starts the ingest thread and binds the service to this replica's loop.
+        self._lifespan = self.app.router.lifespan_context(self.app)
+        await self._lifespan.__aenter__()
+        log.info("scene %s: replica ready", name)
+
+    def __del__(self):
+        service, self._service = getattr(self, "_service", None), None
+        if service is not None:
+            service.close()
+
+    def check_health(self) -> None:
+        """Serve's periodic probe: a replica is healthy while it answers; a scene's failure is reported
+        on its own health route, never by restarting the replica."""
+
+    def _failed(self, path: str) -> HttpResult:
+        if path == "/healthz":
+            body = {"ready": False, "model": "failed", "source": "error", "source_error": self.failure,
+                    "uptime_s": round(time.time() - self.started_unix, 3)}
+        else:
+            body = protocol.ErrorBody(protocol.ErrorCode.NOT_READY,
+                                      f"scene {self.name!r} failed to open: {self.failure}").to_message()
+        return HttpResult(503, [("content-type", "application/json"), ("retry-after", "1")],
+                          json.dumps(body).encode())
+
+    async def http(self, method: str, path: str, query: str, headers: list[tuple[str, str]],
+                   client: str = "127.0.0.1") -> HttpResult:
+        """One HTTP request of the scene's API (``path`` without the ``/scenes/{name}`` prefix)."""
+        result = self._failed(path) if self.app is None else await http_request(
+            self.app, method, path, query, headers, client)
+        result.headers.append((REPLICA_HEADER, self.replica))
+        return result
+
+    async def stream(self, path: str, query: str, headers: list[tuple[str, str]],
+                     messages: list[bytes | str], client: str = "127.0.0.1") -> AsyncIterator[WsMessage]:
+        """A websocket session: ``messages`` (the client's so far) are sent in order, then what the
+        app sends is yielded until it closes or the caller stops iterating."""
+        if self.app is None:
+            body = protocol.ErrorBody(protocol.ErrorCode.NOT_READY,
+                                      f"scene {self.name!r} failed to open: {self.failure}").to_message()
+            yield WsMessage(bytes=protocol.pack(body))
+            yield WsMessage(close=1013, reason="scene not ready")
+            return
+        session = WebSocketSession(self.app, path, query, headers, client).start()
+        try:
+            for message in messages:
+                session.send(message)
+            async for item in session.messages():
+                yield item
+        finally:
+            await session.close()

@@ -1,0 +1,152 @@
+"""Many scenes on a local Ray Serve (``ray.init(num_cpus=2)``), one Ray for the module: two scenes and
+their routing, the websocket through the gateway, a replica killed mid-load with no 5xx, and a scene
+whose source fails isolated from the others."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import httpx
+import pytest
+
+pytest.importorskip("ray.serve", reason="the 'ray' extra is not installed")
+
+from edmcgs import protocol  # noqa: E402
+from tests.support.ray_serve import LocalServe, scene_entry  # noqa: E402
+from tests.support.server import HEIGHT, WIDTH, build_scene  # noqa: E402
+
+pytestmark = pytest.mark.slow
+
+REPLICA = "x-edmcgs-replica"
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("ray-scenes")
+    common = dict(width=WIDTH, height=HEIGHT, event_rate=20_000, init_points=1000, control_points=32)
+    rec_a, ckpt_a = build_scene(folder / "a", seed=1, **common)
+    rec_b, ckpt_b = build_scene(folder / "b", seed=2, t0_us=1_700_000_000_000_000, **common)
+    broken = folder / "broken.h5"
+    broken.write_bytes(b"this is not an HDF5 recording")
+    scenes = [scene_entry("alpha", ckpt_a, rec_a),
+              scene_entry("beta", ckpt_b, rec_b, replicas=2),
+              scene_entry("broken", ckpt_a, broken)]
+    with LocalServe(scenes) as local:
+        local.wait_renderable("alpha")
+        local.wait_renderable("beta")
+        yield local
+
+
+def test_scenes_lists_every_scene_with_its_health(cluster):
+    body = httpx.get(cluster.url + "/scenes", timeout=30).json()
+    by_name = {s["name"]: s for s in body["scenes"]}
+    assert list(by_name) == ["alpha", "beta", "broken"]
+    assert by_name["beta"]["replicas"] == 2 and by_name["beta"]["url"] == "/scenes/beta/"
+    assert by_name["alpha"]["health"]["ready"] is True and by_name["beta"]["health"]["ready"] is True
+    assert by_name["broken"]["health"]["ready"] is False
+
+
+def test_each_scene_answers_under_its_name(cluster):
+    a = httpx.get(cluster.url + "/scenes/alpha/scene", timeout=30).json()
+    b = httpx.get(cluster.url + "/scenes/beta/scene", timeout=30).json()
+    assert a["t_start_us"] < 1_700_000_000_000_000 <= b["t_start_us"], "each name reaches its own scene"
+    r = httpx.get(cluster.url + "/scenes/beta/render", params={"t": 0.5, "format": "png"}, timeout=30)
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+    assert r.content[:8] == b"\x89PNG\r\n\x1a\n"
+    assert int(r.headers["x-edmcgs-t-us"]) == b["t_start_us"] + 500_000
+
+
+def test_a_scenes_errors_are_the_single_process_ones(cluster):
+    r = httpx.get(cluster.url + "/scenes/alpha/render", params={"t": 0.5, "width": 0}, timeout=30)
+    assert r.status_code == 422 and r.json()["param"] == "width"
+    r = httpx.get(cluster.url + "/scenes/alpha/render", params={"t": 99.0}, timeout=30)
+    assert r.status_code == 416 and r.json()["valid_range"] is not None
+    r = httpx.get(cluster.url + "/scenes/nowhere/render", timeout=30)
+    assert r.status_code == 404 and "alpha" in r.json()["detail"]
+
+
+def test_the_viewer_is_served_per_scene(cluster):
+    r = httpx.get(cluster.url + "/scenes/alpha", timeout=30, follow_redirects=True)
+    assert r.status_code == 200 and "<html" in r.text.lower()
+    assert str(r.url).endswith("/scenes/alpha/")
+    assert httpx.get(cluster.url + "/scenes/alpha/viewer.js", timeout=30).status_code == 200
+    assert 'href="scenes/beta/"' in httpx.get(cluster.url + "/", timeout=30).text
+
+
+def test_the_websocket_streams_through_the_gateway(cluster):
+    from websockets.sync.client import connect
+
+    url = cluster.url.replace("http://", "ws://") + "/scenes/beta/stream"
+    with connect(url, open_timeout=30) as ws:
+        ws.send(protocol.pack({"mode": "sweep", "t0": 0.0, "t1": 0.5, "fps": 20, "speed": 1.0,
+                               "format": "raw"}))
+        kinds, frames = [], []
+        deadline = time.monotonic() + 60
+        while len(frames) < 3 and time.monotonic() < deadline:
+            message = protocol.unpack(ws.recv(timeout=30))
+            kinds.append(message["type"])
+            if message["type"] == "frame":
+                frames.append(message)
+        assert kinds[0] == "subscribed" and len(frames) == 3
+        # A second message: answered once, and the stream goes on with the new size.
+        ws.send(protocol.pack({"width": 32}))
+        while True:
+            message = protocol.unpack(ws.recv(timeout=30))
+            if message["type"] == "frame" and message["width"] == 32:
+                break
+            assert message["type"] in ("frame", "subscribed", "end")
+        assert kinds.count("subscribed") == 1
+
+
+def test_a_replica_killed_mid_load_costs_no_failed_request(cluster):
+    url = cluster.url + "/scenes/beta/render"
+    statuses: list[int] = []
+    replicas: set[str] = set()
+    stop = threading.Event()
+
+    def load():
+        with httpx.Client(timeout=60) as client:
+            while not stop.is_set():
+                r = client.get(url, params={"t": 0.25, "format": "jpeg"})
+                statuses.append(r.status_code)
+                if r.status_code == 200:
+                    replicas.add(r.headers[REPLICA])
+
+    threads = [threading.Thread(target=load) for _ in range(3)]
+    for t in threads:
+        t.start()
+    try:
+        deadline = time.monotonic() + 60
+        while len(replicas) < 2:  # both replicas answer before one is killed
+            assert time.monotonic() < deadline, f"only {replicas} answered"
+            time.sleep(0.1)
+        victim = sorted(replicas)[0]
+        before = len(statuses)
+        cluster.kill_replica(victim)
+        deadline = time.monotonic() + 120
+        while cluster.running_replicas("scene-beta") < 2 or len(statuses) < before + 20:
+            assert time.monotonic() < deadline, "the killed replica was not replaced"
+            time.sleep(0.2)
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(timeout=90)
+    failed = [s for s in statuses if s != 200]
+    assert failed == [], f"{len(failed)} of {len(statuses)} requests failed: {sorted(set(failed))}"
+    assert len(statuses) > before
+
+
+def test_a_failing_source_is_reported_by_its_scene_alone(cluster):
+    r = httpx.get(cluster.url + "/scenes/broken/healthz", timeout=30)
+    assert r.status_code == 503
+    body = r.json()
+    assert body["ready"] is False and body["source"] == "error" and "broken.h5" in body["source_error"]
+    r = httpx.get(cluster.url + "/scenes/broken/render", params={"t": 0.5}, timeout=30)
+    assert r.status_code == 503 and r.json()["error"] == "not_ready"
+    for name in ("alpha", "beta"):
+        assert httpx.get(f"{cluster.url}/scenes/{name}/healthz", timeout=30).status_code == 200
+        r = httpx.get(f"{cluster.url}/scenes/{name}/render", params={"t": 0.5}, timeout=30)
+        assert r.status_code == 200
+    health = httpx.get(cluster.url + "/healthz", timeout=30).json()
+    assert health["scenes"] == {"alpha": True, "beta": True, "broken": False}
