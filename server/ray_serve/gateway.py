@@ -3,37 +3,28 @@ scene's API, the very routes of ``edmcgs-serve`` (``/render``, ``/scene``, ``/he
 ``/stream``, the viewer at ``/scenes/{name}/``), answered by one of its replicas.
 
 A call that fails because its replica died is sent again (``retry.py``): the client sees the answer of
-a live replica, never the death. A websocket is relayed: the client's messages are kept, and the
-replica-side session is (re)started from them, so a stream survives its replica too (its ``seq``
-starts over). A new client message also restarts the replica-side session with every message so far
-(a sweep then starts over from its ``t0``): a session is pinned to no replica.
+a live replica, never the death. A websocket is relayed to a replica (``relay.py``).
 """
 
 
 import asyncio
-import contextlib
 import html
 import json
 import logging
-import time
 
 from fastapi import FastAPI, Request, WebSocket
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
 from ray import serve
 from ray.serve.exceptions import BackPressureError
-from starlette.websockets import WebSocketDisconnect
 
 from edmcgs import protocol
-from edmcgs.server.ray_serve.asgi import WsMessage
+from edmcgs.server.ray_serve.relay import StreamRelay
 from edmcgs.server.ray_serve.retry import Retrier, retryable
 
 log = logging.getLogger("edmcgs.server.ray")
 
 HEALTH_TIMEOUT_S = 5.0
 """How long ``/scenes`` waits for a scene's health before reporting it unknown."""
-MAX_HISTORY = 256
-"""Client messages a relayed stream keeps (each a partial subscription; older ones are folded in by
-the replica already, but a restart replays only these)."""
 
 app = FastAPI(title="edmcgs on Ray Serve", version="0.1.0",
               description="Many scenes: GET /scenes lists them; each scene's API (the one of "
@@ -136,112 +127,3 @@ class Gateway:
             return
         relay = StreamRelay(ws, self.scenes[name], self.retrier, _client(ws))
         await relay.run()
-
-
-class StreamRelay:
-    """One client's websocket relayed to a scene (see the module docstring)."""
-
-    def __init__(self, ws: WebSocket, handle, retrier: Retrier, client: str):
-        self.ws, self.handle, self.retrier, self.client = ws, handle, retrier, client
-        self.history: list[bytes | str] = []
-        self.replies = 0  # control replies (subscribed / error) the client has had, one per message
-        self.inbox: asyncio.Queue = asyncio.Queue()
-        self.delivered = False  # a message reached the client since the last look
-        self.query = ws.url.query
-        self.headers = list(ws.headers.items())
-
-    async def _read(self) -> None:
-        try:
-            while True:
-                message = await self.ws.receive()
-                if message["type"] == "websocket.disconnect":
-                    break
-                data = message.get("bytes") if message.get("bytes") is not None else message.get("text")
-                if data is not None:
-                    await self.inbox.put(data)
-        finally:
-            await self.inbox.put(None)
-
-    async def _pump(self) -> WsMessage | None:
-        """One replica-side session: forward what it sends; return its close (None: it just ended)."""
-        skip = self.replies
-        gen = self.handle.options(stream=True).stream.remote("/stream", self.query, self.headers,
-                                                             list(self.history), self.client)
-        try:
-            async for item in gen:
-                if item.close is not None:
-                    return item
-                if skip and item.bytes is not None:
-                    kind = protocol.unpack(item.bytes).get("type")
-                    if kind in ("subscribed", "error"):
-                        skip -= 1
-                        continue  # the reply to a replayed message: the client had it already
-                await self._send(item)
-        finally:
-            gen.cancel()
-        return None
-
-    async def _send(self, item: WsMessage) -> None:
-        self.delivered = True
-        if item.bytes is not None:
-            if len(item.bytes) < 4096 and protocol.unpack(item.bytes).get("type") in ("subscribed", "error"):
-                self.replies += 1
-            await self.ws.send_bytes(item.bytes)
-        elif item.text is not None:
-            await self.ws.send_text(item.text)
-
-    async def run(self) -> None:
-        reader = asyncio.create_task(self._read())
-        pump: asyncio.Task | None = None
-        failing_since: float | None = None  # replicas dying since then, none answering
-        try:
-            while True:
-                if pump is None:
-                    pump = asyncio.create_task(self._pump())
-                getter = asyncio.create_task(self.inbox.get())
-                done, _ = await asyncio.wait({pump, getter}, return_when=asyncio.FIRST_COMPLETED)
-                if getter in done:
-                    data = getter.result()
-                    if data is None:  # the client went away
-                        return
-                    self.history = [*self.history, data][-MAX_HISTORY:]
-                    pump.cancel()
-                    with contextlib.suppress(BaseException):
-                        await pump
-                    if pump.done() and not pump.cancelled() and pump.exception() is None \
-                            and pump.result() is not None:
-                        await self._close(pump.result())
-                        return
-                    pump = None
-                    continue
-                getter.cancel()
-                exc = pump.exception()
-                if self.delivered:
-                    failing_since, self.delivered = None, False
-                if exc is None:
-                    closing = pump.result()
-                    await self._close(closing or WsMessage(close=1000))
-                    return
-                if not retryable(exc):
-                    raise exc
-                if failing_since is None:
-                    failing_since = time.monotonic()
-                elif time.monotonic() - failing_since > self.retrier.retry_for_s:
-                    await self._close(WsMessage(close=1011, reason="no replica of the scene answers"))
-                    return
-                self.retrier.retries += 1
-                log.warning("stream: its replica died (%s); restarting the session", type(exc).__name__)
-                await asyncio.sleep(0.05)
-                pump = None
-        except WebSocketDisconnect:
-            return
-        finally:
-            reader.cancel()
-            if pump is not None and not pump.done():
-                pump.cancel()
-                with contextlib.suppress(BaseException):
-                    await pump
-
-    async def _close(self, item: WsMessage) -> None:
-        with contextlib.suppress(Exception):
-            await self.ws.close(code=item.close or 1000, reason=item.reason)
