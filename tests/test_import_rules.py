@@ -16,6 +16,9 @@ APPLICATION = ("edmcgs.pipeline", "edmcgs.options", "edmcgs.cli", "edmcgs.train_
 CLI_MODULES = ("edmcgs.cli", "edmcgs.train_cli", "edmcgs.eval_cli", "edmcgs.record_cli",
                "edmcgs.export_ply_cli", "edmcgs.server.cli")
 MODEL_ROOMS = ("render", "motion", "train", "eval")
+RAY_ROOMS = ("edmcgs.server.ray_serve", "edmcgs.fanout")
+"""The only installed modules that import ``ray`` (the optional extra): the Serve application and the
+training fan-out."""
 
 
 def _modules():
@@ -131,6 +134,31 @@ def test_tests_import_support_never_each_other():
             continue
         bad += [f"{name} imports {i}" for i in _imports(path)
                 if i.startswith("tests.") and not _within(i, "tests.support")]
+    assert bad == []
+
+
+def _top_level_imports(path: Path) -> set[str]:
+    """Every top-level package a file imports (third-party ones too)."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names.update(a.name.split(".")[0] for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module.split(".")[0])
+    return names
+
+
+def test_only_the_ray_rooms_import_ray():
+    bad = [name for name, path in MODULES.items()
+           if _within(name, "edmcgs") and not _within(name, *RAY_ROOMS) and "ray" in _top_level_imports(path)]
+    assert bad == []
+
+
+def test_the_serve_application_is_reached_only_by_its_command():
+    """The default server never loads Ray: only ``edmcgs-serve --ray`` (a command) imports the package."""
+    bad = [f"{name} imports {i}" for name, path in MODULES.items()
+           if _within(name, "edmcgs") and not _within(name, "edmcgs.server.ray_serve", "edmcgs.server.cli")
+           for i in _imports(path) if _within(i, "edmcgs.server.ray_serve")]
     assert bad == []
 
 

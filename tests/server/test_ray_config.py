@@ -1,0 +1,156 @@
+"""The Ray layer's parts that need no running Ray: the scenes' YAML, the in-process ASGI drivers, the
+retry rule, and the default server's independence from Ray."""
+
+from __future__ import annotations
+
+import asyncio
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from fastapi import FastAPI, WebSocket
+
+from edmcgs.errors import InvalidInputError
+from edmcgs.server.ray_serve.asgi import WebSocketSession, http_request
+from edmcgs.server.ray_serve.config import load_config, parse_config
+
+
+@pytest.fixture
+def files(tmp_path) -> Path:
+    (tmp_path / "s.ckpt").write_bytes(b"x")
+    (tmp_path / "s.h5").write_bytes(b"x")
+    return tmp_path
+
+
+def scene(**kw) -> dict:
+    return {"name": "street", "checkpoint": "s.ckpt", "replay": "s.h5", **kw}
+
+
+def test_a_valid_config_resolves_paths_from_its_folder(files):
+    (files / "scenes.yaml").write_text("http: {port: 9000}\nscenes:\n"
+                                       "  - {name: street, checkpoint: s.ckpt, replay: s.h5, replicas: 2}\n"
+                                       "  - {name: demo, demo: true}\n")
+    config = load_config(files / "scenes.yaml")
+    assert config.http.port == 9000 and [s.name for s in config.scenes] == ["street", "demo"]
+    street = config.scene("street")
+    assert street.checkpoint == (files / "s.ckpt").resolve() and street.replicas == 2
+    assert street.settings_dict()["replay"] == str((files / "s.h5").resolve())
+    assert "checkpoint" not in config.scene("demo").settings_dict()
+
+
+@pytest.mark.parametrize(("entry", "says"), [
+    (scene(name="Street!"), "scenes[0] (Street!): name 'Street!'"),
+    (scene(replicas=0), "scenes[0] (street).replicas: Input should be greater than or equal to 1"),
+    (scene(replay=None, live=True, replicas=2), "replicas must be 1"),
+    (scene(settings={"port": 1}), "settings: port are the scene's own keys"),
+    (scene(colour="red"), "scenes[0] (street).colour: Extra inputs are not permitted"),
+    (scene(checkpoint="missing.ckpt"), "scenes (street).checkpoint: no file"),
+    ({"name": "x"}, "give a checkpoint (or demo: true)"),
+])
+def test_config_errors_name_the_scene_and_field(files, entry, says):
+    with pytest.raises(InvalidInputError, match="^scenes.yaml: ") as info:
+        parse_config({"scenes": [entry]}, base=files, source="scenes.yaml")
+    assert says in str(info.value)
+
+
+def test_duplicate_names_and_empty_configs_are_refused(files):
+    with pytest.raises(InvalidInputError, match="two scenes are named 'street'"):
+        parse_config({"scenes": [scene(), scene()]}, base=files)
+    with pytest.raises(InvalidInputError, match="scenes: List should have at least 1 item"):
+        parse_config({"scenes": []}, base=files)
+    with pytest.raises(InvalidInputError, match="expected a mapping"):
+        parse_config(["street"], base=files)
+
+
+def test_unreadable_and_malformed_files_are_named(files):
+    with pytest.raises(InvalidInputError, match="cannot read the Ray config"):
+        load_config(files / "nope.yaml")
+    (files / "bad.yaml").write_text("scenes: [\n")
+    with pytest.raises(InvalidInputError, match="bad.yaml: not valid YAML"):
+        load_config(files / "bad.yaml")
+
+
+def _app() -> FastAPI:
+    app = FastAPI()
+
+    @app.get("/echo")
+    async def echo(q: int, x_who: str | None = None) -> dict:
+        return {"q": q}
+
+    @app.websocket("/ws")
+    async def ws(socket: WebSocket) -> None:
+        await socket.accept()
+        while True:
+            text = await socket.receive_text()
+            if text == "bye":
+                await socket.close(code=4000, reason="asked")
+                return
+            await socket.send_bytes(text.encode()[::-1])
+
+    return app
+
+
+def test_an_http_request_runs_through_the_app_in_process():
+    result = asyncio.run(http_request(_app(), "GET", "/echo", "q=7", [("Host", "x"), ("Connection", "x")]))
+    assert result.status == 200 and result.body == b'{"q":7}'
+    assert ("content-type", "application/json") in result.headers
+    bad = asyncio.run(http_request(_app(), "GET", "/echo", "q=seven", []))
+    assert bad.status == 422
+
+
+def test_a_websocket_session_runs_through_the_app_in_process():
+    async def talk():
+        session = WebSocketSession(_app(), "/ws", "", []).start()
+        session.send("abc")
+        session.send("bye")
+        out = [m async for m in session.messages()]
+        await session.close()
+        return session, out
+
+    session, out = asyncio.run(talk())
+    assert session.accepted and out[0].bytes == b"cba"
+    assert out[-1].close == 4000 and out[-1].reason == "asked"
+
+
+def test_only_a_replicas_death_is_retried():
+    from ray.exceptions import ActorDiedError
+
+    from edmcgs.server.ray_serve.retry import Retrier, retryable
+
+    wrapped = RuntimeError("task failed")
+    wrapped.__cause__ = ActorDiedError()
+    assert retryable(ActorDiedError()) and retryable(wrapped)
+    assert not retryable(ValueError("a scene's own error"))
+
+    calls = []
+
+    async def flaky():
+        calls.append(1)
+        if len(calls) < 3:
+            raise ActorDiedError()
+        return "ok"
+
+    retrier = Retrier(retry_for_s=5)
+    assert asyncio.run(retrier.run(flaky)) == "ok" and retrier.retries == 2
+
+    async def broken():
+        raise ValueError("no")
+
+    with pytest.raises(ValueError):
+        asyncio.run(retrier.run(broken))
+
+
+def test_the_default_server_never_imports_ray():
+    code = ("import sys; import edmcgs.server.cli, edmcgs.server.app, edmcgs.train_cli; "
+            "edmcgs.server.app.create_app(); assert 'ray' not in sys.modules, 'ray imported'")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_serve_with_ray_refuses_the_one_scene_flags(capsys):
+    from edmcgs.server.cli import main
+
+    assert main(["--ray", "scenes.yaml", "--replay", "x.h5"]) == 2
+    assert "--replay cannot be combined with --ray" in capsys.readouterr().err
+    assert main(["--ray", "no-such.yaml"]) == 1
+    assert "cannot read the Ray config" in capsys.readouterr().err
