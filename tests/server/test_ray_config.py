@@ -49,7 +49,7 @@ def test_a_valid_config_resolves_paths_from_its_folder(files):
     ({"name": "x"}, "give a checkpoint (or demo: true)"),
 ])
 def test_config_errors_name_the_scene_and_field(files, entry, says):
-    with pytest.raises(InvalidInputError, match="^scenes.yaml: ") as info:
+    with pytest.raises(InvalidInputError, match=r"^scenes\.yaml: ") as info:
         parse_config({"scenes": [entry]}, base=files, source="scenes.yaml")
     assert says in str(info.value)
 
@@ -67,7 +67,7 @@ def test_unreadable_and_malformed_files_are_named(files):
     with pytest.raises(InvalidInputError, match="cannot read the Ray config"):
         load_config(files / "nope.yaml")
     (files / "bad.yaml").write_text("scenes: [\n")
-    with pytest.raises(InvalidInputError, match="bad.yaml: not valid YAML"):
+    with pytest.raises(InvalidInputError, match=r"bad\.yaml: not valid YAML"):
         load_config(files / "bad.yaml")
 
 
