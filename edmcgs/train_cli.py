@@ -1,5 +1,9 @@
 """``edmcgs train RECORDING -o CKPT``: fit EdMCGS to a recording (an application edge: the recording
-becomes training data and config through ``edmcgs.pipeline``)."""
+becomes training data and config through ``edmcgs.pipeline``).
+
+``edmcgs train REC1 REC2 ... -o FOLDER [--ray]``: one run per recording, each checkpoint
+``FOLDER/<recording's stem>.ckpt``; with ``--ray`` the runs are Ray tasks side by side (``--threads``
+CPUs each; ``edmcgs.fanout``), else one after another."""
 
 from __future__ import annotations
 
@@ -17,8 +21,14 @@ from edmcgs.options import RecordingOptions, add_recording_arguments
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="edmcgs train", description="Train EdMCGS on a recording.")
-    parser.add_argument("recording", nargs="?", help="the recording: AEDAT4, or HDF5 (edmcgs, DSEC, v2e)")
-    parser.add_argument("-o", "--output", help="checkpoint to write (atomically)")
+    parser.add_argument("recording", nargs="*", help="the recording: AEDAT4, or HDF5 (edmcgs, DSEC, v2e); "
+                                                     "several: one run each")
+    parser.add_argument("-o", "--output", help="checkpoint to write (atomically); with several recordings "
+                                               "or --ray, a folder for one checkpoint per recording")
+    parser.add_argument("--ray", action="store_true",
+                        help="run each recording's training as a Ray task (the 'ray' extra; joins "
+                             "RAY_ADDRESS, else a local Ray)")
+    parser.add_argument("--ray-cpus", type=int, metavar="N", help="CPUs of the local Ray --ray starts")
     parser.add_argument("--list-config", action="store_true",
                         help="print every config key of the preset, by part, with its value and description, "
                              "then exit")
@@ -46,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.list_config:
         return _list_config(args.config)
-    if args.recording is None or args.output is None:
+    if not args.recording or args.output is None:
         parser.error("give RECORDING and -o CHECKPOINT (or --list-config)")
     if args.resume is None and not args.force and os.path.exists(args.output):
         parser.error(f"{args.output} exists: --force replaces it, --resume continues its run")
@@ -61,6 +71,9 @@ def main(argv: list[str] | None = None) -> int:
             return 1
     args.argv = list(sys.argv[1:] if argv is None else argv)
     try:
+        if len(args.recording) > 1 or args.ray:
+            return _run_many(args)
+        args.recording = args.recording[0]
         return _run(args)
     except EdmcgsError as exc:
         print(f"edmcgs train: {exc}", file=sys.stderr)
@@ -93,6 +106,43 @@ def resume_command(argv: list[str], checkpoint, steps: int | None) -> str:
         i += 1
     kept += ["--resume", str(checkpoint)] + ([] if steps is None else ["--steps", str(steps)])
     return "edmcgs train " + shlex.join(kept)
+
+
+def _train_one(args: argparse.Namespace) -> int:
+    """One recording's run (a Ray task's body with --ray): its exit code, its errors printed."""
+    try:
+        return _run(args)
+    except EdmcgsError as exc:
+        print(f"edmcgs train {args.recording}: {exc}", file=sys.stderr)
+        return 1
+
+
+def _run_many(args: argparse.Namespace) -> int:
+    """One run per recording into the folder ``--output``; the worst exit code."""
+    folder = Path(args.output)
+    if folder.exists() and not folder.is_dir():
+        raise InvalidInputError(f"with several recordings (or --ray), -o is a folder for their checkpoints; "
+                                f"{str(folder)!r} is a file")
+    if args.history:
+        raise InvalidInputError("--history takes one recording; with several, train them one at a time")
+    stems = [Path(r).stem for r in args.recording]
+    twice = sorted({s for s in stems if stems.count(s) > 1})
+    if twice:
+        raise InvalidInputError(f"two recordings share the name {', '.join(twice)}: their checkpoints "
+                                "would overwrite each other in the output folder")
+    folder.mkdir(parents=True, exist_ok=True)
+    jobs = [argparse.Namespace(**{**vars(args), "recording": rec, "output": str(folder / f"{stem}.ckpt"),
+                                  "quiet": args.quiet or args.ray})
+            for rec, stem in zip(args.recording, stems, strict=True)]
+    if args.ray:
+        from edmcgs.fanout import fan_out
+
+        codes = fan_out(_train_one, jobs, threads=args.threads, num_cpus=args.ray_cpus)
+    else:
+        codes = [_train_one(job) for job in jobs]
+    for job, code in zip(jobs, codes, strict=True):
+        print(f"{job.recording}: {'wrote ' + job.output if code == 0 else 'FAILED'}")
+    return max(codes)
 
 
 def _list_config(name: str) -> int:

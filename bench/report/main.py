@@ -1,7 +1,7 @@
 """The accuracy, speed and stability report: CSV, PNG plots and a Markdown summary in ``reports/``.
 
     .venv/bin/python -m bench.report [--full] [--out reports/] [--scenes a,b] [--fps 5,10]
-        [--variants full,no_events,...] [--iterations N] [--threads 1] [--device cpu]
+        [--variants full,no_events,...] [--iterations N] [--threads 1] [--device cpu] [--ray]
 
 The default is small (one scene, 1 s, 200 steps per run: about 10 minutes on a shared 2-core CPU);
 ``--full`` is the paper's grid (four scenes at 5 and 10 fps, every ablation, 3000 steps per run: hours
@@ -10,7 +10,9 @@ redoes what changed. Sections: the ablation table (with the paper's averages bes
 error against training time, render error against time per frame over the fast path's knobs, the
 stability cases too slow for the test suite, and what each checkpoint leaves out (measured against its
 full twin, with a grey variant of the first scene: one more training run). Run it from the repository
-root: the render sweep uses the float64 reference renderer in bench/.
+root: the render sweep uses the float64 reference renderer in bench/. ``--ray`` trains the grid's runs
+as Ray tasks side by side (``--threads`` CPUs each, the 'ray' extra; RAY_ADDRESS joins a cluster),
+into the same cache; the rest of the report then runs as without it.
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ from bench.report.stability import (
     precision_rows,
     sparse_anchor_rows,
 )
-from bench.report.training import load_run_model, train_run
+from bench.report.training import load_run_model, train_on_ray, train_run
 from edmcgs.model.eval.lpips import LPIPS, find_weights
 from edmcgs.pipeline import training_data
 
@@ -89,10 +91,13 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=1, help="torch and numba threads (default 1)")
     p.add_argument("--device", default="cpu", help="torch device for training (default cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--ray", action="store_true", help="train the grid's runs as Ray tasks side by side")
+    p.add_argument("--ray-cpus", type=int, metavar="N", help="CPUs of the local Ray --ray starts")
     return p
 
 
-def collect(s: ReportSettings, cache: Path, *, device: str, progress: bool) -> dict:
+def collect(s: ReportSettings, cache: Path, *, device: str, progress: bool,
+            ray: tuple[int, int | None] | None = None) -> dict:
     """Build the recordings, train every run, sweep the render knobs, measure the stability cases."""
     first = s.scenes[0]
     recs = {}
@@ -103,15 +108,21 @@ def collect(s: ReportSettings, cache: Path, *, device: str, progress: bool) -> d
     weights = find_weights()  # LPIPS only on weights already on disk (see edmcgs.model.eval.lpips)
     lpips = None if weights is None else LPIPS.load(*weights).to(device)
 
-    def run(scene: str, fps: float, variant: str, source: tuple | None = None) -> dict:
+    def job(scene: str, fps: float, variant: str, source: tuple | None = None) -> dict:
         rec, key = recs[scene][fps] if source is None else source  # (recording, cache key)
-        result = train_run(rec, key, VARIANTS[variant][0], preset=s.preset, iterations=s.iterations,
-                           train_scale=s.train_scale, curve_points=s.curve_points, device=device,
-                           cache=cache / "runs", label=f"{scene} {fps:g} fps {variant}", progress=progress,
-                           lpips=lpips)
+        return dict(rec=rec, rec_key=key, switches=VARIANTS[variant][0], preset=s.preset,
+                    iterations=s.iterations, train_scale=s.train_scale, curve_points=s.curve_points,
+                    device=device, cache=cache / "runs", label=f"{scene} {fps:g} fps {variant}",
+                    progress=progress, lpips=lpips)
+
+    def run(scene: str, fps: float, variant: str, source: tuple | None = None) -> dict:
+        result = train_run(**job(scene, fps, variant, source))
         return {"scene": scene, "fps": fps, "variant": variant, **result}
 
     grid = [(scene, fps, v) for scene in s.scenes for fps in s.fps for v in s.variants]
+    if ray is not None:  # the grid's runs side by side, into the cache the loop below then reads
+        threads, num_cpus = ray
+        train_on_ray([job(*cell) for cell in grid], threads=threads, num_cpus=num_cpus)
     runs = [run(*cell) for cell in tqdm(grid, desc="training runs", disable=not progress)]
     full = {r["fps"]: r for r in runs if r["scene"] == first and r["variant"] == "full"}
     fps = min(s.fps)
@@ -212,7 +223,8 @@ def main(argv: list[str] | None = None) -> int:
     numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
     started = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
-    results = collect(s, args.out / "cache", device=args.device, progress=not args.quiet)
+    results = collect(s, args.out / "cache", device=args.device, progress=not args.quiet,
+                      ray=(args.threads, args.ray_cpus) if args.ray else None)
     command = " ".join(["python -m bench.report", *(sys.argv[1:] if argv is None else argv)])
     minutes = (time.perf_counter() - started) / 60
     text = write_outputs(args.out, s, results, command=command, minutes=minutes, threads=args.threads)

@@ -110,3 +110,18 @@ def train_run(rec: Recording, rec_key: str, switches: dict, *, preset: str, iter
 def load_run_model(result: dict, cache: Path, device: str = "cpu") -> EdMCGS:
     """The trained model of a ``train_run`` result."""
     return load_checkpoint(cache / result["checkpoint"], device=device)
+
+
+def _train_job(job: dict) -> dict:
+    """A Ray task's body: one ``train_run`` (its result also lands in the cache, as a sequential run's)."""
+    return train_run(**job)
+
+
+def train_on_ray(jobs: list[dict], *, threads: int, num_cpus: int | None = None) -> list[dict]:
+    """``train_run(**job)`` for every job as Ray tasks, ``threads`` CPUs each (``edmcgs.fanout``); the
+    cache key holds the thread count, so the driver (at the same ``--threads``) then finds every run
+    cached."""
+    from edmcgs.fanout import fan_out
+
+    return fan_out(_train_job, [{**job, "progress": False} for job in jobs], threads=threads,
+                   num_cpus=num_cpus)
