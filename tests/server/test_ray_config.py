@@ -154,3 +154,23 @@ def test_serve_with_ray_refuses_the_one_scene_flags(capsys):
     assert "--replay cannot be combined with --ray" in capsys.readouterr().err
     assert main(["--ray", "no-such.yaml"]) == 1
     assert "cannot read the Ray config" in capsys.readouterr().err
+
+
+def test_the_kuberay_manifest_names_a_valid_config_and_the_app_builder():
+    import importlib
+
+    import yaml
+
+    from edmcgs.server.ray_serve.config import RayConfig
+
+    root = Path(__file__).resolve().parents[2]
+    docs = list(yaml.safe_load_all((root / "docker/kuberay/rayservice.yaml").read_text()))
+    config_map = next(d for d in docs if d["kind"] == "ConfigMap")
+    config = RayConfig.model_validate(yaml.safe_load(config_map["data"]["scenes.yaml"]))
+    assert [s.name for s in config.scenes] == ["street", "lab"]
+    service = next(d for d in docs if d["kind"] == "RayService")
+    app = yaml.safe_load(service["spec"]["serveConfigV2"])["applications"][0]
+    module, name = app["import_path"].split(":")
+    assert callable(getattr(importlib.import_module(module), name))
+    assert app["args"]["config"].startswith("/etc/edmcgs/")
+    assert service["spec"]["rayClusterConfig"]["rayVersion"] == "2.60.0"
