@@ -56,9 +56,14 @@ def describe(scene: SceneConfig) -> dict[str, Any]:
 
 
 def build(config: RayConfig):
-    """The application: the gateway (ingress) bound to one deployment per scene."""
+    """The application: the gateway (ingress) bound to one deployment per scene. ``EDMCGS_TOKEN`` (the
+    environment where the application is built) guards the gateway's pages and every scene that sets no
+    token of its own."""
+    token = os.environ.get("EDMCGS_TOKEN") or None
     scenes, info = {}, {}
     for scene in config.scenes:
+        if token is not None:
+            scene.settings.setdefault("token", token)
         values = _check_settings(scene)
         concurrency = values.pop("_concurrency")
         deployment = serve.deployment(SceneReplica).options(
@@ -72,7 +77,7 @@ def build(config: RayConfig):
     gateway = serve.deployment(Gateway).options(name="gateway", num_replicas=1,
                                                 ray_actor_options={"num_cpus": 0},
                                                 max_ongoing_requests=1000)
-    return gateway.bind(scenes, info)
+    return gateway.bind(scenes, info, token)
 
 
 def app_builder(args: dict[str, str]):

@@ -18,6 +18,8 @@ from ray import serve
 from ray.serve.exceptions import BackPressureError
 
 from edmcgs import protocol
+from edmcgs.server.auth import check_token
+from edmcgs.server.errors import Unauthorized
 from edmcgs.server.ray_serve.relay import StreamRelay
 from edmcgs.server.ray_serve.retry import Retrier, retryable
 
@@ -45,28 +47,45 @@ def _client(request_or_ws) -> str:
 class Gateway:
     """``scenes``: name -> the scene deployment's handle; ``info``: name -> what ``/scenes`` says of it."""
 
-    def __init__(self, scenes: dict, info: dict[str, dict]):
+    def __init__(self, scenes: dict, info: dict[str, dict], token: str | None = None):
         self.scenes = scenes
         self.info = info
+        self.token = token  # the gateway's own pages; each scene's routes check it in the scene's app
         self.retrier = Retrier()
+
+    def _auth(self, request: Request) -> JSONResponse | None:
+        """401 unless the request carries the token (when one is set), as every route of a scene."""
+        try:
+            check_token(self.token, request.headers.get("authorization"), request.query_params.get("token"))
+        except Unauthorized as exc:
+            return JSONResponse(protocol.ErrorBody(protocol.ErrorCode.UNAUTHORIZED, str(exc)).to_message(),
+                                status_code=401, headers={"WWW-Authenticate": 'Bearer realm="edmcgs"'})
+        return None
 
     # ------------------------------------------------------------------ index
     async def _health(self, name: str) -> dict:
         try:
-            result = await asyncio.wait_for(self._http(name, "GET", "/healthz", "", [("host", "localhost")]),
+            headers = [("host", "localhost")]
+            if self.token is not None:
+                headers.append(("authorization", f"Bearer {self.token}"))
+            result = await asyncio.wait_for(self._http(name, "GET", "/healthz", "", headers),
                                             HEALTH_TIMEOUT_S)
             return json.loads(result.body)
         except Exception as exc:
             return {"ready": False, "source": "unknown", "source_error": f"{type(exc).__name__}: {exc}"}
 
     @app.get("/scenes", summary="The scenes served, each with its health")
-    async def list_scenes(self) -> dict:
+    async def list_scenes(self, request: Request):
+        refused = self._auth(request)
+        if refused is not None:
+            return refused
         names = list(self.scenes)
         healths = await asyncio.gather(*(self._health(n) for n in names))
         return {"scenes": [{**self.info[n], "url": f"/scenes/{n}/", "health": h}
                            for n, h in zip(names, healths, strict=True)]}
 
-    @app.get("/healthz", summary="200 while the gateway serves; each scene's readiness in the body")
+    @app.get("/healthz", summary="200 while the gateway serves; each scene's readiness in the body (open "
+                                 "to probes, like a scene's with open_probes)")
     async def healthz(self) -> dict:
         names = list(self.scenes)
         healths = await asyncio.gather(*(self._health(n) for n in names))
@@ -74,8 +93,11 @@ class Gateway:
                 "scenes": {n: bool(h.get("ready")) for n, h in zip(names, healths, strict=True)}}
 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
-    async def index(self) -> HTMLResponse:
+    async def index(self, request: Request) -> Response:
         """Pick a scene: each link opens the browser viewer on that scene."""
+        refused = self._auth(request)
+        if refused is not None:
+            return refused
         items = "".join(f'<li><a href="scenes/{html.escape(n)}/">{html.escape(n)}</a> — '
                         f'{html.escape(str(self.info[n].get("checkpoint")))}</li>' for n in self.scenes)
         return HTMLResponse(f"<!doctype html><meta charset=utf-8><title>edmcgs scenes</title>"
