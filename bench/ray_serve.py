@@ -150,7 +150,7 @@ def kill_mid_load(results: dict, local, url: str, clients: int, seconds: float) 
     time.sleep(max(0.0, t_kill + seconds - time.monotonic()))
     stop.set()
     thread.join()
-    m = box["m"]
+    m = box["m"][url]
     results["kill_requests"] = m["requests"]
     results["kill_failed_requests"] = m["failed"]
     results["kill_failed_statuses"] = m["failed_statuses"]
@@ -170,9 +170,11 @@ def main(argv: list[str] | None = None) -> int:
     results: dict = {"scene": "bundled demo (346x260), twice", "seconds": args.seconds,
                      "clients": args.clients}
     if not args.skip_single:
+        print("edmcgs-serve ...", flush=True)
         single_process(results, args.seconds, args.clients)
-    ray_phase(results, 1, args.seconds, args.clients, kill=False)
-    ray_phase(results, 2, args.seconds, args.clients, kill=True)
+    for replicas in (1, 2):
+        print(f"ray, {replicas} replica(s) per scene ...", flush=True)
+        ray_phase(results, replicas, args.seconds, args.clients, kill=replicas == 2)
     if "single_1_client_p50_ms" in results:
         results["overhead_p50_ms"] = round(results["ray_1r_1_client_p50_ms"]
                                            - results["single_1_client_p50_ms"], 2)
