@@ -39,6 +39,7 @@ def _check_settings(scene: SceneConfig) -> dict[str, Any]:
         lines = [f"{'.'.join(str(p) for p in e['loc']) or 'settings'}: {e['msg']}" for e in exc.errors()]
         raise InvalidInputError(f"scene {scene.name!r}: " + "; ".join(lines)) from None
     values["_concurrency"] = settings.render_workers + settings.render_queue + settings.max_streams
+    values["_workers"] = settings.render_workers
     return values
 
 
@@ -65,9 +66,16 @@ def build(config: RayConfig):
         if token is not None:
             scene.settings.setdefault("token", token)
         values = _check_settings(scene)
-        concurrency = values.pop("_concurrency")
+        concurrency, workers = values.pop("_concurrency"), values.pop("_workers")
+        if scene.max_replicas is not None and scene.max_replicas > scene.replicas:
+            # More replicas while each holds more than its render workers' worth of calls.
+            replicas = {"autoscaling_config": {"min_replicas": scene.replicas,
+                                               "max_replicas": scene.max_replicas,
+                                               "target_ongoing_requests": workers}}
+        else:
+            replicas = {"num_replicas": scene.replicas}
         deployment = serve.deployment(SceneReplica).options(
-            name=f"scene-{scene.name}", num_replicas=scene.replicas,
+            name=f"scene-{scene.name}", **replicas,
             ray_actor_options={"num_cpus": scene.cpus_per_replica},
             # Each open stream holds a call for its life; renders past the pool's queue get its 503.
             max_ongoing_requests=concurrency, max_queued_requests=scene.max_queued,

@@ -7,6 +7,7 @@
         replay: street.h5                      # or live: true, or neither (a checkpoint without events)
         loop: true
         replicas: 2                            # render replicas, each with the scene's source and ring
+        max_replicas: 4                        # optional: Serve scales between replicas and this by load
         cpus_per_replica: 1
         settings: {render_workers: 2}          # any other edmcgs-serve setting (edmcgs.server.settings)
 
@@ -49,6 +50,8 @@ class SceneConfig(BaseModel):
     loop: bool = False
     speed: float = Field(1.0, gt=0, le=1e6)
     replicas: int = Field(1, ge=1, le=1024)
+    max_replicas: int | None = Field(None, ge=1, le=1024,
+                                     description="scale with load between replicas and this many")
     cpus_per_replica: float = Field(1.0, ge=0, le=1024)
     max_queued: int = Field(64, ge=1, le=100_000,
                         description="requests waiting for a replica before the gateway answers 503 busy")
@@ -68,6 +71,10 @@ class SceneConfig(BaseModel):
         if self.live and self.replicas != 1:
             raise ValueError(f"a live camera is opened by one process only: replicas must be 1, got "
                              f"{self.replicas}")
+        if self.max_replicas is not None and self.max_replicas < self.replicas:
+            raise ValueError(f"max_replicas ({self.max_replicas}) is below replicas ({self.replicas})")
+        if self.live and self.max_replicas not in (None, 1):
+            raise ValueError("a live camera is opened by one process only: no max_replicas above 1")
         own = sorted(OWN_FIELDS & self.settings.keys())
         if own:
             raise ValueError(f"settings: {', '.join(own)} are the scene's own keys (or the gateway's), "

@@ -44,6 +44,7 @@ def test_a_valid_config_resolves_paths_from_its_folder(files):
     (scene(replicas=0), "scenes[0] (street).replicas: Input should be greater than or equal to 1"),
     (scene(replay=None, live=True, replicas=2), "replicas must be 1"),
     (scene(settings={"port": 1}), "settings: port are the scene's own keys"),
+    (scene(replicas=3, max_replicas=2), "max_replicas (2) is below replicas (3)"),
     (scene(colour="red"), "scenes[0] (street).colour: Extra inputs are not permitted"),
     (scene(checkpoint="missing.ckpt"), "scenes (street).checkpoint: no file"),
     ({"name": "x"}, "give a checkpoint (or demo: true)"),
@@ -174,3 +175,18 @@ def test_the_kuberay_manifest_names_a_valid_config_and_the_app_builder():
     assert callable(getattr(importlib.import_module(module), name))
     assert app["args"]["config"].startswith("/etc/edmcgs/")
     assert service["spec"]["rayClusterConfig"]["rayVersion"] == "2.60.0"
+
+
+def test_the_application_scales_a_scene_between_its_bounds(files):
+    from edmcgs.server.ray_serve.app import build
+
+    config = parse_config({"scenes": [scene(name="fixed", replicas=2),
+                                      scene(name="elastic", max_replicas=3, settings={"render_workers": 3})]},
+                          base=files)
+    app = build(config)
+    scenes = app._bound_deployment.init_args[0]
+    fixed = scenes["fixed"]._bound_deployment._deployment_config
+    elastic = scenes["elastic"]._bound_deployment._deployment_config
+    assert fixed.num_replicas == 2 and fixed.autoscaling_config is None
+    scaling = elastic.autoscaling_config
+    assert (scaling.min_replicas, scaling.max_replicas, scaling.target_ongoing_requests) == (1, 3, 3)
