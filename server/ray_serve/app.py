@@ -102,16 +102,21 @@ def start(config: RayConfig, *, name: str = APP_NAME) -> None:
     serve.run(build(config), name=name, route_prefix="/")
 
 
+def _interrupt(*_args) -> None:
+    raise KeyboardInterrupt
+
+
 def main(config_path: str | Path, *, num_cpus: int | None = None) -> int:
     """``edmcgs-serve --ray CONFIG``: serve until Ctrl-C, then shut Serve (and a Ray started here) down."""
     import ray
 
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     config = load_config(config_path)
-    # SIGTERM (a container's stop, timeout, kill) ends as Ctrl-C does: Serve and Ray shut down.
-    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
     joined = bool(os.environ.get("RAY_ADDRESS"))
     ray.init(num_cpus=None if joined else num_cpus, include_dashboard=False)
+    # After ray.init, which sets its own: SIGTERM (a container's stop) ends as Ctrl-C does, Serve and
+    # the Ray started here shut down.
+    signal.signal(signal.SIGTERM, _interrupt)
     try:
         start(config)
         log.info("serving %d scene(s) on http://%s:%d/scenes", len(config.scenes), config.http.host,
