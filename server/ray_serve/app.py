@@ -28,11 +28,13 @@ HEALTH_CHECK_PERIOD_S = 2.0
 """Serve's probe of each replica: how soon a hung replica is replaced (a dead one is noticed at once)."""
 
 
-def _check_settings(scene: SceneConfig) -> dict[str, Any]:
-    """The scene's settings, validated here (the driver) so a typo fails before any replica starts."""
+def _check_settings(scene: SceneConfig, host: str) -> dict[str, Any]:
+    """The scene's settings, validated here (the driver) so a typo fails before any replica starts.
+    ``host``: where the proxy listens; as for edmcgs-serve, it decides the Host names a scene answers
+    to when its settings name none (loopback: the loopback names; else any)."""
     from edmcgs.server.settings import Settings
 
-    values = scene.settings_dict()
+    values = {**scene.settings_dict(), "host": host}
     try:
         settings = Settings(**values)
     except ValidationError as exc:
@@ -65,7 +67,7 @@ def build(config: RayConfig):
     for scene in config.scenes:
         if token is not None:
             scene.settings.setdefault("token", token)
-        values = _check_settings(scene)
+        values = _check_settings(scene, config.http.host)
         concurrency, workers = values.pop("_concurrency"), values.pop("_workers")
         if scene.max_replicas is not None and scene.max_replicas > scene.replicas:
             # More replicas while each holds more than its render workers' worth of calls.

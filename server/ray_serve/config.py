@@ -1,6 +1,7 @@
 """The YAML file that lists the scenes served on Ray, validated before anything starts.
 
-    http: {host: 127.0.0.1, port: 8000}       # Serve's HTTP proxy (optional)
+    http: {host: 127.0.0.1, port: 8000}       # Serve's HTTP proxy (optional); the host also decides the
+                                               # Host names the scenes answer to, as for edmcgs-serve
     scenes:
       - name: street                           # its routes live under /scenes/street/
         checkpoint: street.ckpt                # relative paths: from the config file's folder
@@ -31,7 +32,9 @@ OWN_FIELDS = {"checkpoint", "replay", "live", "loop", "speed", "host", "port"}
 
 
 class HttpOptions(BaseModel):
-    """Where Serve's HTTP proxy listens (every node's proxy, on a cluster)."""
+    """Where Serve's HTTP proxy listens (every node's proxy, on a cluster; under ``serve run`` or KubeRay
+    Serve's own config sets it). ``host`` also gives the scenes' default Host allowlist: loopback names
+    for a loopback host, any name otherwise (``settings.allowed_hosts`` narrows it)."""
 
     model_config = ConfigDict(extra="forbid")
     host: str = "127.0.0.1"

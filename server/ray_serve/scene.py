@@ -78,7 +78,7 @@ class SceneReplica:
 
     def _failed(self, path: str) -> HttpResult:
         if path == "/healthz":
-            body = {"ready": False, "model": "failed", "source": "error", "source_error": self.failure,
+            body = {"ready": False, "model": "not loaded", "source": "error", "source_error": self.failure,
                     "uptime_s": round(time.time() - self.started_unix, 3)}
         else:
             body = protocol.ErrorBody(protocol.ErrorCode.NOT_READY,
