@@ -22,6 +22,10 @@ from edmcgs.server.ray_serve.asgi import HttpResult, WebSocketSession, WsMessage
 log = logging.getLogger("edmcgs.server.ray")
 
 
+SPAN_WAIT_S = 60.0
+"""Longest a replay's replica waits for its replay to cover the checkpoint's span before serving."""
+SPAN_SLACK_US = 20_000
+"""The span counts as covered this close to its end (the last replay batch may end just short of it)."""
 REPLICA_HEADER = "X-Edmcgs-Replica"
 """Response header naming the replica that answered (its Ray actor's name, in Serve's namespace)."""
 
@@ -65,7 +69,27 @@ class SceneReplica:
         # The app's lifespan starts the ingest thread and binds the service to this replica's loop.
         self._lifespan = self.app.router.lifespan_context(self.app)
         await self._lifespan.__aenter__()
+        await self._await_span(parsed)
         log.info("scene %s: replica ready", name)
+
+    async def _await_span(self, settings) -> None:
+        """A replay's replica takes traffic once its own replay has covered the checkpoint's span, so a
+        replacement renders the times its siblings do (a new replica replays from the start; without
+        this, a retried render could meet 416 where the dead replica answered). A live camera's or a
+        sensorless replica waits for nothing."""
+        service = self._service
+        if service.source is None or service.source.info.live:
+            return
+        meta = service.model.meta
+        budget = min(SPAN_WAIT_S, (meta.t_end_us - meta.t_start_us) / 1e6 / settings.speed + 5.0)
+        deadline = time.monotonic() + budget
+        while time.monotonic() < deadline:
+            ranges = service.engine.renderable()
+            if ranges and ranges[-1][1] >= meta.t_end_us - SPAN_SLACK_US:
+                return
+            await asyncio.sleep(0.05)
+        log.warning("scene %s: the replay did not cover the span in %.0f s; serving what it has", self.name,
+                    budget)
 
     def __del__(self):
         service, self._service = getattr(self, "_service", None), None

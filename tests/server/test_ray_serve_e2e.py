@@ -151,3 +151,25 @@ def test_a_failing_source_is_reported_by_its_scene_alone(cluster):
         assert r.status_code == 200
     health = httpx.get(cluster.url + "/healthz", timeout=30).json()
     assert health["scenes"] == {"alpha": True, "beta": True, "broken": False}
+
+
+def test_a_stream_and_a_render_outlive_a_scenes_only_replica(cluster):
+    """Last in the module: alpha's one replica is killed under an open stream and a render; the
+    stream goes on from a replacement (its seq starts over) and the render waits for it: no error."""
+    from websockets.sync.client import connect
+
+    victim = httpx.get(cluster.url + "/scenes/alpha/scene", timeout=30).headers[REPLICA]
+    url = cluster.url.replace("http://", "ws://") + "/scenes/alpha/stream"
+    with connect(url, open_timeout=30) as ws:
+        ws.send(protocol.pack({"mode": "sweep", "t0": 0.0, "t1": 1.5, "fps": 10, "speed": 1.0, "loop": True,
+                               "format": "raw"}))
+        assert protocol.unpack(ws.recv(timeout=30))["type"] == "subscribed"
+        assert protocol.unpack(ws.recv(timeout=30))["type"] == "frame"
+        cluster.kill_replica(victim)
+        r = httpx.get(cluster.url + "/scenes/alpha/render", params={"t": 0.5}, timeout=120)
+        assert r.status_code == 200 and r.headers[REPLICA] != victim
+        kinds = []
+        deadline = time.monotonic() + 90
+        while kinds.count("frame") < 5 and time.monotonic() < deadline:
+            kinds.append(protocol.unpack(ws.recv(timeout=60))["type"])
+        assert kinds.count("frame") >= 5 and "error" not in kinds and "subscribed" not in kinds
