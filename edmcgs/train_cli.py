@@ -117,6 +117,23 @@ def _train_one(args: argparse.Namespace) -> int:
         return 1
 
 
+def _shared_argv(args: argparse.Namespace) -> list[str]:
+    """The command line's arguments that every recording's run shares (for its resume hint): without
+    the recordings, the output and the Ray flags."""
+    drop_with_value = {"-o", "--output", "--ray-cpus", "--tensorboard"}
+    out, skip = [], False
+    for arg in args.argv:
+        if skip:
+            skip = False
+        elif arg in drop_with_value:
+            skip = True
+        elif arg == "--ray" or arg in args.recording or arg.split("=", 1)[0] in drop_with_value:
+            continue
+        else:
+            out.append(arg)
+    return out
+
+
 def _run_many(args: argparse.Namespace) -> int:
     """One run per recording into the folder ``--output``; the worst exit code."""
     folder = Path(args.output)
@@ -125,15 +142,22 @@ def _run_many(args: argparse.Namespace) -> int:
                                 f"{str(folder)!r} is a file")
     if args.history:
         raise InvalidInputError("--history takes one recording; with several, train them one at a time")
+    if args.resume not in (None, True):
+        raise InvalidInputError("--resume CKPT takes one recording; with several, a bare --resume continues "
+                                "each from its own checkpoint in the output folder")
     stems = [Path(r).stem for r in args.recording]
     twice = sorted({s for s in stems if stems.count(s) > 1})
     if twice:
         raise InvalidInputError(f"two recordings share the name {', '.join(twice)}: their checkpoints "
                                 "would overwrite each other in the output folder")
     folder.mkdir(parents=True, exist_ok=True)
-    jobs = [argparse.Namespace(**{**vars(args), "recording": rec, "output": str(folder / f"{stem}.ckpt"),
-                                  "quiet": args.quiet or args.ray})
-            for rec, stem in zip(args.recording, stems, strict=True)]
+    jobs = []
+    for rec, stem in zip(args.recording, stems, strict=True):
+        output = str(folder / f"{stem}.ckpt")
+        curves = None if args.tensorboard is None else str(Path(args.tensorboard) / stem)  # one run each
+        argv = [rec, "-o", output, *_shared_argv(args), *(["--tensorboard", curves] if curves else [])]
+        jobs.append(argparse.Namespace(**{**vars(args), "recording": rec, "output": output, "argv": argv,
+                                          "quiet": args.quiet or args.ray, "tensorboard": curves}))
     if args.ray:
         from edmcgs.fanout import fan_out
 

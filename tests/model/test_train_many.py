@@ -48,3 +48,16 @@ def test_several_recordings_refuse_what_would_clash(recordings, tmp_path, capsys
     assert "share the name east" in capsys.readouterr().err
     assert main(train_args(recordings, tmp_path / "m", "--history", str(tmp_path / "h.csv"))) == 1
     assert "--history takes one recording" in capsys.readouterr().err
+    assert main(train_args(recordings, tmp_path / "m", "--resume", str(file))) == 1
+    assert "--resume CKPT takes one recording" in capsys.readouterr().err
+
+
+def test_each_run_has_its_own_resume_hint_and_curves(recordings):
+    import argparse
+
+    from edmcgs.train_cli import _shared_argv
+
+    argv = [str(recordings[0]), str(recordings[1]), "-o", "out", "--ray", "--ray-cpus", "2", "--threads", "2",
+            "--tensorboard=tb", "--set", "iterations=4"]
+    args = argparse.Namespace(argv=argv, recording=[str(r) for r in recordings])
+    assert _shared_argv(args) == ["--threads", "2", "--set", "iterations=4"]
