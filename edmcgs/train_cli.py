@@ -58,7 +58,8 @@ def main(argv: list[str] | None = None) -> int:
         return _list_config(args.config)
     if not args.recording or args.output is None:
         parser.error("give RECORDING and -o CHECKPOINT (or --list-config)")
-    if args.resume is None and not args.force and os.path.exists(args.output):
+    many = len(args.recording) > 1 or args.ray  # -o is a folder: each checkpoint is checked in _run_many
+    if not many and args.resume is None and not args.force and os.path.exists(args.output):
         parser.error(f"{args.output} exists: --force replaces it, --resume continues its run")
     if args.steps is not None and args.steps < 1:
         parser.error(f"--steps must be >= 1, got {args.steps}")
@@ -71,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
             return 1
     args.argv = list(sys.argv[1:] if argv is None else argv)
     try:
-        if len(args.recording) > 1 or args.ray:
+        if many:
             return _run_many(args)
         args.recording = args.recording[0]
         return _run(args)
@@ -150,6 +151,10 @@ def _run_many(args: argparse.Namespace) -> int:
     if twice:
         raise InvalidInputError(f"two recordings share the name {', '.join(twice)}: their checkpoints "
                                 "would overwrite each other in the output folder")
+    existing = [str(folder / f"{stem}.ckpt") for stem in stems if (folder / f"{stem}.ckpt").exists()]
+    if existing and args.resume is None and not args.force:
+        raise InvalidInputError(f"{', '.join(existing)} exist(s): --force replaces them, --resume continues "
+                                "their runs")
     folder.mkdir(parents=True, exist_ok=True)
     jobs = []
     for rec, stem in zip(args.recording, stems, strict=True):

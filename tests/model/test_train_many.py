@@ -37,6 +37,10 @@ def test_several_recordings_train_into_one_folder(recordings, tmp_path, capsys):
         assert model.meta.event_width == 48
     printed = capsys.readouterr().out
     assert f"{recordings[0]}: wrote {out / 'east.ckpt'}" in printed
+    # Again into the same folder: refused without --force or --resume, as one checkpoint is.
+    assert main(train_args(recordings, out)) == 1
+    assert "east.ckpt" in capsys.readouterr().err
+    assert main(train_args(recordings, out, "--force")) == 0
 
 
 def test_several_recordings_refuse_what_would_clash(recordings, tmp_path, capsys):
