@@ -5,9 +5,15 @@ from spherical harmonics seen from the camera centre (``sh``) or a plain colour,
 culling with a 3-sigma radius, and front-to-back blending of depth-sorted splats with alpha
 clamped at 0.99, alpha < 1/255 skipped and a pixel stopping below transmittance 1e-4
 (``composite``). Gaussians at depth <= ``near`` are culled.
+
+Two compositors with one contract: on the CPU the numba kernels of ``composite_fast`` (forward and
+analytic backward), elsewhere the torch ``composite``, which is also the reference for the numba
+one. ``backend`` (or the ``EDMCGS_RASTERIZER`` environment variable: auto, torch, numba) forces one.
 """
 
 from __future__ import annotations
+
+import os
 
 import torch
 import torch.nn.functional as F
@@ -16,11 +22,30 @@ from torch import Tensor
 from edmcgs.errors import InvalidInputError
 from edmcgs.geometry import Intrinsics
 from edmcgs.model.render.composite import composite, make_plan
+from edmcgs.model.render.composite_fast import composite_fast
 from edmcgs.model.render.io import RenderOutput, check_inputs
 from edmcgs.model.render.projection import ewa_project, screen_rect
 from edmcgs.model.render.sh import sh_to_color
 
-__all__ = ["RenderOutput", "rasterize"]
+__all__ = ["BACKENDS", "RenderOutput", "rasterize"]
+
+BACKENDS = ("auto", "torch", "numba")
+"""Compositors: auto = numba on the CPU, torch on other devices."""
+BACKEND_ENV = "EDMCGS_RASTERIZER"
+
+
+def _backend(backend: str | None, device: torch.device) -> str:
+    """The compositor to use: the argument, else the environment variable, else auto."""
+    source = "backend"
+    if backend is None:
+        backend, source = os.environ.get(BACKEND_ENV, "auto").strip().lower() or "auto", BACKEND_ENV
+    if backend not in BACKENDS:
+        raise InvalidInputError(f"{source} must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if backend == "auto":
+        return "numba" if device.type == "cpu" else "torch"
+    if backend == "numba" and device.type != "cpu":
+        raise InvalidInputError(f"{source}=numba renders on the CPU only, the tensors are on {device}")
+    return backend
 
 
 def _colors(colors: Tensor, means: Tensor, w2c: Tensor) -> Tensor:
@@ -33,7 +58,7 @@ def _colors(colors: Tensor, means: Tensor, w2c: Tensor) -> Tensor:
 
 def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, w2c,
               intrinsics: Intrinsics, *, background=None, near: float = 0.01, return_depth: bool = False,
-              return_alpha: bool = False) -> RenderOutput:
+              return_alpha: bool = False, backend: str | None = None) -> RenderOutput:
     """Render Gaussians into one view; differentiable w.r.t. means, quats, scales, opacities, colors.
 
     means: Tensor      # [N, 3] world positions
@@ -45,6 +70,7 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
     intrinsics: the camera; the image is [intrinsics.height, intrinsics.width]
     background: None (black), a number, or C numbers; composited under the splats
     near: Gaussians with camera z <= near are culled
+    backend: the compositor, one of BACKENDS (default: the EDMCGS_RASTERIZER variable, else auto)
     returns RenderOutput with torch tensors on the means' device: image [H, W, C], and
     alpha [H, W] / depth [H, W] (expected z) when asked for.
     All tensors share one float dtype and device. Raises InvalidInputError (naming the argument)
@@ -55,6 +81,7 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
                                 "(rasterize_fast takes numpy arrays)")
     chk = check_inputs(means, quats, scales, opacities, colors, w2c, intrinsics, background, near)
     width, height = intrinsics.width, intrinsics.height
+    backend = _backend(backend, chk.means.device)
     need_grad = torch.is_grad_enabled() and any(
         t.requires_grad for t in (chk.means, chk.quats, chk.scales, chk.opacities, chk.colors))
 
@@ -77,9 +104,11 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
     if return_depth:
         feat = torch.cat([feat, z[:, None]], dim=-1)
 
-    plan = make_plan(rect, depth_key, width, height, dtype=means.dtype)
     attrs = torch.cat([mean2d, conic, v_opac[:, None]], dim=-1)
-    acc, trans = composite(attrs, feat, plan)
+    if backend == "numba":
+        acc, trans = composite_fast(attrs, feat, rect, depth_key, width, height)
+    else:
+        acc, trans = composite(attrs, feat, make_plan(rect, depth_key, width, height, dtype=means.dtype))
 
     c = chk.channels
     image = acc[..., :c] + trans[..., None] * chk.background

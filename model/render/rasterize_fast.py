@@ -7,11 +7,7 @@ depth order, and per-tile front-to-back blending, parallel over tiles. Blending 
 in runs of 8 pixels with a branch-free float32 body and ``simd_exp``, which LLVM turns
 into AVX2 code; a pixel that has stopped is marked by a negative transmittance.
 
-JIT cache: kernels are compiled with ``cache=True``. numba keeps the cache beside this file
-(``__pycache__``) when that is writable and otherwise in the user cache directory
-(``~/.cache/numba``), so a read-only install still compiles once per machine, not once per
-process; numba's own ``NUMBA_CACHE_DIR`` overrides both (e.g. a container with a read-only home).
-Where no location is writable the kernels compile once per process instead of failing.
+JIT cache: kernels are compiled with ``cache=True`` where numba finds a writable place (``jit``).
 """
 
 from __future__ import annotations
@@ -24,21 +20,12 @@ import numpy as np
 from edmcgs.errors import InvalidInputError
 from edmcgs.geometry import Intrinsics
 from edmcgs.model.render.io import RenderOutput, as_float32_arrays, check_inputs
+from edmcgs.model.render.jit import njit_cached as _jit
 from edmcgs.model.render.projection import ALPHA_MAX, ALPHA_MIN, FRUSTUM_SLACK, LOWPASS, SIGMAS, T_MIN, TILE
 from edmcgs.model.render.sh import SH_C0, SH_C1, SH_C2, SH_C3
 from edmcgs.model.render.simd_exp import exp_nonpositive
 
 __all__ = ["RenderOutput", "rasterize_fast"]
-
-
-def _jit(**options):
-    """numba.njit with an on-disk cache where numba finds a writable place for one."""
-    def wrap(fn):
-        try:
-            return numba.njit(cache=True, **options)(fn)
-        except RuntimeError:  # numba: "cannot cache function ...: no locator available"
-            return numba.njit(cache=False, **options)(fn)
-    return wrap
 
 
 @_jit()
