@@ -1,4 +1,5 @@
-"""The differentiable rasterizer against the brute-force float64 reference, its gradients, edge cases."""
+"""The differentiable rasterizer against the brute-force float64 reference, its gradients, edge cases;
+every test on both compositors (torch and numba), chosen through the environment variable."""
 
 import numpy as np
 import pytest
@@ -12,6 +13,12 @@ from tests.support.scenes import at_camera_depth, random_scene, with_values
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
 BG = [0.1, 0.2, 0.3]
+
+
+@pytest.fixture(autouse=True, params=["torch", "numba"])
+def backend(request, monkeypatch):
+    monkeypatch.setenv("EDMCGS_RASTERIZER", request.param)
+    return request.param
 
 
 def tensors(scene, dtype=torch.float64, grad=False):
@@ -66,11 +73,11 @@ def test_opaque_stacks_stop_at_the_transmittance_floor():
 
 def test_image_does_not_depend_on_block_size_or_round_budget(monkeypatch):
     scene = random_scene(300, 50, 40, seed=5, sh_degree=1)
-    base, _ = render(scene, background=BG)
+    base, _ = render(scene, background=BG, backend="torch")
     for block, budget in [(16, 1 << 21), (4, 1 << 21), (8, 4096)]:
         monkeypatch.setattr(composite, "BLOCK", block)
         monkeypatch.setattr(composite, "ROUND_ELEMENTS", budget)
-        out, _ = render(scene, background=BG)
+        out, _ = render(scene, background=BG, backend="torch")
         for a, b in zip((out.image, out.alpha, out.depth), (base.image, base.alpha, base.depth), strict=True):
             np.testing.assert_allclose(a.numpy(), b.numpy(), atol=1e-12, rtol=0)
 
@@ -282,7 +289,7 @@ def test_cuda_matches_cpu():
     cpu, _ = render(scene, dtype=torch.float32, background=BG)
     args = [t.cuda().requires_grad_() for t in tensors(scene, torch.float32)]
     out = rasterize(*args, scene["w2c"], scene["intrinsics"], background=BG, return_alpha=True,
-                    return_depth=True)
+                    return_depth=True, backend="auto")
     assert out.image.device.type == "cuda"
     np.testing.assert_allclose(out.image.detach().cpu().numpy(), cpu.image.numpy(), atol=1e-4)
     out.image.sum().backward()
