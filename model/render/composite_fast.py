@@ -8,18 +8,20 @@ same alpha (min(ALPHA_MAX, opacity exp(power)), skipped below ALPHA_MIN) and the
 the torch path.
 
 Both kernels run over 16x16 tiles in parallel (``numba.prange``) and visit each splat's rectangle
-in runs of 8 pixels with branch-free bodies that LLVM vectorises. The forward keeps per pixel the
-float64 colour sum, the final transmittance and how many list entries it went through (the last
-taken one + 1, like gsplat's ``last_ids``). The backward replays the lists front to back up to that
-count, so it takes exactly the splats the forward took (no stop decision is re-made), and with
-w_i = alpha_i T_i, prefix_i = sum_{j <= i} w_j (g . f_j) (float64) and the incoming gradients
-g of acc and g_T of T_N:
+in runs of 8 pixels with branch-free bodies that LLVM vectorises (all per-pixel state of a tile in
+one array: with separate arrays LLVM cannot rule out aliasing and keeps the bodies scalar). The
+forward keeps per pixel the feature sums, the final transmittance and how many list entries it went
+through (the last taken one + 1, like gsplat's ``last_ids``). The backward replays the lists front
+to back up to that count, so it takes exactly the splats the forward took (no stop decision is
+re-made), and with w_i = alpha_i T_i, prefix_i = sum_{j <= i} w_j (g . f_j) and the incoming
+gradients g of acc and g_T of T_N:
     dL / d f_i     = w_i g
     dL / d alpha_i = T_i (g . f_i) - (g . acc - prefix_i + g_T T_N) / (1 - alpha_i)
-This is gsplat's back-to-front recurrence read forwards: it needs no division to recover T_i (the
-forward's float64 acc stands in for the suffix sums). Per (tile, splat) the pixel sums of
-dL/dpower times (1, dx, dy, dx^2, dx dy, dy^2) give the mean and conic gradients; they are written
-to the splat's slot in the tile lists and summed per splat afterwards (no atomics).
+This is gsplat's back-to-front recurrence read forwards (the formula ``composite`` differentiates):
+no division recovers T_i, the forward's acc stands in for the suffix sums. Per (tile, splat) the
+pixel sums of dL/dpower times (1, dx, dy, dx^2, dx dy, dy^2) give the mean and conic gradients;
+they are written to the splat's slot in the tile lists and summed per splat in float64 afterwards
+(no atomics).
 
 float32 inputs use ``simd_exp``; float64 inputs run the same kernels in float64 with ``math.exp``
 (gradcheck and the exact comparison with the reference).
@@ -32,10 +34,12 @@ import math
 import numba
 import numpy as np
 import torch
+import torch.nn.functional as F
 from numba.core import types
 from numba.extending import overload
 from torch import Tensor
 
+from edmcgs.errors import InvalidInputError
 from edmcgs.model.render.jit import njit_cached
 from edmcgs.model.render.projection import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE
 from edmcgs.model.render.simd_exp import exp_nonpositive
@@ -101,117 +105,109 @@ def _span(rect, g, ox, oy, tw, th):
     return first, x1, y0, y1
 
 
+# Per-tile state: one array per work item, so that LLVM sees no aliasing between the pixel rows
+# the bodies read and write and vectorises them (separate arrays keep them scalar).
+_CNT, _TOT, _PRE, _G = _PIX, 2 * _PIX, 3 * _PIX, 4 * _PIX  # backward rows after T; _G: 4 of them
+_ROWS = 8 * _PIX
+FEATURES = 4
+"""Feature channels the kernels carry (colour 1 or 3, plus camera z); fewer are padded with 0."""
+
+
 @njit_cached(parallel=True, fastmath={"contract"})
 def _forward(start, ids, attrs, feat, rect, width, height, grid_x, dt, alpha_min, alpha_max, t_min,
              acc, trans, count):
-    """Blend every tile's list front to back. Writes acc [H, W, F] (float64), trans [H, W] and
-    count [H, W] (int32: list entries of the pixel's tile it went through, up to its last taken)."""
-    nf = feat.shape[1]
+    """Blend every tile's list front to back. Writes acc [H, W, 4], trans [H, W] and count [H, W]
+    (int32: list entries of the pixel's tile it went through, up to its last taken one).
+    State rows: transmittance (negative once the pixel stopped), count, then the 4 feature sums."""
     n_tiles = grid_x * ((height + TILE - 1) // TILE)
     one, zero = dt(1.0), dt(0.0)
     for item in numba.prange(_WORK_ITEMS):
-        tr = np.empty(_PIX, attrs.dtype)    # transmittance; negative once the pixel stopped
-        sums = np.empty(nf * _PIX, np.float64)
-        cnt = np.empty(_PIX, np.int32)
-        w = np.empty(8, attrs.dtype)
-        coord = np.empty(TILE, attrs.dtype)
-        for i in range(TILE):
-            coord[i] = i
+        st = np.empty(6 * _PIX, attrs.dtype)
         for t in range(item, n_tiles, _WORK_ITEMS):
             ox = (t % grid_x) * TILE
             oy = (t // grid_x) * TILE
             tw = min(TILE, width - ox)
             th = min(TILE, height - oy)
-            sums[:] = 0.0
-            cnt[:] = 0
+            st[:] = zero
             for p in range(_PIX):  # pixels outside the image start stopped
-                tr[p] = one if (p % TILE < tw and p // TILE < th) else -one
+                st[p] = one if (p % TILE < tw and p // TILE < th) else -one
             for k in range(start[t], start[t + 1]):
                 g = ids[k]
                 first, x1, y0, y1 = _span(rect, g, ox, oy, tw, th)
                 mx, my = dt(attrs[g, 0] - ox), dt(attrs[g, 1] - oy)
                 ca, cb, cc = dt(-0.5) * attrs[g, 2], -attrs[g, 3], dt(-0.5) * attrs[g, 4]
                 o = attrs[g, 5]
-                seen = np.int32(k - start[t] + 1)
+                f0, f1, f2, f3 = feat[g, 0], feat[g, 1], feat[g, 2], feat[g, 3]
+                seen = dt(k - start[t] + 1)
                 for ly in range(y0, y1):
-                    dy = coord[ly] - my
+                    dy = dt(ly) - my
                     rowb, rowc = cb * dy, cc * dy * dy
                     for hx in range(first, x1, 8):
                         p0 = np.uint64(ly * TILE + hx)
+                        dx0 = dt(hx) - mx
                         for j in range(8):
                             p = p0 + np.uint64(j)
-                            dx = coord[hx + j] - mx
+                            dx = dx0 + dt(j)
                             alpha = min(o * _exp_le0(dx * (ca * dx + rowb) + rowc), alpha_max)
-                            tv = tr[p]
+                            tv = st[p]
                             t_next = tv * (one - alpha)
                             live = (alpha >= alpha_min) & (tv > zero)
                             take = live & (t_next >= t_min)
-                            w[j] = alpha * tv if take else zero
-                            tr[p] = t_next if take else (-tv if live else tv)
-                            cnt[p] = seen if take else cnt[p]
-                        for ch in range(nf):
-                            f = np.float64(feat[g, ch])
-                            base = np.uint64(ch * _PIX) + p0
-                            for j in range(8):
-                                sums[base + np.uint64(j)] += w[j] * f
+                            w = alpha * tv if take else zero
+                            st[p] = t_next if take else (-tv if live else tv)
+                            st[np.uint64(_PIX) + p] = seen if take else st[np.uint64(_PIX) + p]
+                            st[np.uint64(2 * _PIX) + p] += w * f0
+                            st[np.uint64(3 * _PIX) + p] += w * f1
+                            st[np.uint64(4 * _PIX) + p] += w * f2
+                            st[np.uint64(5 * _PIX) + p] += w * f3
                 if (k - start[t]) % 16 == 15:  # every 16 splats: has every pixel stopped?
                     most = -one
                     for p in range(_PIX):
-                        most = max(most, tr[p])
+                        most = max(most, st[p])
                     if most <= zero:
                         break
             for ly in range(th):
                 for lx in range(tw):
                     p = ly * TILE + lx
-                    trans[oy + ly, ox + lx] = abs(tr[p])
-                    count[oy + ly, ox + lx] = cnt[p]
-                    for ch in range(nf):
-                        acc[oy + ly, ox + lx, ch] = sums[ch * _PIX + p]
+                    trans[oy + ly, ox + lx] = abs(st[p])
+                    count[oy + ly, ox + lx] = np.int32(st[_PIX + p])
+                    for ch in range(FEATURES):
+                        acc[oy + ly, ox + lx, ch] = st[(2 + ch) * _PIX + p]
 
 
-@njit_cached(parallel=True, fastmath={"contract"})
+# reassoc: the per-splat sums over a run of 8 pixels become vector reductions
+@njit_cached(parallel=True, fastmath={"contract", "reassoc"})
 def _backward(start, ids, attrs, feat, rect, width, height, grid_x, dt, alpha_min, alpha_max,
               count, trans, acc, g_acc, g_trans, out):
-    """Replay every tile's list front to back up to each pixel's count. Writes out [K, 6 + F]: per
-    list slot the gradient of the slot's splat's attrs (6) and feat (F) from that tile's pixels."""
-    nf = feat.shape[1]
+    """Replay every tile's list front to back up to each pixel's count. Writes out [K, 6 + 4]: per
+    list slot the gradient of the slot's splat's attrs (6) and features (4) from that tile's pixels.
+    State rows: replayed transmittance, count, g . acc + g_T T_N, prefix, the 4 rows of g."""
     n_tiles = grid_x * ((height + TILE - 1) // TILE)
     one, zero = dt(1.0), dt(0.0)
+    nsum = _MOMENTS + FEATURES
+    u = np.uint64
     for item in numba.prange(_WORK_ITEMS):
-        tr = np.empty(_PIX, attrs.dtype)
-        prefix = np.empty(_PIX, np.float64)
-        total = np.empty(_PIX, np.float64)  # g . acc + g_T T_N
-        cnt = np.empty(_PIX, np.int32)
-        gg = np.empty(nf * _PIX, attrs.dtype)
-        lanes = np.empty((_MOMENTS + nf) * 8, attrs.dtype)
-        gf = np.empty(8, attrs.dtype)
-        wb = np.empty(8, attrs.dtype)
-        sums = np.empty(_MOMENTS + nf, np.float64)
-        coord = np.empty(TILE, attrs.dtype)
-        for i in range(TILE):
-            coord[i] = i
+        st = np.empty(_ROWS, attrs.dtype)
+        sums = np.empty(nsum, np.float64)
         for t in range(item, n_tiles, _WORK_ITEMS):
             ox = (t % grid_x) * TILE
             oy = (t // grid_x) * TILE
             tw = min(TILE, width - ox)
             th = min(TILE, height - oy)
-            tr[:] = one
-            prefix[:] = 0.0
-            total[:] = 0.0
-            cnt[:] = 0
-            gg[:] = zero
+            st[:] = zero
+            st[:_CNT] = one
             last = 0
             for ly in range(th):
                 for lx in range(tw):
                     p = ly * TILE + lx
                     y, x = oy + ly, ox + lx
-                    cnt[p] = count[y, x]
+                    st[_CNT + p] = count[y, x]
                     last = max(last, count[y, x])
-                    s = np.float64(g_trans[y, x]) * np.float64(trans[y, x])
-                    for ch in range(nf):
-                        gg[ch * _PIX + p] = g_acc[y, x, ch]
-                        s += np.float64(g_acc[y, x, ch]) * acc[y, x, ch]
-                    total[p] = s
+                    s = g_trans[y, x] * trans[y, x]
+                    for ch in range(FEATURES):
+                        st[_G + ch * _PIX + p] = g_acc[y, x, ch]
+                        s += g_acc[y, x, ch] * acc[y, x, ch]
+                    st[_TOT + p] = s
             for k in range(start[t] + last, start[t + 1]):  # entries no pixel of the tile took
                 out[k, :] = 0.0
             for k in range(start[t], start[t] + last):
@@ -220,53 +216,46 @@ def _backward(start, ids, attrs, feat, rect, width, height, grid_x, dt, alpha_mi
                 mx, my = dt(attrs[g, 0] - ox), dt(attrs[g, 1] - oy)
                 ca, cb, cc = dt(-0.5) * attrs[g, 2], -attrs[g, 3], dt(-0.5) * attrs[g, 4]
                 o = attrs[g, 5]
-                seen = np.int32(k - start[t])
-                lanes[:] = zero
+                f0, f1, f2, f3 = feat[g, 0], feat[g, 1], feat[g, 2], feat[g, 3]
+                seen = dt(k - start[t])
+                a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = a9 = a10 = zero
                 for ly in range(y0, y1):
-                    dy = coord[ly] - my
+                    dy = dt(ly) - my
                     rowb, rowc = cb * dy, cc * dy * dy
                     for hx in range(first, x1, 8):
-                        p0 = np.uint64(ly * TILE + hx)
+                        p0 = u(ly * TILE + hx)
+                        dx0 = dt(hx) - mx
                         for j in range(8):
-                            gf[j] = zero
-                        for ch in range(nf):
-                            f = feat[g, ch]
-                            base = np.uint64(ch * _PIX) + p0
-                            for j in range(8):
-                                gf[j] += gg[base + np.uint64(j)] * f
-                        for j in range(8):
-                            p = p0 + np.uint64(j)
-                            dx = coord[hx + j] - mx
+                            p = p0 + u(j)
+                            dx = dx0 + dt(j)
                             e = _exp_le0(dx * (ca * dx + rowb) + rowc)
                             raw = o * e
                             alpha = min(raw, alpha_max)
-                            take = (alpha >= alpha_min) & (seen < cnt[p])
-                            tv = tr[p]
+                            take = (alpha >= alpha_min) & (seen < st[u(_CNT) + p])
+                            tv = st[p]
+                            g0, g1 = st[u(_G) + p], st[u(_G + _PIX) + p]
+                            g2, g3 = st[u(_G + 2 * _PIX) + p], st[u(_G + 3 * _PIX) + p]
+                            gf = g0 * f0 + g1 * f1 + g2 * f2 + g3 * f3
                             w = alpha * tv if take else zero
-                            pre = prefix[p] + np.float64(w * gf[j])
-                            after = dt(total[p] - pre)
-                            d_alpha = tv * gf[j] - after / (one - alpha) if take else zero
+                            pre = st[u(_PRE) + p] + w * gf
+                            d_alpha = tv * gf - (st[u(_TOT) + p] - pre) / (one - alpha) if take else zero
                             d_raw = d_alpha if raw < alpha_max else zero  # no gradient through the clamp
                             d_pow = d_raw * alpha
-                            tr[p] = tv * (one - alpha) if take else tv
-                            prefix[p] = pre
-                            wb[j] = w
-                            lanes[j] += d_pow
-                            lanes[8 + j] += d_pow * dx
-                            lanes[16 + j] += d_pow * dy
-                            lanes[24 + j] += d_pow * dx * dx
-                            lanes[32 + j] += d_pow * dx * dy
-                            lanes[40 + j] += d_pow * dy * dy
-                            lanes[48 + j] += d_raw * e
-                        for ch in range(nf):
-                            base = np.uint64(ch * _PIX) + p0
-                            lane = np.uint64((_MOMENTS + ch) * 8)
-                            for j in range(8):
-                                lanes[lane + np.uint64(j)] += wb[j] * gg[base + np.uint64(j)]
-                sums[:] = 0.0
-                for m in range(_MOMENTS + nf):
-                    for j in range(8):
-                        sums[m] += lanes[m * 8 + j]
+                            st[p] = tv * (one - alpha) if take else tv
+                            st[u(_PRE) + p] = pre
+                            a0 += d_pow
+                            a1 += d_pow * dx
+                            a2 += d_pow * dy
+                            a3 += d_pow * dx * dx
+                            a4 += d_pow * dx * dy
+                            a5 += d_pow * dy * dy
+                            a6 += d_raw * e
+                            a7 += w * g0
+                            a8 += w * g1
+                            a9 += w * g2
+                            a10 += w * g3
+                sums[0], sums[1], sums[2], sums[3], sums[4], sums[5] = a0, a1, a2, a3, a4, a5
+                sums[6], sums[7], sums[8], sums[9], sums[10] = a6, a7, a8, a9, a10
                 # power = -(A dx^2 + 2 B dx dy + C dy^2) / 2 with dx = pixel x - mean x
                 a, b, c = attrs[g, 2], attrs[g, 3], attrs[g, 4]
                 out[k, 0] = a * sums[1] + b * sums[2]
@@ -275,7 +264,7 @@ def _backward(start, ids, attrs, feat, rect, width, height, grid_x, dt, alpha_mi
                 out[k, 3] = -sums[4]
                 out[k, 4] = -0.5 * sums[5]
                 out[k, 5] = sums[6]
-                for ch in range(nf):
+                for ch in range(FEATURES):
                     out[k, 6 + ch] = sums[_MOMENTS + ch]
 
 
@@ -327,33 +316,34 @@ class CompositeFast(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, attrs: Tensor, feat: Tensor, tiles: _Tiles):
+        nf = feat.shape[1]
         a = attrs.detach().contiguous().numpy()
-        f = feat.detach().contiguous().numpy()
-        h, w, nf = tiles.height, tiles.width, f.shape[1]
-        acc = np.zeros((h, w, nf), np.float64)
+        f = F.pad(feat.detach(), (0, FEATURES - nf)).contiguous().numpy()
+        h, w = tiles.height, tiles.width
+        acc = np.zeros((h, w, FEATURES), a.dtype)
         trans = np.ones((h, w), a.dtype)
         count = np.zeros((h, w), np.int32)
         _in_threads(_forward, tiles.start, tiles.ids, a, f, tiles.rect, w, h, tiles.grid_x, tiles.dt,
                     tiles.alpha_min, tiles.alpha_max, tiles.t_min, acc, trans, count)
-        acc64 = torch.from_numpy(acc)
-        trans_t = torch.from_numpy(trans)
-        ctx.save_for_backward(attrs, feat, acc64, trans_t, torch.from_numpy(count))
+        acc_t, trans_t = torch.from_numpy(acc), torch.from_numpy(trans)
+        ctx.save_for_backward(attrs, feat, acc_t, trans_t, torch.from_numpy(count))
         ctx.tiles = tiles
-        return acc64.to(attrs.dtype), trans_t.clone()
+        return acc_t[..., :nf].clone(), trans_t.clone()
 
     @staticmethod
     def backward(ctx, g_acc: Tensor, g_trans: Tensor):
-        attrs, feat, acc64, trans, count = ctx.saved_tensors
+        attrs, feat, acc, trans, count = ctx.saved_tensors
         tiles = ctx.tiles
-        a, f = attrs.detach().contiguous().numpy(), feat.detach().contiguous().numpy()
-        nf = f.shape[1]
-        slots = np.empty((tiles.ids.shape[0], 6 + nf), a.dtype)
+        nf = feat.shape[1]
+        a = attrs.detach().contiguous().numpy()
+        f = F.pad(feat.detach(), (0, FEATURES - nf)).contiguous().numpy()
+        g_acc = F.pad(g_acc.to(attrs.dtype), (0, FEATURES - nf)).contiguous().numpy()
+        slots = np.empty((tiles.ids.shape[0], 6 + FEATURES), a.dtype)
         _in_threads(_backward, tiles.start, tiles.ids, a, f, tiles.rect, tiles.width, tiles.height,
                     tiles.grid_x, tiles.dt, tiles.alpha_min, tiles.alpha_max, count.numpy(), trans.numpy(),
-                    acc64.numpy(), g_acc.to(attrs.dtype).contiguous().numpy(),
-                    g_trans.to(attrs.dtype).contiguous().numpy(), slots)
+                    acc.numpy(), g_acc, g_trans.to(attrs.dtype).contiguous().numpy(), slots)
         grad = torch.from_numpy(_gather(tiles.ids, slots, a.shape[0])).to(attrs.dtype)
-        return grad[:, :6], grad[:, 6:], None
+        return grad[:, :6], grad[:, 6:6 + nf], None
 
 
 def composite_fast(attrs: Tensor, feat: Tensor, rect: Tensor, depth: Tensor, width: int,
@@ -366,5 +356,7 @@ def composite_fast(attrs: Tensor, feat: Tensor, rect: Tensor, depth: Tensor, wid
     depth: Tensor  # [M] the sort key (camera z); ties keep index order
     returns (acc [H, W, F], transmittance [H, W]) like ``composite.composite``.
     """
+    if feat.ndim != 2 or feat.shape[1] > FEATURES:
+        raise InvalidInputError(f"feat must be [M, F] with F <= {FEATURES}, got {tuple(feat.shape)}")
     tiles = _Tiles(rect, depth, width, height, attrs.dtype)
     return CompositeFast.apply(attrs, feat, tiles)
