@@ -6,9 +6,10 @@ culling with a 3-sigma radius, and front-to-back blending of depth-sorted splats
 clamped at 0.99, alpha < 1/255 skipped and a pixel stopping below transmittance 1e-4
 (``composite``). Gaussians at depth <= ``near`` are culled.
 
-Two compositors with one contract: on the CPU the numba kernels of ``composite_fast`` (forward and
-analytic backward), elsewhere the torch ``composite``, which is also the reference for the numba
-one. ``backend`` (or the ``EDMCGS_RASTERIZER`` environment variable: auto, torch, numba) forces one.
+Two implementations with one contract: on the CPU numba kernels with analytic backwards
+(``project_fast`` for the projection and SH colour, ``composite_fast`` for the blending), elsewhere
+torch (``projection``, ``sh``, ``composite``), which is also the reference for the numba one.
+``backend`` (or the ``EDMCGS_RASTERIZER`` environment variable: auto, torch, numba) forces one.
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ from edmcgs.geometry import Intrinsics
 from edmcgs.model.render.composite import composite, make_plan
 from edmcgs.model.render.composite_fast import composite_fast
 from edmcgs.model.render.io import RenderOutput, check_inputs
-from edmcgs.model.render.projection import ewa_project, screen_rect
+from edmcgs.model.render.project_fast import project_fast, sh_color_fast
+from edmcgs.model.render.projection import Splats, ewa_project, screen_rect
 from edmcgs.model.render.sh import sh_to_color
 
 __all__ = ["BACKENDS", "RenderOutput", "rasterize"]
@@ -85,22 +87,34 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
     need_grad = torch.is_grad_enabled() and any(
         t.requires_grad for t in (chk.means, chk.quats, chk.scales, chk.opacities, chk.colors))
 
-    with torch.no_grad():  # cull on every Gaussian, then differentiate only the visible ones
-        splats = ewa_project(chk.means, chk.quats, chk.scales, chk.w2c, intrinsics, near)
-        rect = screen_rect(splats, chk.opacities, width, height, near)
-        visible = ((rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])).nonzero().squeeze(1)
+    if backend == "numba":  # one projection of every Gaussian; the culled ones get zero gradients
+        w2c64 = chk.w2c.double().numpy()
+        splats = Splats(*project_fast(chk.means, chk.quats, chk.scales, w2c64, intrinsics, near))
+        with torch.no_grad():
+            rect = screen_rect(splats, chk.opacities, width, height, near)
+            visible = ((rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])).nonzero().squeeze(1)
+    else:
+        with torch.no_grad():  # cull on every Gaussian, then differentiate only the visible ones
+            splats = ewa_project(chk.means, chk.quats, chk.scales, chk.w2c, intrinsics, near)
+            rect = screen_rect(splats, chk.opacities, width, height, near)
+            visible = ((rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])).nonzero().squeeze(1)
 
     def pick(t: Tensor) -> Tensor:  # index_select: far faster than boolean/advanced indexing on CPU
         return t.index_select(0, visible)
 
-    rect, depth_key = pick(rect), pick(splats.depth)
+    rect, depth_key = pick(rect), pick(splats.depth).detach()
     v_means, v_opac = pick(chk.means), pick(chk.opacities)
-    if need_grad:
-        splats = ewa_project(v_means, pick(chk.quats), pick(chk.scales), chk.w2c, intrinsics, near)
-        mean2d, conic, z = splats.mean2d, splats.conic, splats.depth
+    if backend == "numba":
+        mean2d, conic, z = pick(splats.mean2d), pick(splats.conic), pick(splats.depth)
+        colors = pick(chk.colors)
+        feat = sh_color_fast(colors, v_means, w2c64) if colors.ndim == 3 else colors
     else:
-        mean2d, conic, z = pick(splats.mean2d), pick(splats.conic), depth_key
-    feat = _colors(pick(chk.colors), v_means, chk.w2c)
+        if need_grad:
+            splats = ewa_project(v_means, pick(chk.quats), pick(chk.scales), chk.w2c, intrinsics, near)
+            mean2d, conic, z = splats.mean2d, splats.conic, splats.depth
+        else:
+            mean2d, conic, z = pick(splats.mean2d), pick(splats.conic), depth_key
+        feat = _colors(pick(chk.colors), v_means, chk.w2c)
     if return_depth:
         feat = torch.cat([feat, z[:, None]], dim=-1)
 

@@ -1,0 +1,334 @@
+"""Per-Gaussian preprocessing on the CPU (numba) with analytic backwards: the EWA projection of
+``projection.ewa_project`` and the SH colour of ``sh.sh_to_color``, as autograd Functions.
+
+The same math as the torch versions (Jacobian with the frustum-clamped x/z, y/z, depth clamped at
+``near``, the 0.3 px^2 low-pass, det as a sum of squared minors, colour = SH + 0.5 clamped at 0),
+evaluated per Gaussian in float64 and parallel over Gaussians; the torch versions stay the
+reference (the tests compare values and gradients). A Gaussian whose outputs get no gradient (one
+the rasterizer culled) gets exactly zero, never 0 * inf.
+
+Backward of the projection, with M = J R_w2c R(q) diag(s) [2, 3], cov = M M^T + 0.3 I and
+conic = (c, -b, a) / det:
+    d det = -(g_A c - g_B b + g_C a) / det^2,  d a = g_C / det + 0.3 d det,  d c = g_A / det + 0.3 d det
+    d M_0 = 2 d a M_0 + d b M_1 + d det d(minors^2)/d M_0  (M_1 alike)
+then through diag(s), R(q) (with q normalised), J (inv_z, the clamped x/z, y/z) and the camera
+transform, as in gsplat's projection backward.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor
+
+from edmcgs.geometry import Intrinsics
+from edmcgs.model.render.jit import njit_cached
+from edmcgs.model.render.projection import FRUSTUM_SLACK, LOWPASS
+from edmcgs.model.render.sh import SH_C0, SH_C1, SH_C2, SH_C3
+
+__all__ = ["project_fast", "sh_color_fast"]
+
+
+@njit_cached(parallel=True)
+def _project(means, quats, scales, w2c, cam, lims, near, g_mean2d, g_conic, g_depth, mean2d, cov2d, conic,
+             depth, d_means, d_quats, d_scales, backward):
+    """Forward (backward False): mean2d, cov2d, conic, depth per Gaussian. Backward: d_means,
+    d_quats, d_scales from the incoming gradients of mean2d, conic and depth."""
+    scratch = np.empty((means.shape[0], 48))  # per Gaussian: small matrices without heap allocations
+    for i in numba.prange(means.shape[0]):  # the body in its own function: parfor leaves it alone
+        _project_one(i, means, quats, scales, w2c, cam, lims, near, g_mean2d, g_conic, g_depth, mean2d, cov2d,
+                     conic, depth, d_means, d_quats, d_scales, backward, scratch[i])
+
+
+@njit_cached(error_model="numpy")
+def _project_one(i, means, quats, scales, w2c, cam, lims, near, g_mean2d, g_conic, g_depth, mean2d, cov2d,
+                 conic, depth, d_means, d_quats, d_scales, backward, scratch):
+    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
+    lim_xn, lim_xp, lim_yn, lim_yp = lims[0], lims[1], lims[2], lims[3]
+    gu = gv = ga = gb = gc = gz = 0.0
+    if backward:
+        gu, gv = np.float64(g_mean2d[i, 0]), np.float64(g_mean2d[i, 1])
+        ga, gb, gc = np.float64(g_conic[i, 0]), np.float64(g_conic[i, 1]), np.float64(g_conic[i, 2])
+        gz = np.float64(g_depth[i])
+        if gu == 0 and gv == 0 and ga == 0 and gb == 0 and gc == 0 and gz == 0:
+            for k in range(3):
+                d_means[i, k] = 0.0
+                d_scales[i, k] = 0.0
+            for k in range(4):
+                d_quats[i, k] = 0.0
+            return
+    px, py, pz = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
+    x = w2c[0, 0] * px + w2c[0, 1] * py + w2c[0, 2] * pz + w2c[0, 3]
+    y = w2c[1, 0] * px + w2c[1, 1] * py + w2c[1, 2] * pz + w2c[1, 3]
+    z = w2c[2, 0] * px + w2c[2, 1] * py + w2c[2, 2] * pz + w2c[2, 3]
+    inv_z = 1.0 / max(z, near)
+    xr, yr = x * inv_z, y * inv_z
+    xz = min(max(xr, -lim_xn), lim_xp)
+    yz = min(max(yr, -lim_yn), lim_yp)
+    j00, j02 = fx * inv_z, -fx * xz * inv_z
+    j11, j12 = fy * inv_z, -fy * yz * inv_z
+    p = scratch[0:6].reshape((2, 3))  # P = J R_w2c
+    for k in range(3):
+        p[0, k] = j00 * w2c[0, k] + j02 * w2c[2, k]
+        p[1, k] = j11 * w2c[1, k] + j12 * w2c[2, k]
+    q0, q1, q2, q3 = (np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]),
+                      np.float64(quats[i, 3]))
+    qn = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+    qw, qx, qy, qz = q0 / qn, q1 / qn, q2 / qn, q3 / qn
+    rot = scratch[6:15].reshape((3, 3))
+    rot[0, 0], rot[0, 1], rot[0, 2] = (
+        1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy))
+    rot[1, 0], rot[1, 1], rot[1, 2] = (
+        2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx))
+    rot[2, 0], rot[2, 1], rot[2, 2] = (
+        2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy))
+    pg = scratch[15:21].reshape((2, 3))  # P R(q)
+    m = scratch[21:27].reshape((2, 3))   # P R(q) diag(s)
+    for r in range(2):
+        for k in range(3):
+            pg[r, k] = p[r, 0] * rot[0, k] + p[r, 1] * rot[1, k] + p[r, 2] * rot[2, k]
+            m[r, k] = pg[r, k] * np.float64(scales[i, k])
+    a0 = m[0, 0] * m[0, 0] + m[0, 1] * m[0, 1] + m[0, 2] * m[0, 2]
+    b = m[0, 0] * m[1, 0] + m[0, 1] * m[1, 1] + m[0, 2] * m[1, 2]
+    c0 = m[1, 0] * m[1, 0] + m[1, 1] * m[1, 1] + m[1, 2] * m[1, 2]
+    k01 = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
+    k02 = m[0, 0] * m[1, 2] - m[0, 2] * m[1, 0]
+    k12 = m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]
+    det = k01 * k01 + k02 * k02 + k12 * k12 + LOWPASS * (a0 + c0) + LOWPASS * LOWPASS
+    a, c = a0 + LOWPASS, c0 + LOWPASS
+    if not backward:
+        mean2d[i, 0] = fx * x * inv_z + cx
+        mean2d[i, 1] = fy * y * inv_z + cy
+        cov2d[i, 0], cov2d[i, 1], cov2d[i, 2] = a, b, c
+        conic[i, 0], conic[i, 1], conic[i, 2] = c / det, -b / det, a / det
+        depth[i] = z
+        return
+    # conic -> (a, b, c, det) -> M
+    inv_det = 1.0 / det
+    g_det = -(ga * c - gb * b + gc * a) * inv_det * inv_det
+    g_a = gc * inv_det + LOWPASS * g_det
+    g_c = ga * inv_det + LOWPASS * g_det
+    g_b = -gb * inv_det
+    dm = scratch[27:33].reshape((2, 3))
+    for k in range(3):
+        dm[0, k] = 2 * g_a * m[0, k] + g_b * m[1, k]
+        dm[1, k] = 2 * g_c * m[1, k] + g_b * m[0, k]
+    t01, t02, t12 = 2 * g_det * k01, 2 * g_det * k02, 2 * g_det * k12
+    dm[0, 0] += t01 * m[1, 1] + t02 * m[1, 2]
+    dm[1, 1] += t01 * m[0, 0] - t12 * m[0, 2]
+    dm[0, 1] += -t01 * m[1, 0] + t12 * m[1, 2]
+    dm[1, 0] += -t01 * m[0, 1] - t02 * m[0, 2]
+    dm[1, 2] += t02 * m[0, 0] + t12 * m[0, 1]
+    dm[0, 2] += -t02 * m[1, 0] - t12 * m[1, 1]
+    # M = P R diag(s): scales, rotation, P
+    drot = scratch[33:42].reshape((3, 3))
+    dp = scratch[42:48].reshape((2, 3))
+    drot[:] = 0.0
+    dp[:] = 0.0
+    for k in range(3):
+        s = np.float64(scales[i, k])
+        d_scales[i, k] = dm[0, k] * pg[0, k] + dm[1, k] * pg[1, k]
+        for r in range(2):
+            dpg = dm[r, k] * s
+            for l in range(3):
+                drot[l, k] += p[r, l] * dpg
+                dp[r, l] += dpg * rot[l, k]
+    dw = 2 * (-qz * drot[0, 1] + qy * drot[0, 2] + qz * drot[1, 0] - qx * drot[1, 2] - qy * drot[2, 0]
+              + qx * drot[2, 1])
+    dx = 2 * (qy * drot[0, 1] + qz * drot[0, 2] + qy * drot[1, 0] - 2 * qx * drot[1, 1] - qw * drot[1, 2]
+              + qz * drot[2, 0] + qw * drot[2, 1] - 2 * qx * drot[2, 2])
+    dy = 2 * (-2 * qy * drot[0, 0] + qx * drot[0, 1] + qw * drot[0, 2] + qx * drot[1, 0] + qz * drot[1, 2]
+              - qw * drot[2, 0] + qz * drot[2, 1] - 2 * qy * drot[2, 2])
+    dz = 2 * (-2 * qz * drot[0, 0] - qw * drot[0, 1] + qx * drot[0, 2] + qw * drot[1, 0]
+              - 2 * qz * drot[1, 1] + qy * drot[1, 2] + qx * drot[2, 0] + qy * drot[2, 1])
+    dot = qw * dw + qx * dx + qy * dy + qz * dz
+    d_quats[i, 0] = (dw - qw * dot) / qn
+    d_quats[i, 1] = (dx - qx * dot) / qn
+    d_quats[i, 2] = (dy - qy * dot) / qn
+    d_quats[i, 3] = (dz - qz * dot) / qn
+    # P = J R_w2c -> J entries -> inv_z, x/z, y/z
+    dj00 = dp[0, 0] * w2c[0, 0] + dp[0, 1] * w2c[0, 1] + dp[0, 2] * w2c[0, 2]
+    dj02 = dp[0, 0] * w2c[2, 0] + dp[0, 1] * w2c[2, 1] + dp[0, 2] * w2c[2, 2]
+    dj11 = dp[1, 0] * w2c[1, 0] + dp[1, 1] * w2c[1, 1] + dp[1, 2] * w2c[1, 2]
+    dj12 = dp[1, 0] * w2c[2, 0] + dp[1, 1] * w2c[2, 1] + dp[1, 2] * w2c[2, 2]
+    d_inv = fx * dj00 - fx * xz * dj02 + fy * dj11 - fy * yz * dj12
+    d_xz, d_yz = -fx * inv_z * dj02, -fy * inv_z * dj12
+    d_x, d_y, d_z = 0.0, 0.0, gz
+    if -lim_xn <= xr <= lim_xp:
+        d_x += d_xz * inv_z
+        d_inv += d_xz * x
+    if -lim_yn <= yr <= lim_yp:
+        d_y += d_yz * inv_z
+        d_inv += d_yz * y
+    d_x += gu * fx * inv_z
+    d_y += gv * fy * inv_z
+    d_inv += gu * fx * x + gv * fy * y
+    if z >= near:
+        d_z -= d_inv * inv_z * inv_z
+    for k in range(3):
+        d_means[i, k] = w2c[0, k] * d_x + w2c[1, k] * d_y + w2c[2, k] * d_z
+
+
+def _limits(intrinsics: Intrinsics) -> np.ndarray:
+    """The frustum limits of x/z and y/z (``ewa_project``'s clamp)."""
+    k = intrinsics
+    slack_x = FRUSTUM_SLACK * 0.5 * k.width / k.fx
+    slack_y = FRUSTUM_SLACK * 0.5 * k.height / k.fy
+    return np.array([k.cx / k.fx + slack_x, (k.width - k.cx) / k.fx + slack_x,
+                     k.cy / k.fy + slack_y, (k.height - k.cy) / k.fy + slack_y])
+
+
+class ProjectFast(torch.autograd.Function):
+    """(means, quats, scales) -> (mean2d [N, 2], cov2d [N, 3] (not differentiable), conic [N, 3],
+    depth [N]); w2c [4, 4] float64 numpy, intrinsics and near are constants."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, w2c, intrinsics, near):
+        n, dtype = means.shape[0], means.dtype
+        arrays = [t.detach().contiguous().numpy() for t in (means, quats, scales)]
+        mean2d, cov2d, conic = (np.empty((n, d), arrays[0].dtype) for d in (2, 3, 3))
+        depth = np.empty(n, arrays[0].dtype)
+        k = intrinsics
+        cam = np.array([k.fx, k.fy, k.cx, k.cy], np.float64)
+        ctx.constants = (w2c, cam, _limits(intrinsics), float(near))
+        empty, empty1 = np.zeros((0, 3), arrays[0].dtype), np.zeros(0, arrays[0].dtype)
+        _project(*arrays, w2c, cam, ctx.constants[2], float(near), empty, empty, empty1, mean2d, cov2d,
+                 conic, depth, empty, np.zeros((0, 4), arrays[0].dtype), empty, False)
+        ctx.save_for_backward(means, quats, scales)
+        cov2d = torch.from_numpy(cov2d)
+        ctx.mark_non_differentiable(cov2d)
+        return torch.from_numpy(mean2d), cov2d, torch.from_numpy(conic), torch.from_numpy(depth).to(dtype)
+
+    @staticmethod
+    def backward(ctx, g_mean2d, g_cov2d, g_conic, g_depth):
+        means, quats, scales = ctx.saved_tensors
+        w2c, cam, lims, near = ctx.constants
+        arrays = [t.detach().contiguous().numpy() for t in (means, quats, scales)]
+        dt = arrays[0].dtype
+        grads = [np.empty_like(a) for a in arrays]
+        empty = np.zeros((0, 3), dt)
+        _project(*arrays, w2c, cam, lims, near, g_mean2d.to(means.dtype).contiguous().numpy(),
+                 g_conic.to(means.dtype).contiguous().numpy(), g_depth.to(means.dtype).contiguous().numpy(),
+                 np.zeros((0, 2), dt), empty, empty, np.zeros(0, dt), *grads, True)
+        return (*(torch.from_numpy(g) for g in grads), None, None, None)
+
+
+def project_fast(means: Tensor, quats: Tensor, scales: Tensor, w2c: np.ndarray, intrinsics: Intrinsics,
+                 near: float):
+    """``ewa_project`` on the CPU: (mean2d, cov2d, conic, depth), differentiable w.r.t. means,
+    quats and scales (cov2d is for culling only). w2c: [4, 4], converted to float64."""
+    w2c = np.ascontiguousarray(np.asarray(w2c, np.float64))
+    return ProjectFast.apply(means, quats, scales, w2c, intrinsics, near)
+
+
+@njit_cached(parallel=True)
+def _sh(coeffs, means, centre, g_color, color, d_coeffs, d_means, backward):
+    """Forward: color = max(SH(coeffs, dir) + 0.5, 0) with dir the unit vector from the camera
+    centre to the mean. Backward: d_coeffs and d_means from g_color."""
+    scratch = np.empty((coeffs.shape[0], 64))  # per Gaussian: the basis and its gradient, no allocations
+    for i in numba.prange(coeffs.shape[0]):  # the body in its own function: parfor leaves it alone
+        _sh_one(i, coeffs, means, centre, g_color, color, d_coeffs, d_means, backward, scratch[i])
+
+
+@njit_cached(error_model="numpy")
+def _sh_one(i, coeffs, means, centre, g_color, color, d_coeffs, d_means, backward, scratch):
+    ncoef, nch = coeffs.shape[1], coeffs.shape[2]
+    vx = np.float64(means[i, 0]) - centre[0]
+    vy = np.float64(means[i, 1]) - centre[1]
+    vz = np.float64(means[i, 2]) - centre[2]
+    norm = max(math.sqrt(vx * vx + vy * vy + vz * vz), 1e-12)
+    x, y, z = vx / norm, vy / norm, vz / norm
+    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+    basis = scratch[0:16]
+    grad = scratch[16:64].reshape((16, 3))  # d basis / d (x, y, z)
+    scratch[:] = 0.0
+    basis[0] = SH_C0
+    if ncoef > 1:
+        basis[1], basis[2], basis[3] = -SH_C1 * y, SH_C1 * z, -SH_C1 * x
+        grad[1, 1], grad[2, 2], grad[3, 0] = -SH_C1, SH_C1, -SH_C1
+    if ncoef > 4:
+        basis[4] = SH_C2[0] * xy
+        basis[5] = SH_C2[1] * yz
+        basis[6] = SH_C2[2] * (2 * zz - xx - yy)
+        basis[7] = SH_C2[3] * xz
+        basis[8] = SH_C2[4] * (xx - yy)
+        grad[4, 0], grad[4, 1] = SH_C2[0] * y, SH_C2[0] * x
+        grad[5, 1], grad[5, 2] = SH_C2[1] * z, SH_C2[1] * y
+        grad[6, 0], grad[6, 1], grad[6, 2] = -2 * SH_C2[2] * x, -2 * SH_C2[2] * y, 4 * SH_C2[2] * z
+        grad[7, 0], grad[7, 2] = SH_C2[3] * z, SH_C2[3] * x
+        grad[8, 0], grad[8, 1] = 2 * SH_C2[4] * x, -2 * SH_C2[4] * y
+    if ncoef > 9:
+        basis[9] = SH_C3[0] * y * (3 * xx - yy)
+        basis[10] = SH_C3[1] * xy * z
+        basis[11] = SH_C3[2] * y * (4 * zz - xx - yy)
+        basis[12] = SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy)
+        basis[13] = SH_C3[4] * x * (4 * zz - xx - yy)
+        basis[14] = SH_C3[5] * z * (xx - yy)
+        basis[15] = SH_C3[6] * x * (xx - 3 * yy)
+        grad[9, 0], grad[9, 1] = 6 * SH_C3[0] * xy, SH_C3[0] * (3 * xx - 3 * yy)
+        grad[10, 0], grad[10, 1], grad[10, 2] = SH_C3[1] * yz, SH_C3[1] * xz, SH_C3[1] * xy
+        grad[11, 0], grad[11, 1] = -2 * SH_C3[2] * xy, SH_C3[2] * (4 * zz - xx - 3 * yy)
+        grad[11, 2] = 8 * SH_C3[2] * yz
+        grad[12, 0], grad[12, 1] = -6 * SH_C3[3] * xz, -6 * SH_C3[3] * yz
+        grad[12, 2] = SH_C3[3] * (6 * zz - 3 * xx - 3 * yy)
+        grad[13, 0], grad[13, 1] = SH_C3[4] * (4 * zz - 3 * xx - yy), -2 * SH_C3[4] * xy
+        grad[13, 2] = 8 * SH_C3[4] * xz
+        grad[14, 0], grad[14, 1] = 2 * SH_C3[5] * xz, -2 * SH_C3[5] * yz
+        grad[14, 2] = SH_C3[5] * (xx - yy)
+        grad[15, 0], grad[15, 1] = SH_C3[6] * (3 * xx - 3 * yy), -6 * SH_C3[6] * xy
+    gx = gy = gz = 0.0
+    for ch in range(nch):
+        value = 0.5
+        for k in range(ncoef):
+            value += basis[k] * np.float64(coeffs[i, k, ch])
+        if not backward:
+            color[i, ch] = max(value, 0.0)
+            continue
+        g = np.float64(g_color[i, ch]) if value >= 0 else 0.0  # clamp_min passes at the edge
+        for k in range(ncoef):
+            d_coeffs[i, k, ch] = basis[k] * g
+            gck = np.float64(coeffs[i, k, ch]) * g
+            gx += grad[k, 0] * gck
+            gy += grad[k, 1] * gck
+            gz += grad[k, 2] * gck
+    if backward:  # through dir = v / max(|v|, eps)
+        if norm > 1e-12:
+            dot = x * gx + y * gy + z * gz
+            gx, gy, gz = (gx - x * dot) / norm, (gy - y * dot) / norm, (gz - z * dot) / norm
+        else:
+            gx, gy, gz = gx / norm, gy / norm, gz / norm
+        d_means[i, 0], d_means[i, 1], d_means[i, 2] = gx, gy, gz
+
+
+class ShColorFast(torch.autograd.Function):
+    """(coeffs [N, K, C], means [N, 3]) -> colour [N, C]; centre [3] float64 numpy is a constant."""
+
+    @staticmethod
+    def forward(ctx, coeffs, means, centre):
+        c, m = coeffs.detach().contiguous().numpy(), means.detach().contiguous().numpy()
+        color = np.empty((c.shape[0], c.shape[2]), c.dtype)
+        empty = np.zeros((0, 3), c.dtype)
+        _sh(c, m, centre, empty, color, np.zeros((0, 1, 1), c.dtype), empty, False)
+        ctx.save_for_backward(coeffs, means)
+        ctx.centre = centre
+        return torch.from_numpy(color)
+
+    @staticmethod
+    def backward(ctx, g_color):
+        coeffs, means = ctx.saved_tensors
+        c, m = coeffs.detach().contiguous().numpy(), means.detach().contiguous().numpy()
+        d_coeffs, d_means = np.empty_like(c), np.empty_like(m)
+        _sh(c, m, ctx.centre, g_color.to(coeffs.dtype).contiguous().numpy(), np.zeros((0, 1), c.dtype),
+            d_coeffs, d_means, True)
+        return torch.from_numpy(d_coeffs), torch.from_numpy(d_means), None
+
+
+def sh_color_fast(coeffs: Tensor, means: Tensor, w2c: np.ndarray) -> Tensor:
+    """``sh_to_color`` towards each Gaussian from the camera centre of w2c, on the CPU;
+    differentiable w.r.t. coeffs [N, K, C] and means [N, 3]."""
+    w2c = np.asarray(w2c, np.float64)
+    centre = np.ascontiguousarray(-(w2c[:3, :3].T @ w2c[:3, 3]))
+    return ShColorFast.apply(coeffs, means, centre)
