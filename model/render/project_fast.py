@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 import torch
 from torch import Tensor
@@ -32,13 +31,13 @@ from edmcgs.model.render.sh import SH_C0, SH_C1, SH_C2, SH_C3
 __all__ = ["project_fast", "sh_color_fast"]
 
 
-@njit_cached(parallel=True)
+@njit_cached()
 def _project(means, quats, scales, w2c, cam, lims, near, g_mean2d, g_conic, g_depth, mean2d, cov2d, conic,
              depth, d_means, d_quats, d_scales, backward):
     """Forward (backward False): mean2d, cov2d, conic, depth per Gaussian. Backward: d_means,
     d_quats, d_scales from the incoming gradients of mean2d, conic and depth."""
     scratch = np.empty((means.shape[0], 48))  # per Gaussian: small matrices without heap allocations
-    for i in numba.prange(means.shape[0]):  # the body in its own function: parfor leaves it alone
+    for i in range(means.shape[0]):
         _project_one(i, means, quats, scales, w2c, cam, lims, near, g_mean2d, g_conic, g_depth, mean2d, cov2d,
                      conic, depth, d_means, d_quats, d_scales, backward, scratch[i])
 
@@ -224,12 +223,12 @@ def project_fast(means: Tensor, quats: Tensor, scales: Tensor, w2c: np.ndarray, 
     return ProjectFast.apply(means, quats, scales, w2c, intrinsics, near)
 
 
-@njit_cached(parallel=True)
+@njit_cached()
 def _sh(coeffs, means, centre, g_color, color, d_coeffs, d_means, backward):
     """Forward: color = max(SH(coeffs, dir) + 0.5, 0) with dir the unit vector from the camera
     centre to the mean. Backward: d_coeffs and d_means from g_color."""
     scratch = np.empty((coeffs.shape[0], 64))  # per Gaussian: the basis and its gradient, no allocations
-    for i in numba.prange(coeffs.shape[0]):  # the body in its own function: parfor leaves it alone
+    for i in range(coeffs.shape[0]):
         _sh_one(i, coeffs, means, centre, g_color, color, d_coeffs, d_means, backward, scratch[i])
 
 
