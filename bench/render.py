@@ -1,16 +1,19 @@
-"""Rasterizer benchmark: the fast numba path (forward) and the differentiable torch path (forward +
-backward) at 173x130 and 346x260 with 2k, 8k and 20k Gaussians in view.
+"""Rasterizer benchmark: the fast numba forward (``rasterize_fast``, serving) and the differentiable
+``rasterize`` forward + backward on both of its paths, torch and numba (training on the CPU), at
+173x130 and 346x260 with 2k, 8k and 20k Gaussians in view.
 
-    .venv/bin/python -m bench.render [--json PATH] [--runs N] [--threads T]
+    .venv/bin/python -m bench.render [--json PATH] [--runs N] [--threads T] [--paths fast,torch,numba]
 
 The scene: N Gaussians whose centres are spread uniformly over the image at depths 2-6 m, random
 orientations, per-axis scales giving a screen sigma log-uniform in 0.7-4 px at 346x260 (3-sigma
 radius ~2-12 px; half that at 173x130, which renders the same scene), opacities U(0.2, 0.95),
 degree-3 SH colours. Each configuration runs in a fresh subprocess (so its peak RSS, the process's
 ru_maxrss including the interpreter and imports, is its own), warms up, then times ``--runs`` calls;
-the rows give the median and 90th percentile wall time. ``--threads`` sets torch's and numba's
+the rows give the median and 90th percentile wall time and the median CPU time of the process
+(what a preempted run on a loaded machine does not inflate). ``--threads`` sets torch's and numba's
 thread counts in the children (default: theirs, all cores). Timings are wall clock on a shared
-machine: the load average is printed with the table.
+machine: the load average is printed with the table, then the targets (fwd+bwd at 8k Gaussians,
+the fast forward at 346x260) and the torch / numba ratio of the training paths.
 """
 
 from __future__ import annotations
@@ -26,12 +29,16 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.results import write_json
+from bench.results import table, write_json
 
 SIZES = ((173, 130), (346, 260))
 COUNTS = (2000, 8000, 20000)
+PATHS = ("fast", "torch", "numba")
 WARMUP = 3
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
+TARGETS = {"numba_fwd_bwd_173x130_8k_ms": ("<=", 25.0), "numba_fwd_bwd_346x260_8k_ms": ("<=", 60.0)}
+FAST_TARGET = {1: ("<=", 5.0), 2: ("<=", 3.2)}
+"""The fast forward at 346x260 with 8k Gaussians, by thread count (the issue's targets)."""
 
 
 def _scene(n: int, width: int, height: int):
@@ -42,15 +49,17 @@ def _scene(n: int, width: int, height: int):
     return scene
 
 
-def _time(step, runs: int) -> list[float]:
+def _time(step, runs: int) -> tuple[list[float], list[float]]:
+    """(wall, CPU) seconds of each timed run."""
     for _ in range(WARMUP):
         step()
-    times = []
+    wall, cpu = [], []
     for _ in range(runs):
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         step()
-        times.append(time.perf_counter() - start)
-    return times
+        wall.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)
+    return wall, cpu
 
 
 def measure(path: str, width: int, height: int, n: int, runs: int, threads: int | None) -> dict:
@@ -77,12 +86,14 @@ def measure(path: str, width: int, height: int, n: int, runs: int, threads: int 
         def step():
             for p in params:
                 p.grad = None
-            out = rasterize(*params, scene["w2c"], scene["intrinsics"])
+            out = rasterize(*params, scene["w2c"], scene["intrinsics"], backend=path)
             out.image.sum().backward()
-    times = np.array(_time(step, runs)) * 1e3
+    wall, cpu = _time(step, runs)
+    times = np.array(wall) * 1e3
     return {"path": path, "width": width, "height": height, "gaussians": n,
             "median_ms": round(float(np.median(times)), 2),
             "p90_ms": round(float(np.percentile(times, 90)), 2),
+            "cpu_median_ms": round(float(np.median(cpu)) * 1e3, 2),
             "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
             "threads": torch.get_num_threads()}
 
@@ -102,10 +113,15 @@ def main(argv=None) -> int:
     parser.add_argument("--json", type=Path, help="write the rows here as a JSON list")
     parser.add_argument("--runs", type=int, default=20, help="timed runs per configuration (>= 10)")
     parser.add_argument("--threads", type=int, help="torch and numba threads (default: all cores)")
+    parser.add_argument("--paths", default=",".join(PATHS),
+                        help="comma-separated subset of fast, torch, numba (default: all)")
     parser.add_argument("--one", nargs=4, metavar=("PATH", "W", "H", "N"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.runs < 10:
         parser.error("--runs must be >= 10")
+    paths = [p for p in args.paths.split(",") if p]
+    if not paths or any(p not in PATHS for p in paths):
+        parser.error(f"--paths must name some of {', '.join(PATHS)}, got {args.paths!r}")
     if args.one:
         path, w, h, n = args.one
         print(json.dumps(measure(path, int(w), int(h), int(n), args.runs, args.threads)))
@@ -113,22 +129,49 @@ def main(argv=None) -> int:
 
     from tqdm import tqdm
 
-    configs = [(p, w, h, n) for p in ("fast", "autograd") for w, h in SIZES for n in COUNTS]
+    configs = [(p, w, h, n) for p in paths for w, h in SIZES for n in COUNTS]
     load_before = os.getloadavg()
     rows = [_in_subprocess(*c, args.runs, args.threads)
             for c in tqdm(configs, desc="render bench", unit="config")]
     load_after = os.getloadavg()
     print(f"\nscene: Gaussians spread over the view, 3-sigma radius ~2-12 px at 346x260, SH degree 3; "
           f"{args.runs} timed runs after {WARMUP} warm-up, one subprocess per row")
-    print(f"fast = rasterize_fast forward; autograd = rasterize forward + backward; {os.cpu_count()} CPUs, "
-          f"{rows[0]['threads']} threads, load average {load_before[0]:.2f} before, "
+    print(f"fast = rasterize_fast forward; torch / numba = rasterize forward + backward on that path; "
+          f"{os.cpu_count()} CPUs, {rows[0]['threads']} threads, load average {load_before[0]:.2f} before, "
           f"{load_after[0]:.2f} after")
-    print(f"{'path':<9} {'size':>8} {'gaussians':>9} {'median ms':>10} {'p90 ms':>8} {'peak RSS MB':>12}")
+    print(f"{'path':<9} {'size':>8} {'gaussians':>9} {'median ms':>10} {'p90 ms':>8} {'CPU ms':>8} "
+          f"{'peak RSS MB':>12}")
     for r in rows:
         print(f"{r['path']:<9} {r['width']:>4}x{r['height']:<3} {r['gaussians']:>9} {r['median_ms']:>10.2f} "
-              f"{r['p90_ms']:>8.2f} {r['peak_rss_mb']:>12.1f}")
-    write_json(args.json, rows)
+              f"{r['p90_ms']:>8.2f} {r['cpu_median_ms']:>8.2f} {r['peak_rss_mb']:>12.1f}")
+    summary, targets = _summary(rows)
+    print("\n" + table(summary, targets))
+    write_json(args.json, {"rows": rows, "summary": summary})
     return 0
+
+
+def _summary(rows: list[dict]) -> tuple[dict, dict]:
+    """The targeted medians (and CPU medians) and the torch / numba ratios of the training paths."""
+    by = {(r["path"], r["width"], r["height"], r["gaussians"]): r for r in rows}
+    summary, targets = {}, dict(TARGETS)
+    for w, h in SIZES:
+        for n in COUNTS:
+            torch_row, numba_row = by.get(("torch", w, h, n)), by.get(("numba", w, h, n))
+            size = f"{w}x{h}_{n // 1000}k"
+            if numba_row:
+                summary[f"numba_fwd_bwd_{size}_ms"] = numba_row["median_ms"]
+                summary[f"numba_fwd_bwd_{size}_cpu_ms"] = numba_row["cpu_median_ms"]
+            if torch_row:
+                summary[f"torch_fwd_bwd_{size}_ms"] = torch_row["median_ms"]
+            if torch_row and numba_row:
+                ratio = torch_row["median_ms"] / numba_row["median_ms"]
+                summary[f"torch_over_numba_{size}"] = round(ratio, 2)
+    fast = by.get(("fast", 346, 260, 8000))
+    if fast:
+        summary["fast_346x260_8k_ms"] = fast["median_ms"]
+        if fast["threads"] in FAST_TARGET:
+            targets["fast_346x260_8k_ms"] = FAST_TARGET[fast["threads"]]
+    return summary, targets
 
 
 if __name__ == "__main__":

@@ -36,15 +36,14 @@ def _project(means, quats, scales, w2c, cam, lims, near, g_mean2d, g_conic, g_de
              depth, d_means, d_quats, d_scales, backward):
     """Forward (backward False): mean2d, cov2d, conic, depth per Gaussian. Backward: d_means,
     d_quats, d_scales from the incoming gradients of mean2d, conic and depth."""
-    scratch = np.empty((means.shape[0], 48))  # per Gaussian: small matrices without heap allocations
     for i in range(means.shape[0]):
         _project_one(i, means, quats, scales, w2c, cam, lims, near, g_mean2d, g_conic, g_depth, mean2d, cov2d,
-                     conic, depth, d_means, d_quats, d_scales, backward, scratch[i])
+                     conic, depth, d_means, d_quats, d_scales, backward)
 
 
-@njit_cached(error_model="numpy")
+@njit_cached(error_model="numpy", inline="always")
 def _project_one(i, means, quats, scales, w2c, cam, lims, near, g_mean2d, g_conic, g_depth, mean2d, cov2d,
-                 conic, depth, d_means, d_quats, d_scales, backward, scratch):
+                 conic, depth, d_means, d_quats, d_scales, backward):
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     lim_xn, lim_xp, lim_yn, lim_yp = lims[0], lims[1], lims[2], lims[3]
     gu = gv = ga = gb = gc = gz = 0.0
@@ -69,33 +68,29 @@ def _project_one(i, means, quats, scales, w2c, cam, lims, near, g_mean2d, g_coni
     yz = min(max(yr, -lim_yn), lim_yp)
     j00, j02 = fx * inv_z, -fx * xz * inv_z
     j11, j12 = fy * inv_z, -fy * yz * inv_z
-    p = scratch[0:6].reshape((2, 3))  # P = J R_w2c
-    for k in range(3):
-        p[0, k] = j00 * w2c[0, k] + j02 * w2c[2, k]
-        p[1, k] = j11 * w2c[1, k] + j12 * w2c[2, k]
+    # P = J R_w2c [2, 3]; G = R(q) [3, 3]; PG = P G; M = PG diag(s)
+    p00, p01, p02 = (j00 * w2c[0, 0] + j02 * w2c[2, 0], j00 * w2c[0, 1] + j02 * w2c[2, 1],
+                     j00 * w2c[0, 2] + j02 * w2c[2, 2])
+    p10, p11, p12 = (j11 * w2c[1, 0] + j12 * w2c[2, 0], j11 * w2c[1, 1] + j12 * w2c[2, 1],
+                     j11 * w2c[1, 2] + j12 * w2c[2, 2])
     q0, q1, q2, q3 = (np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]),
                       np.float64(quats[i, 3]))
     qn = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
     qw, qx, qy, qz = q0 / qn, q1 / qn, q2 / qn, q3 / qn
-    rot = scratch[6:15].reshape((3, 3))
-    rot[0, 0], rot[0, 1], rot[0, 2] = (
-        1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy))
-    rot[1, 0], rot[1, 1], rot[1, 2] = (
-        2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx))
-    rot[2, 0], rot[2, 1], rot[2, 2] = (
-        2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy))
-    pg = scratch[15:21].reshape((2, 3))  # P R(q)
-    m = scratch[21:27].reshape((2, 3))   # P R(q) diag(s)
-    for r in range(2):
-        for k in range(3):
-            pg[r, k] = p[r, 0] * rot[0, k] + p[r, 1] * rot[1, k] + p[r, 2] * rot[2, k]
-            m[r, k] = pg[r, k] * np.float64(scales[i, k])
-    a0 = m[0, 0] * m[0, 0] + m[0, 1] * m[0, 1] + m[0, 2] * m[0, 2]
-    b = m[0, 0] * m[1, 0] + m[0, 1] * m[1, 1] + m[0, 2] * m[1, 2]
-    c0 = m[1, 0] * m[1, 0] + m[1, 1] * m[1, 1] + m[1, 2] * m[1, 2]
-    k01 = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
-    k02 = m[0, 0] * m[1, 2] - m[0, 2] * m[1, 0]
-    k12 = m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]
+    g00, g01, g02 = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)
+    g10, g11, g12 = 2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)
+    g20, g21, g22 = 2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)
+    pg00, pg01, pg02 = (p00 * g00 + p01 * g10 + p02 * g20, p00 * g01 + p01 * g11 + p02 * g21,
+                        p00 * g02 + p01 * g12 + p02 * g22)
+    pg10, pg11, pg12 = (p10 * g00 + p11 * g10 + p12 * g20, p10 * g01 + p11 * g11 + p12 * g21,
+                        p10 * g02 + p11 * g12 + p12 * g22)
+    s0, s1, s2 = np.float64(scales[i, 0]), np.float64(scales[i, 1]), np.float64(scales[i, 2])
+    m00, m01, m02 = pg00 * s0, pg01 * s1, pg02 * s2
+    m10, m11, m12 = pg10 * s0, pg11 * s1, pg12 * s2
+    a0 = m00 * m00 + m01 * m01 + m02 * m02
+    b = m00 * m10 + m01 * m11 + m02 * m12
+    c0 = m10 * m10 + m11 * m11 + m12 * m12
+    k01, k02, k12 = m00 * m11 - m01 * m10, m00 * m12 - m02 * m10, m01 * m12 - m02 * m11
     det = k01 * k01 + k02 * k02 + k12 * k12 + LOWPASS * (a0 + c0) + LOWPASS * LOWPASS
     a, c = a0 + LOWPASS, c0 + LOWPASS
     if not backward:
@@ -108,51 +103,42 @@ def _project_one(i, means, quats, scales, w2c, cam, lims, near, g_mean2d, g_coni
     # conic -> (a, b, c, det) -> M
     inv_det = 1.0 / det
     g_det = -(ga * c - gb * b + gc * a) * inv_det * inv_det
-    g_a = gc * inv_det + LOWPASS * g_det
-    g_c = ga * inv_det + LOWPASS * g_det
+    g_a = 2 * (gc * inv_det + LOWPASS * g_det)
+    g_c = 2 * (ga * inv_det + LOWPASS * g_det)
     g_b = -gb * inv_det
-    dm = scratch[27:33].reshape((2, 3))
-    for k in range(3):
-        dm[0, k] = 2 * g_a * m[0, k] + g_b * m[1, k]
-        dm[1, k] = 2 * g_c * m[1, k] + g_b * m[0, k]
     t01, t02, t12 = 2 * g_det * k01, 2 * g_det * k02, 2 * g_det * k12
-    dm[0, 0] += t01 * m[1, 1] + t02 * m[1, 2]
-    dm[1, 1] += t01 * m[0, 0] - t12 * m[0, 2]
-    dm[0, 1] += -t01 * m[1, 0] + t12 * m[1, 2]
-    dm[1, 0] += -t01 * m[0, 1] - t02 * m[0, 2]
-    dm[1, 2] += t02 * m[0, 0] + t12 * m[0, 1]
-    dm[0, 2] += -t02 * m[1, 0] - t12 * m[1, 1]
-    # M = P R diag(s): scales, rotation, P
-    drot = scratch[33:42].reshape((3, 3))
-    dp = scratch[42:48].reshape((2, 3))
-    drot[:] = 0.0
-    dp[:] = 0.0
-    for k in range(3):
-        s = np.float64(scales[i, k])
-        d_scales[i, k] = dm[0, k] * pg[0, k] + dm[1, k] * pg[1, k]
-        for r in range(2):
-            dpg = dm[r, k] * s
-            for l in range(3):
-                drot[l, k] += p[r, l] * dpg
-                dp[r, l] += dpg * rot[l, k]
-    dw = 2 * (-qz * drot[0, 1] + qy * drot[0, 2] + qz * drot[1, 0] - qx * drot[1, 2] - qy * drot[2, 0]
-              + qx * drot[2, 1])
-    dx = 2 * (qy * drot[0, 1] + qz * drot[0, 2] + qy * drot[1, 0] - 2 * qx * drot[1, 1] - qw * drot[1, 2]
-              + qz * drot[2, 0] + qw * drot[2, 1] - 2 * qx * drot[2, 2])
-    dy = 2 * (-2 * qy * drot[0, 0] + qx * drot[0, 1] + qw * drot[0, 2] + qx * drot[1, 0] + qz * drot[1, 2]
-              - qw * drot[2, 0] + qz * drot[2, 1] - 2 * qy * drot[2, 2])
-    dz = 2 * (-2 * qz * drot[0, 0] - qw * drot[0, 1] + qx * drot[0, 2] + qw * drot[1, 0]
-              - 2 * qz * drot[1, 1] + qy * drot[1, 2] + qx * drot[2, 0] + qy * drot[2, 1])
+    dm00 = g_a * m00 + g_b * m10 + t01 * m11 + t02 * m12
+    dm01 = g_a * m01 + g_b * m11 - t01 * m10 + t12 * m12
+    dm02 = g_a * m02 + g_b * m12 - t02 * m10 - t12 * m11
+    dm10 = g_c * m10 + g_b * m00 - t01 * m01 - t02 * m02
+    dm11 = g_c * m11 + g_b * m01 + t01 * m00 - t12 * m02
+    dm12 = g_c * m12 + g_b * m02 + t02 * m00 + t12 * m01
+    # M = PG diag(s): scales, then G (rotation) and P
+    d_scales[i, 0] = dm00 * pg00 + dm10 * pg10
+    d_scales[i, 1] = dm01 * pg01 + dm11 * pg11
+    d_scales[i, 2] = dm02 * pg02 + dm12 * pg12
+    e00, e01, e02, e10, e11, e12 = dm00 * s0, dm01 * s1, dm02 * s2, dm10 * s0, dm11 * s1, dm12 * s2  # d PG
+    r00, r01, r02 = p00 * e00 + p10 * e10, p00 * e01 + p10 * e11, p00 * e02 + p10 * e12  # d G
+    r10, r11, r12 = p01 * e00 + p11 * e10, p01 * e01 + p11 * e11, p01 * e02 + p11 * e12
+    r20, r21, r22 = p02 * e00 + p12 * e10, p02 * e01 + p12 * e11, p02 * e02 + p12 * e12
+    dp00, dp01, dp02 = (e00 * g00 + e01 * g01 + e02 * g02, e00 * g10 + e01 * g11 + e02 * g12,
+                        e00 * g20 + e01 * g21 + e02 * g22)
+    dp10, dp11, dp12 = (e10 * g00 + e11 * g01 + e12 * g02, e10 * g10 + e11 * g11 + e12 * g12,
+                        e10 * g20 + e11 * g21 + e12 * g22)
+    dw = 2 * (-qz * r01 + qy * r02 + qz * r10 - qx * r12 - qy * r20 + qx * r21)
+    dx = 2 * (qy * r01 + qz * r02 + qy * r10 - 2 * qx * r11 - qw * r12 + qz * r20 + qw * r21 - 2 * qx * r22)
+    dy = 2 * (-2 * qy * r00 + qx * r01 + qw * r02 + qx * r10 + qz * r12 - qw * r20 + qz * r21 - 2 * qy * r22)
+    dz = 2 * (-2 * qz * r00 - qw * r01 + qx * r02 + qw * r10 - 2 * qz * r11 + qy * r12 + qx * r20 + qy * r21)
     dot = qw * dw + qx * dx + qy * dy + qz * dz
     d_quats[i, 0] = (dw - qw * dot) / qn
     d_quats[i, 1] = (dx - qx * dot) / qn
     d_quats[i, 2] = (dy - qy * dot) / qn
     d_quats[i, 3] = (dz - qz * dot) / qn
     # P = J R_w2c -> J entries -> inv_z, x/z, y/z
-    dj00 = dp[0, 0] * w2c[0, 0] + dp[0, 1] * w2c[0, 1] + dp[0, 2] * w2c[0, 2]
-    dj02 = dp[0, 0] * w2c[2, 0] + dp[0, 1] * w2c[2, 1] + dp[0, 2] * w2c[2, 2]
-    dj11 = dp[1, 0] * w2c[1, 0] + dp[1, 1] * w2c[1, 1] + dp[1, 2] * w2c[1, 2]
-    dj12 = dp[1, 0] * w2c[2, 0] + dp[1, 1] * w2c[2, 1] + dp[1, 2] * w2c[2, 2]
+    dj00 = dp00 * w2c[0, 0] + dp01 * w2c[0, 1] + dp02 * w2c[0, 2]
+    dj02 = dp00 * w2c[2, 0] + dp01 * w2c[2, 1] + dp02 * w2c[2, 2]
+    dj11 = dp10 * w2c[1, 0] + dp11 * w2c[1, 1] + dp12 * w2c[1, 2]
+    dj12 = dp10 * w2c[2, 0] + dp11 * w2c[2, 1] + dp12 * w2c[2, 2]
     d_inv = fx * dj00 - fx * xz * dj02 + fy * dj11 - fy * yz * dj12
     d_xz, d_yz = -fx * inv_z * dj02, -fy * inv_z * dj12
     d_x, d_y, d_z = 0.0, 0.0, gz
@@ -227,13 +213,13 @@ def project_fast(means: Tensor, quats: Tensor, scales: Tensor, w2c: np.ndarray, 
 def _sh(coeffs, means, centre, g_color, color, d_coeffs, d_means, backward):
     """Forward: color = max(SH(coeffs, dir) + 0.5, 0) with dir the unit vector from the camera
     centre to the mean. Backward: d_coeffs and d_means from g_color."""
-    scratch = np.empty((coeffs.shape[0], 64))  # per Gaussian: the basis and its gradient, no allocations
+    basis, grad = np.empty(16), np.empty((16, 3))  # the basis and its gradient, reused per Gaussian
     for i in range(coeffs.shape[0]):
-        _sh_one(i, coeffs, means, centre, g_color, color, d_coeffs, d_means, backward, scratch[i])
+        _sh_one(i, coeffs, means, centre, g_color, color, d_coeffs, d_means, backward, basis, grad)
 
 
-@njit_cached(error_model="numpy")
-def _sh_one(i, coeffs, means, centre, g_color, color, d_coeffs, d_means, backward, scratch):
+@njit_cached(error_model="numpy", inline="always")
+def _sh_one(i, coeffs, means, centre, g_color, color, d_coeffs, d_means, backward, basis, grad):
     ncoef, nch = coeffs.shape[1], coeffs.shape[2]
     vx = np.float64(means[i, 0]) - centre[0]
     vy = np.float64(means[i, 1]) - centre[1]
@@ -241,9 +227,8 @@ def _sh_one(i, coeffs, means, centre, g_color, color, d_coeffs, d_means, backwar
     norm = max(math.sqrt(vx * vx + vy * vy + vz * vz), 1e-12)
     x, y, z = vx / norm, vy / norm, vz / norm
     xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-    basis = scratch[0:16]
-    grad = scratch[16:64].reshape((16, 3))  # d basis / d (x, y, z)
-    scratch[:] = 0.0
+    basis[:] = 0.0
+    grad[:] = 0.0  # d basis / d (x, y, z)
     basis[0] = SH_C0
     if ncoef > 1:
         basis[1], basis[2], basis[3] = -SH_C1 * y, SH_C1 * z, -SH_C1 * x
