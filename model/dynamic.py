@@ -355,7 +355,8 @@ class EdMCGS(nn.Module):
                background: np.ndarray | float | None = None, threads: int | None = None) -> np.ndarray:
         """Render ``state`` from camera ``c2w`` [4, 4] (OpenCV c2w) -> [H, W, C] float32 in [0, 1].
 
-        fast: the numba CPU rasterizer; False: the differentiable PyTorch one (same image to ~1e-5).
+        fast: the forward-only numba CPU rasterizer; False: the differentiable one (``rasterize``:
+              numba kernels on the CPU, torch elsewhere; same image to ~1e-5).
         background: grey level or [C] colour behind the Gaussians (default: the background layer when
                     the model has one, else the config's colour).
         threads: the fast rasterizer's threads (default: numba's, all cores); a server running several
@@ -369,7 +370,7 @@ class EdMCGS(nn.Module):
         with translated((RuntimeError, ValueError), lambda exc: RenderError(f"rendering failed: {exc}"),
                         keep=InvalidInputError):
             if fast:
-                # Imported here: the numba rasterizer is for inference only; training never loads it.
+                # Imported here: the forward-only numba renderer is for serving.
                 from edmcgs.model.render.rasterize_fast import rasterize_fast
 
                 arrays = [t.detach().cpu().numpy() for t in _fields(state)]

@@ -66,7 +66,7 @@ def _exp_le0_impl(x):
     return lambda x: math.exp(min(x, 0.0))
 
 
-@njit_cached()
+@njit_cached(nogil=True)
 def _bin(rect, order, grid_x, grid_y):
     """Tile lists: ids[start[t]:start[t + 1]] are the splats (taken in ``order``) whose rectangle
     touches tile t."""
@@ -113,7 +113,7 @@ FEATURES = 4
 """Feature channels the kernels carry (colour 1 or 3, plus camera z); fewer are padded with 0."""
 
 
-@njit_cached(parallel=True, fastmath={"contract"})
+@njit_cached(parallel=True, nogil=True, fastmath={"contract"})
 def _forward(start, ids, attrs, feat, rect, width, height, grid_x, dt, alpha_min, alpha_max, t_min,
              acc, trans, count):
     """Blend every tile's list front to back. Writes acc [H, W, 4], trans [H, W] and count [H, W]
@@ -176,7 +176,7 @@ def _forward(start, ids, attrs, feat, rect, width, height, grid_x, dt, alpha_min
 
 
 # reassoc: the per-splat sums over a run of 8 pixels become vector reductions
-@njit_cached(parallel=True, fastmath={"contract", "reassoc"})
+@njit_cached(parallel=True, nogil=True, fastmath={"contract", "reassoc"})
 def _backward(start, ids, attrs, feat, rect, width, height, grid_x, dt, alpha_min, alpha_max,
               count, trans, acc, g_acc, g_trans, out):
     """Replay every tile's list front to back up to each pixel's count. Writes out [K, 6 + 4]: per
@@ -268,7 +268,7 @@ def _backward(start, ids, attrs, feat, rect, width, height, grid_x, dt, alpha_mi
                     out[k, 6 + ch] = sums[_MOMENTS + ch]
 
 
-@njit_cached()
+@njit_cached(nogil=True)
 def _gather(ids, slots, splats):
     """Sum the per-slot gradients [K, D] of each splat -> [splats, D] (float64)."""
     grad = np.zeros((splats, slots.shape[1]), np.float64)

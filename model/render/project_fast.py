@@ -31,7 +31,7 @@ from edmcgs.model.render.sh import SH_C0, SH_C1, SH_C2, SH_C3
 __all__ = ["project_fast", "sh_color_fast"]
 
 
-@njit_cached()
+@njit_cached(nogil=True)
 def _project(means, quats, scales, w2c, cam, lims, near, g_mean2d, g_conic, g_depth, mean2d, cov2d, conic,
              depth, d_means, d_quats, d_scales, backward):
     """Forward (backward False): mean2d, cov2d, conic, depth per Gaussian. Backward: d_means,
@@ -209,7 +209,7 @@ def project_fast(means: Tensor, quats: Tensor, scales: Tensor, w2c: np.ndarray, 
     return ProjectFast.apply(means, quats, scales, w2c, intrinsics, near)
 
 
-@njit_cached()
+@njit_cached(nogil=True)
 def _sh(coeffs, means, centre, g_color, color, d_coeffs, d_means, backward):
     """Forward: color = max(SH(coeffs, dir) + 0.5, 0) with dir the unit vector from the camera
     centre to the mean. Backward: d_coeffs and d_means from g_color."""
