@@ -163,9 +163,12 @@ def _summary(rows: list[dict]) -> tuple[dict, dict]:
                 summary[f"numba_fwd_bwd_{size}_cpu_ms"] = numba_row["cpu_median_ms"]
             if torch_row:
                 summary[f"torch_fwd_bwd_{size}_ms"] = torch_row["median_ms"]
+                summary[f"torch_fwd_bwd_{size}_cpu_ms"] = torch_row["cpu_median_ms"]
             if torch_row and numba_row:
-                ratio = torch_row["median_ms"] / numba_row["median_ms"]
-                summary[f"torch_over_numba_{size}"] = round(ratio, 2)
+                summary[f"torch_over_numba_{size}"] = round(
+                    torch_row["median_ms"] / numba_row["median_ms"], 2)
+                summary[f"torch_over_numba_{size}_cpu"] = round(
+                    torch_row["cpu_median_ms"] / numba_row["cpu_median_ms"], 2)
     fast = by.get(("fast", 346, 260, 8000))
     if fast:
         summary["fast_346x260_8k_ms"] = fast["median_ms"]
