@@ -3,6 +3,7 @@
 173x130 and 346x260 with 2k, 8k and 20k Gaussians in view.
 
     .venv/bin/python -m bench.render [--json PATH] [--runs N] [--threads T] [--paths fast,torch,numba]
+    .venv/bin/python -m bench.render --profile numba|torch [--threads T]   # per-stage times
 
 The scene: N Gaussians whose centres are spread uniformly over the image at depths 2-6 m, random
 orientations, per-axis scales giving a screen sigma log-uniform in 0.7-4 px at 346x260 (3-sigma
@@ -98,6 +99,44 @@ def measure(path: str, width: int, height: int, n: int, runs: int, threads: int 
             "threads": torch.get_num_threads()}
 
 
+def profile(path: str, width: int, height: int, n: int, runs: int, threads: int | None) -> str:
+    """The stages of ``runs`` forward + backward passes of ``rasterize`` on ``path``, by self time (torch
+    profiler: the wall time of each op on its thread, so a loaded machine inflates it):
+    the autograd Functions (``ProjectFast``, ``ShColorFast``, ``CompositeFast`` and their backwards
+    on the numba path) and the torch ops around them."""
+    import numba
+    import torch
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as torch_profile
+
+    from edmcgs.model.render.rasterize import rasterize
+
+    if threads:
+        torch.set_num_threads(threads)
+        numba.set_num_threads(threads)
+    scene = _scene(n, width, height)
+    params = [torch.tensor(scene[k], dtype=torch.float32, requires_grad=True) for k in FIELDS]
+
+    def step():
+        for p in params:
+            p.grad = None
+        rasterize(*params, scene["w2c"], scene["intrinsics"], backend=path).image.sum().backward()
+
+    for _ in range(WARMUP):
+        step()
+    with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
+        for _ in range(runs):
+            step()
+    head = f"\n{path} forward + backward, {width}x{height}, {n} Gaussians, {runs} runs (ms per run)"
+    rows = sorted(prof.key_averages(), key=lambda e: -e.self_cpu_time_total)[:15]
+    total = sum(e.self_cpu_time_total for e in prof.key_averages()) / runs / 1e3
+    lines = [head, f"{'stage':<40} {'self ms':>12} {'calls':>6}"]
+    lines += [f"{e.key[:40]:<40} {e.self_cpu_time_total / runs / 1e3:>12.2f} {e.count // runs:>6}"
+              for e in rows]
+    lines.append(f"{'all stages':<40} {total:>12.2f}")
+    return "\n".join(lines)
+
+
 def _in_subprocess(path: str, width: int, height: int, n: int, runs: int, threads: int | None) -> dict:
     cmd = [sys.executable, "-m", "bench.render", "--one", path, str(width), str(height), str(n),
            "--runs", str(runs)] + (["--threads", str(threads)] if threads else [])
@@ -115,6 +154,9 @@ def main(argv=None) -> int:
     parser.add_argument("--threads", type=int, help="torch and numba threads (default: all cores)")
     parser.add_argument("--paths", default=",".join(PATHS),
                         help="comma-separated subset of fast, torch, numba (default: all)")
+    parser.add_argument("--profile", choices=("torch", "numba"),
+                        help="instead of the table: the per-stage time of one training path's "
+                             "forward + backward at 173x130 and 346x260 with 8k Gaussians (torch.profiler)")
     parser.add_argument("--one", nargs=4, metavar=("PATH", "W", "H", "N"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.runs < 10:
@@ -122,6 +164,10 @@ def main(argv=None) -> int:
     paths = [p for p in args.paths.split(",") if p]
     if not paths or any(p not in PATHS for p in paths):
         parser.error(f"--paths must name some of {', '.join(PATHS)}, got {args.paths!r}")
+    if args.profile:
+        for w, h in SIZES:
+            print(profile(args.profile, w, h, 8000, args.runs, args.threads))
+        return 0
     if args.one:
         path, w, h, n = args.one
         print(json.dumps(measure(path, int(w), int(h), int(n), args.runs, args.threads)))
