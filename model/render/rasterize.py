@@ -32,21 +32,23 @@ from edmcgs.model.render.sh import sh_to_color
 __all__ = ["BACKENDS", "RenderOutput", "rasterize"]
 
 BACKENDS = ("auto", "torch", "numba")
-"""Compositors: auto = numba on the CPU, torch on other devices."""
+"""Implementations: auto = numba for float32 / float64 on the CPU, torch otherwise."""
 BACKEND_ENV = "EDMCGS_RASTERIZER"
 
 
-def _backend(backend: str | None, device: torch.device) -> str:
+def _backend(backend: str | None, means: Tensor) -> str:
     """The compositor to use: the argument, else the environment variable, else auto."""
     source = "backend"
     if backend is None:
         backend, source = os.environ.get(BACKEND_ENV, "auto").strip().lower() or "auto", BACKEND_ENV
     if backend not in BACKENDS:
         raise InvalidInputError(f"{source} must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    numba_ok = means.device.type == "cpu" and means.dtype in (torch.float32, torch.float64)
     if backend == "auto":
-        return "numba" if device.type == "cpu" else "torch"
-    if backend == "numba" and device.type != "cpu":
-        raise InvalidInputError(f"{source}=numba renders on the CPU only, the tensors are on {device}")
+        return "numba" if numba_ok else "torch"
+    if backend == "numba" and not numba_ok:
+        raise InvalidInputError(f"{source}=numba renders float32 or float64 tensors on the CPU, got "
+                                f"{means.dtype} on {means.device}")
     return backend
 
 
@@ -83,7 +85,7 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
                                 "(rasterize_fast takes numpy arrays)")
     chk = check_inputs(means, quats, scales, opacities, colors, w2c, intrinsics, background, near)
     width, height = intrinsics.width, intrinsics.height
-    backend = _backend(backend, chk.means.device)
+    backend = _backend(backend, chk.means)
     need_grad = torch.is_grad_enabled() and any(
         t.requires_grad for t in (chk.means, chk.quats, chk.scales, chk.opacities, chk.colors))
 

@@ -168,6 +168,11 @@ def test_environment_variable_forces_the_torch_path(monkeypatch):
         rasterize(*args, scene["w2c"], scene["intrinsics"])
     with pytest.raises(InvalidInputError, match="backend must be one of"):
         rasterize(*args, scene["w2c"], scene["intrinsics"], backend="gpu")
+    half = [a.to(torch.bfloat16) for a in args]  # auto: a dtype the kernels do not take goes to torch
+    monkeypatch.delenv("EDMCGS_RASTERIZER")
+    assert rasterize(*half, scene["w2c"], scene["intrinsics"]).image.dtype == torch.bfloat16
+    with pytest.raises(InvalidInputError, match="numba renders float32 or float64 tensors on the CPU"):
+        rasterize(*half, scene["w2c"], scene["intrinsics"], backend="numba")
 
 
 def test_torch_thread_count_is_left_alone():
