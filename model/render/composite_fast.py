@@ -43,6 +43,7 @@ from edmcgs.errors import InvalidInputError
 from edmcgs.model.render.jit import njit_cached
 from edmcgs.model.render.projection import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE
 from edmcgs.model.render.simd_exp import exp_nonpositive
+from edmcgs.model.render.tiles import bin_tiles
 
 __all__ = ["composite_fast"]
 
@@ -64,32 +65,6 @@ def _exp_le0_impl(x):
     if x == types.float32:
         return lambda x: exp_nonpositive(x)
     return lambda x: math.exp(min(x, 0.0))
-
-
-@njit_cached(nogil=True)
-def _bin(rect, order, grid_x, grid_y):
-    """Tile lists: ids[start[t]:start[t + 1]] are the splats (taken in ``order``) whose rectangle
-    touches tile t."""
-    start = np.zeros(grid_x * grid_y + 1, np.int64)
-    for g in order:
-        if rect[g, 2] <= rect[g, 0] or rect[g, 3] <= rect[g, 1]:
-            continue
-        for ty in range(rect[g, 1] // TILE, (rect[g, 3] - 1) // TILE + 1):
-            for tx in range(rect[g, 0] // TILE, (rect[g, 2] - 1) // TILE + 1):
-                start[ty * grid_x + tx + 1] += 1
-    for t in range(grid_x * grid_y):
-        start[t + 1] += start[t]
-    fill = start[:-1].copy()
-    ids = np.empty(start[-1], np.int32)
-    for g in order:
-        if rect[g, 2] <= rect[g, 0] or rect[g, 3] <= rect[g, 1]:
-            continue
-        for ty in range(rect[g, 1] // TILE, (rect[g, 3] - 1) // TILE + 1):
-            for tx in range(rect[g, 0] // TILE, (rect[g, 2] - 1) // TILE + 1):
-                t = ty * grid_x + tx
-                ids[fill[t]] = g
-                fill[t] += 1
-    return start, ids
 
 
 @njit_cached(inline="always")
@@ -288,7 +263,7 @@ class _Tiles:
         grid_y = -(-height // TILE)
         order = torch.sort(depth.detach(), stable=True).indices.numpy()
         self.rect = np.ascontiguousarray(rect.numpy())
-        self.start, self.ids = _bin(self.rect, order, self.grid_x, grid_y)
+        self.start, self.ids = bin_tiles(self.rect, order, self.grid_x, grid_y)
         self.dt = np.float64 if dtype == torch.float64 else np.float32
         # the thresholds as the torch path compares them: in the tensors' dtype
         self.alpha_min, self.alpha_max = self.dt(ALPHA_MIN), self.dt(ALPHA_MAX)

@@ -24,6 +24,7 @@ from edmcgs.model.render.jit import njit_cached as _jit
 from edmcgs.model.render.projection import ALPHA_MAX, ALPHA_MIN, FRUSTUM_SLACK, LOWPASS, SIGMAS, T_MIN, TILE
 from edmcgs.model.render.sh import SH_C0, SH_C1, SH_C2, SH_C3
 from edmcgs.model.render.simd_exp import exp_nonpositive
+from edmcgs.model.render.tiles import bin_tiles
 
 __all__ = ["RenderOutput", "rasterize_fast"]
 
@@ -165,28 +166,6 @@ def _depth_order(rect, depth_bits):
     return order
 
 
-@_jit()
-def _bin(rect, depth_bits, grid_x, grid_y):
-    """Tile lists: ids[start[t]:start[t + 1]] are the splats of tile t, front to back."""
-    order = _depth_order(rect, depth_bits)
-    start = np.zeros(grid_x * grid_y + 1, np.int64)
-    for g in order:
-        for ty in range(rect[g, 1] // TILE, (rect[g, 3] - 1) // TILE + 1):
-            for tx in range(rect[g, 0] // TILE, (rect[g, 2] - 1) // TILE + 1):
-                start[ty * grid_x + tx + 1] += 1
-    for t in range(grid_x * grid_y):
-        start[t + 1] += start[t]
-    fill = start[:-1].copy()
-    ids = np.empty(start[-1], np.int32)
-    for g in order:
-        for ty in range(rect[g, 1] // TILE, (rect[g, 3] - 1) // TILE + 1):
-            for tx in range(rect[g, 0] // TILE, (rect[g, 2] - 1) // TILE + 1):
-                t = ty * grid_x + tx
-                ids[fill[t]] = g
-                fill[t] += 1
-    return start, ids
-
-
 _STATE = 5 * TILE * TILE
 """Per-tile state: transmittance (negative once the pixel stopped), 3 colour sums, depth sum."""
 _WORK_ITEMS = 128
@@ -307,7 +286,7 @@ def rasterize_fast(means, quats, scales, opacities, colors, w2c, intrinsics: Int
                 intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, width, height, float(near),
                 float(alpha_min), splat, depth_key, rect, color)
     grid_x, grid_y = -(-width // TILE), -(-height // TILE)
-    start, ids = _bin(rect, depth_key.view(np.uint32), grid_x, grid_y)
+    start, ids = bin_tiles(rect, _depth_order(rect, depth_key.view(np.uint32)), grid_x, grid_y)
     image = np.empty((height, width, chk.channels), np.float32)
     alpha = np.empty((height, width), np.float32)
     depth = np.empty((height, width), np.float32)

@@ -196,7 +196,8 @@ def test_a_new_process_loads_the_kernels_from_the_jit_cache():
         "rf.rasterize_fast(np.zeros((1, 3)) + [0, 0, 2], [[1, 0, 0, 0]], np.full((1, 3), .1), [.5],"
         " np.zeros((1, 9, 3)), np.eye(4), Intrinsics(10., 10., 4., 4., 9, 9))\n"
         "print(json.dumps({k: [sum(f.stats.cache_hits.values()), sum(f.stats.cache_misses.values())]"
-        " for k, f in (('pre', rf._preprocess), ('bin', rf._bin), ('blend', rf._blend))}))\n"
+        " for k, f in (('pre', rf._preprocess), ('order', rf._depth_order), ('bin', rf.bin_tiles),"
+        " ('blend', rf._blend))}))\n"
     )
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_DISABLE_JIT"}
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=ROOT, env=env,

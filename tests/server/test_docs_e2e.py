@@ -5,8 +5,6 @@ playwright (which never downloads a browser)."""
 
 from __future__ import annotations
 
-import shutil
-from pathlib import Path
 from urllib.parse import urlsplit
 
 import pytest
@@ -15,19 +13,11 @@ from edmcgs.server.app import create_app
 from edmcgs.server.settings import Settings
 from tests.support.server import ThreadServer
 from tests.support.stub import StubService
+from tests.support.viewer import chromium
 
 pytestmark = pytest.mark.slow
 
 TOKEN = "docs-token"
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
-
-
-def _chromium() -> str:
-    found = "/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else shutil.which("chromium")
-    if found is None:
-        pytest.fail("Debian's chromium is not installed: scripts/bootstrap.sh --test installs it (apt-get)")
-    return found
 
 
 @pytest.fixture(scope="module")
@@ -39,14 +29,8 @@ def served():
 
 @pytest.fixture(scope="module")
 def browser():
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as pw:
-        chromium = pw.chromium.launch(executable_path=_chromium(), headless=True, args=ARGS)
-        try:
-            yield chromium
-        finally:
-            chromium.close()
+    with chromium() as browser:
+        yield browser
 
 
 @pytest.fixture
