@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import sys
 
 from pydantic import ValidationError
@@ -101,6 +102,9 @@ def main(argv: list[str] | None = None) -> int:
                             ws_max_size=1 << 20, timeout_graceful_shutdown=3,
                             limit_concurrency=settings.max_connections)
     server = uvicorn.Server(config)
+    stopped_by = []  # the signals that stopped it: uvicorn's own handler, wrapped to remember them
+    handle_exit = server.handle_exit
+    server.handle_exit = lambda sig, frame: (stopped_by.append(sig), handle_exit(sig, frame))
     try:
         server.run()
     except KeyboardInterrupt:  # uvicorn re-raises Ctrl-C after its graceful shutdown
@@ -108,6 +112,8 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if not server.started:  # the lifespan never ran: close what was opened here
             service.close()
+    if stopped_by[:1] == [signal.SIGINT]:  # uvicorn's re-raise may find asyncio's main task done
+        return 130
     return 0 if server.started else 1
 
 
