@@ -197,6 +197,9 @@ def test_connections_are_capped(monkeypatch):
         def run(self):
             pass
 
+        def handle_exit(self, sig, frame):
+            pass
+
     monkeypatch.setattr(uvicorn, "Server", FakeServer)
     monkeypatch.setattr("edmcgs.server.service.Service.open", lambda settings: StubService(settings))
     monkeypatch.setenv("EDMCGS_MAX_CONNECTIONS", "77")
