@@ -84,15 +84,12 @@ def build_scene(cache: Path) -> Path:
 
 
 def run_key(rec: Path, overrides: list[str]) -> str:
-    """Everything that determines a run: the recording and the resolved config (not the preset's name)."""
-    import hashlib
-
-    import torch
-
+    """Everything that determines a run (``bench.report``'s key): the recording and the resolved config."""
+    from bench.report.training import run_key as report_key
     from edmcgs.pipeline import build_config, open_recording
+
     cfg = build_config("real", overrides, open_recording(rec)).to_dict()
-    blob = json.dumps([rec.name, rec.stat().st_size, cfg, torch.__version__], sort_keys=True)
-    return hashlib.sha1(blob.encode()).hexdigest()[:12]
+    return report_key(f"{rec.name}:{rec.stat().st_size}", cfg, "cpu", False)
 
 
 def train(rec: Path, name: str, overrides: list[str], cache: Path) -> dict:
@@ -118,8 +115,9 @@ def _moving_psnr(sq_err: list[float], count: int) -> float:
     return float(10 * np.log10(1.0 / max(sum(sq_err) / max(count, 1), 1e-12)))
 
 
-def score(data, models: dict, *, static_camera: bool) -> dict[str, dict]:
-    """{name: {psnr, ssim, moving_psnr, frames}} of every model and baseline on the same held-out frames."""
+def score(data, models: dict, *, static_camera: bool) -> tuple[dict[str, dict], float]:
+    """({name: {psnr, ssim, moving_psnr, frames}} of every model and baseline on the same held-out
+    frames, the fraction of their pixels that are moving)."""
     from edmcgs.model.eval.baselines import BASELINES, baseline_image
     from edmcgs.model.eval.evaluation import render_held_out
     from edmcgs.model.eval.metrics import psnr, ssim_score
@@ -141,9 +139,10 @@ def score(data, models: dict, *, static_camera: bool) -> dict[str, dict]:
             a["psnr"].append(psnr(image, truth))
             a["ssim"].append(ssim_score(image, truth))
             a["sq"].append(float(((image - truth) ** 2)[mask].sum()))
-    return {name: {"psnr": float(np.mean(a["psnr"])), "ssim": float(np.mean(a["ssim"])),
-                   "moving_psnr": _moving_psnr(a["sq"], moving_px), "frames": len(a["psnr"])}
-            for name, a in acc.items()}
+    scores = {name: {"psnr": float(np.mean(a["psnr"])), "ssim": float(np.mean(a["ssim"])),
+                     "moving_psnr": _moving_psnr(a["sq"], moving_px), "frames": len(a["psnr"])}
+              for name, a in acc.items()}
+    return scores, moving_px / max(len(data.evaluable()) * median.shape[0] * median.shape[1], 1)
 
 
 def split_saving(full, layerless, data, *, repeats: int = 5) -> dict:
@@ -278,12 +277,9 @@ def main(argv: list[str] | None = None) -> int:
     data = training_data(open_recording(rec_path))
     models = {run["name"]: load_checkpoint(args.cache / run["checkpoint"]) for run in runs}
     static = all(m.meta.lean["static_camera"]["value"] for m in models.values())
-    scores = score(data, models, static_camera=static)
+    scores, moving = score(data, models, static_camera=static)
     baselines = {k: v for k, v in scores.items() if k not in models}
     scores = {k: scores[k] for k in [*models, *baselines]}
-    median = np.median(data.anchor_images.astype(np.float32) / 255.0, axis=0)
-    moving = np.mean([(np.abs(data.held_out_images[i].astype(np.float32) / 255.0 - median).max(-1) > MOVING)
-                      .mean() for i in data.evaluable().tolist()])
     scene = (f"`{rec_path}`" if args.recording else
              f"`edmcgs synth traffic {' '.join(SCENE_ARGS)}` (composited in 2D, not Gaussians; 346x260 grey, "
              "exposure blur, read noise, DAVIS346-like events; anchors at 5 fps)")
