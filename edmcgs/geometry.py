@@ -103,18 +103,20 @@ def quat_normalize(q: Tensor, eps: float = 1e-12) -> Tensor:
     return torch.where(norm > eps, q / norm.clamp_min(eps), identity)
 
 
+def _rotmat_entries(w, x, y, z) -> list:
+    """The 9 entries (row-major) of the rotation of a unit quaternion, for numpy and torch alike."""
+    return [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]
+
+
 def _quat_to_rotmat_torch(q: Tensor) -> Tensor:
     """Rotation matrices of unit quaternions (differentiable).
 
     q: Tensor  # [..., 4] (w, x, y, z), unit norm
     returns Tensor  # [..., 3, 3]
     """
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(*q.shape[:-1], 3, 3)
+    return torch.stack(_rotmat_entries(*q.unbind(-1)), dim=-1).reshape(*q.shape[:-1], 3, 3)
 
 
 def quat_to_rotmat(q):
@@ -135,7 +137,8 @@ def quat_to_rotmat(q):
     norm = np.linalg.norm(q, axis=-1, keepdims=True)
     if (norm < 1e-12).any():
         raise PoseError("quaternion has zero norm; it describes no rotation")
-    return _quat_to_rotmat_torch(torch.from_numpy(q / norm)).numpy()
+    # numpy here: a pose lookup is a handful of quaternions, where torch's per-op overhead dominates
+    return np.stack(_rotmat_entries(*np.moveaxis(q / norm, -1, 0)), axis=-1).reshape(*q.shape[:-1], 3, 3)
 
 
 def rotmat_to_quat(R) -> np.ndarray:

@@ -22,6 +22,7 @@ import numpy as np
 from edmcgs.errors import InvalidInputError, PoseError, TrainingError
 from edmcgs.geometry import Intrinsics, Trajectory, pose_from_quat, validate_pose
 from edmcgs.model.config import EdmcgsConfig, preset
+from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.motion.leanness import events_decision
 from edmcgs.model.train.data import TrainingData
 from edmcgs.options import RecordingOptions
@@ -78,6 +79,14 @@ def training_data(rec: Recording) -> TrainingData:
         held_out_images=None if held is None or not len(held) else held.images,
         held_out_poses=None if held is None or not len(held) else held.poses,
         contrast_threshold=rec.contrast_threshold)
+
+
+def new_model(data: TrainingData, cfg: EdmcgsConfig) -> EdMCGS:
+    """An untrained EdMCGS for ``data`` with ``cfg``, initialised from its anchor frames."""
+    return EdMCGS.from_arrays(anchors_t_us=data.anchors_t_us, anchor_images=data.anchor_images,
+                              intrinsics=data.intrinsics, anchor_poses=data.anchor_poses,
+                              t_end_us=data.t_end_us, trajectory=data.trajectory, event_size=data.event_size,
+                              config=cfg)
 
 
 def build_config(name: str, overrides: list[str], rec: Recording) -> EdmcgsConfig:

@@ -235,14 +235,13 @@ def _run(args) -> int:
 
     from edmcgs.model.checkpoint import load_checkpoint, read_checkpoint
     from edmcgs.model.devices import check_device
-    from edmcgs.model.dynamic import EdMCGS
     from edmcgs.model.eval.baselines import BASELINES, score_baselines
     from edmcgs.model.eval.compare import Comparison
     from edmcgs.model.eval.evaluation import evaluate
     from edmcgs.model.train.curves import TensorBoardCurves
     from edmcgs.model.train.resume import resume_state
     from edmcgs.model.train.trainer import Trainer, write_history_csv
-    from edmcgs.pipeline import build_config, open_recording, training_data
+    from edmcgs.pipeline import build_config, new_model, open_recording, training_data
 
     if args.threads < 1:
         raise InvalidInputError(f"--threads must be >= 1, got {args.threads}")
@@ -277,10 +276,7 @@ def _run(args) -> int:
         if source is not None:
             print(f"--resume: no checkpoint at {out} yet: training from the start")
         cfg = build_config(args.config, args.overrides, rec)
-        model = EdMCGS.from_arrays(anchors_t_us=data.anchors_t_us, anchor_images=data.anchor_images,
-                                   intrinsics=data.intrinsics, anchor_poses=data.anchor_poses,
-                                   t_end_us=data.t_end_us, trajectory=data.trajectory,
-                                   event_size=data.event_size, config=cfg)
+        model = new_model(data, cfg)
     trainer = Trainer(model, data, device=args.device, progress=not args.quiet)
     if train_state:
         trainer.load_train_state(train_state)

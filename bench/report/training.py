@@ -23,7 +23,7 @@ from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.eval.evaluation import evaluate, summarize
 from edmcgs.model.eval.lpips import LPIPS
 from edmcgs.model.train.trainer import Trainer
-from edmcgs.pipeline import build_config, training_data
+from edmcgs.pipeline import build_config, new_model, training_data
 from edmcgs.sensor.files.recording import Recording
 
 
@@ -54,10 +54,7 @@ def train_run(rec: Recording, rec_key: str, switches: dict, *, preset: str, iter
         return json.loads(result_path.read_text()) | {"cached": True}
     cache.mkdir(parents=True, exist_ok=True)
     data = training_data(rec)
-    model = EdMCGS.from_arrays(anchors_t_us=data.anchors_t_us, anchor_images=data.anchor_images,
-                               intrinsics=data.intrinsics, anchor_poses=data.anchor_poses,
-                               t_end_us=data.t_end_us, trajectory=data.trajectory, event_size=data.event_size,
-                               config=cfg)
+    model = new_model(data, cfg)
     started = time.perf_counter()
     trainer = Trainer(model, data, device=device, progress=False)
     setup_seconds = time.perf_counter() - started

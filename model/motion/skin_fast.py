@@ -13,32 +13,35 @@ import numba
 import numpy as np
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def blend(means, quats, bind, weights, affine, rotations, moving, out_means, out_quats):
     """Skin Gaussians ``moving[j]`` (all when ``moving`` is empty) into ``out_means``/``out_quats``.
 
     means: [N, 3], quats: [N, 4] unit (w, x, y, z) canonical; bind, weights: [Nm, K] (row j belongs to
     Gaussian moving[j]); affine: [M, 12] row-major 3x4 maps (R | p + T - R p); rotations: [M, 4] unit.
     out_means, out_quats: [N, 3], [N, 4], already holding the canonical values of the others.
+    Parallel over Gaussians (each writes only its own rows).
     """
     nm, k = bind.shape
-    for j in range(nm):
-        i = moving[j] if moving.shape[0] > 0 else j
-        a = np.zeros(12)
+    for j in numba.prange(nm):
+        i = np.int64(moving[j]) if moving.shape[0] > 0 else np.int64(j)
+        x, y, z = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
+        # the blended map applied to the mean, row by row: sum_s w_s (A_s [x y z 1])
+        m0 = m1 = m2 = 0.0
         q0 = q1 = q2 = q3 = 0.0
         for s in range(k):
             c = bind[j, s]
             w = np.float64(weights[j, s])
-            for e in range(12):
-                a[e] += w * affine[c, e]
+            m0 += w * (affine[c, 0] * x + affine[c, 1] * y + affine[c, 2] * z + affine[c, 3])
+            m1 += w * (affine[c, 4] * x + affine[c, 5] * y + affine[c, 6] * z + affine[c, 7])
+            m2 += w * (affine[c, 8] * x + affine[c, 9] * y + affine[c, 10] * z + affine[c, 11])
             q0 += w * rotations[c, 0]
             q1 += w * rotations[c, 1]
             q2 += w * rotations[c, 2]
             q3 += w * rotations[c, 3]
-        x, y, z = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
-        out_means[i, 0] = a[0] * x + a[1] * y + a[2] * z + a[3]
-        out_means[i, 1] = a[4] * x + a[5] * y + a[6] * z + a[7]
-        out_means[i, 2] = a[8] * x + a[9] * y + a[10] * z + a[11]
+        out_means[i, 0] = m0
+        out_means[i, 1] = m1
+        out_means[i, 2] = m2
         norm = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
         if norm > 1e-12:
             q0, q1, q2, q3 = q0 / norm, q1 / norm, q2 / norm, q3 / norm

@@ -115,10 +115,12 @@ def _skin_torch(plan: SkinPlan, affine: Tensor, rotations: Tensor) -> GaussianSt
 def _skin_cpu(plan: SkinPlan, affine: Tensor, rotations: Tensor) -> GaussianState:
     """The same blend as one numba loop (imported here: training never loads numba)."""
     from edmcgs.model.motion.skin_fast import blend
+    from edmcgs.model.render.jit import in_torch_threads
 
     c = plan.canonical
     means, quats = c.means.clone(), c.quats.clone()  # the frozen Gaussians keep these
     moving = plan.moving if plan.moving is not None else torch.zeros(0, dtype=torch.long)
-    blend(c.means.numpy(), c.quats.numpy(), plan.bind.numpy(), plan.weights.numpy(),
-          affine.double().numpy(), rotations.double().numpy(), moving.numpy(), means.numpy(), quats.numpy())
+    in_torch_threads(blend, c.means.numpy(), c.quats.numpy(), plan.bind.numpy(), plan.weights.numpy(),
+                     affine.double().numpy(), rotations.double().numpy(), moving.numpy(), means.numpy(),
+                     quats.numpy())
     return GaussianState(means, quats, c.scales, c.opacities, c.colors)

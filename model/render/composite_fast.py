@@ -40,7 +40,7 @@ from numba.extending import overload
 from torch import Tensor
 
 from edmcgs.errors import InvalidInputError
-from edmcgs.model.render.jit import njit_cached
+from edmcgs.model.render.jit import in_torch_threads, njit_cached
 from edmcgs.model.render.projection import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE
 from edmcgs.model.render.simd_exp import exp_nonpositive
 from edmcgs.model.render.tiles import bin_tiles
@@ -263,27 +263,12 @@ class _Tiles:
         grid_y = -(-height // TILE)
         order = torch.sort(depth.detach(), stable=True).indices.numpy()
         self.rect = np.ascontiguousarray(rect.numpy())
-        self.start, self.ids = bin_tiles(self.rect, order, self.grid_x, grid_y)
+        self.start, self.ids = in_torch_threads(bin_tiles, self.rect, order, self.grid_x, grid_y,
+                                                torch.get_num_threads())
         self.dt = np.float64 if dtype == torch.float64 else np.float32
         # the thresholds as the torch path compares them: in the tensors' dtype
         self.alpha_min, self.alpha_max = self.dt(ALPHA_MIN), self.dt(ALPHA_MAX)
         self.t_min = self.dt(T_MIN)
-
-
-def _in_threads(kernel, *args):
-    """Run a parallel kernel on torch's thread count (the trainer's ``--threads``), one work item at
-    a time; numba's OpenMP layer shares the process-wide OpenMP thread count with torch, so torch's
-    is put back afterwards."""
-    threads = torch.get_num_threads()
-    previous_chunk = numba.set_parallel_chunksize(1)
-    previous = numba.get_num_threads()
-    try:
-        numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
-        kernel(*args)
-    finally:
-        numba.set_parallel_chunksize(previous_chunk)
-        numba.set_num_threads(previous)
-        torch.set_num_threads(threads)
 
 
 class CompositeFast(torch.autograd.Function):
@@ -298,8 +283,8 @@ class CompositeFast(torch.autograd.Function):
         acc = np.zeros((h, w, FEATURES), a.dtype)
         trans = np.ones((h, w), a.dtype)
         count = np.zeros((h, w), np.int32)
-        _in_threads(_forward, tiles.start, tiles.ids, a, f, tiles.rect, w, h, tiles.grid_x, tiles.dt,
-                    tiles.alpha_min, tiles.alpha_max, tiles.t_min, acc, trans, count)
+        in_torch_threads(_forward, tiles.start, tiles.ids, a, f, tiles.rect, w, h, tiles.grid_x, tiles.dt,
+                         tiles.alpha_min, tiles.alpha_max, tiles.t_min, acc, trans, count, chunksize=1)
         acc_t, trans_t = torch.from_numpy(acc), torch.from_numpy(trans)
         ctx.save_for_backward(attrs, feat, acc_t, trans_t, torch.from_numpy(count))
         ctx.tiles = tiles
@@ -314,9 +299,10 @@ class CompositeFast(torch.autograd.Function):
         f = F.pad(feat.detach(), (0, FEATURES - nf)).contiguous().numpy()
         g_acc = F.pad(g_acc.to(attrs.dtype), (0, FEATURES - nf)).contiguous().numpy()
         slots = np.empty((tiles.ids.shape[0], 6 + FEATURES), a.dtype)
-        _in_threads(_backward, tiles.start, tiles.ids, a, f, tiles.rect, tiles.width, tiles.height,
-                    tiles.grid_x, tiles.dt, tiles.alpha_min, tiles.alpha_max, count.numpy(), trans.numpy(),
-                    acc.numpy(), g_acc, g_trans.to(attrs.dtype).contiguous().numpy(), slots)
+        in_torch_threads(_backward, tiles.start, tiles.ids, a, f, tiles.rect, tiles.width, tiles.height,
+                         tiles.grid_x, tiles.dt, tiles.alpha_min, tiles.alpha_max, count.numpy(),
+                         trans.numpy(), acc.numpy(), g_acc, g_trans.to(attrs.dtype).contiguous().numpy(),
+                         slots, chunksize=1)
         grad = torch.from_numpy(_gather(tiles.ids, slots, a.shape[0])).to(attrs.dtype)
         return grad[:, :6], grad[:, 6:6 + nf], None
 

@@ -106,17 +106,24 @@ def check_inputs(means, quats, scales, opacities, colors, w2c, intrinsics, backg
     if isinstance(near, bool) or not isinstance(near, (int, float)) or not math.isfinite(near) or near <= 0:
         raise InvalidInputError(f"near must be a finite number > 0, got {near!r}")
 
-    xp = torch if is_torch else np
-    with torch.no_grad():
-        for name, value in named.items():
-            if not bool(xp.isfinite(value).all()):
-                raise InvalidInputError(f"{name} contains NaN or Inf")
-        if not bool((scales >= 0).all()):
-            raise InvalidInputError("scales must be >= 0 (linear scales, not log-scales)")
-        if not bool(((opacities >= 0) & (opacities <= 1)).all()):
-            raise InvalidInputError("opacities must lie in [0, 1] (activated, not logits)")
-        if not bool((quats != 0).any(-1).all()):
-            raise InvalidInputError("quats has a zero quaternion; it describes no rotation")
+    if is_torch:
+        with torch.no_grad():
+            for name, value in named.items():
+                if not bool(torch.isfinite(value).all()):
+                    raise InvalidInputError(f"{name} contains NaN or Inf")
+            if not bool((scales >= 0).all()):
+                raise InvalidInputError("scales must be >= 0 (linear scales, not log-scales)")
+            if not bool(((opacities >= 0) & (opacities <= 1)).all()):
+                raise InvalidInputError("opacities must lie in [0, 1] (activated, not logits)")
+            if not bool((quats != 0).any(-1).all()):
+                raise InvalidInputError("quats has a zero quaternion; it describes no rotation")
+    else:
+        # the same checks, in the same order, in one pass (imported here: only the fast path has numpy)
+        from edmcgs.model.render.checks_fast import first_problem
+
+        problem = first_problem(*(np.ascontiguousarray(v) for v in named.values()))
+        if problem is not None:
+            raise InvalidInputError(problem)
 
     w2c64 = validate_pose(w2c, name="w2c")
     if background is None:

@@ -10,6 +10,7 @@ failing.
 from __future__ import annotations
 
 import numba
+import torch
 
 
 def njit_cached(**options):
@@ -20,3 +21,20 @@ def njit_cached(**options):
         except RuntimeError:  # numba: "cannot cache function ...: no locator available"
             return numba.njit(cache=False, **options)(fn)
     return wrap
+
+
+def in_torch_threads(kernel, *args, chunksize: int = 0):
+    """``kernel(*args)``, a parallel numba kernel called from torch code, on torch's thread count (the
+    trainer's ``--threads``, the server's ``torch_threads``). numba's OpenMP layer shares the
+    process-wide OpenMP thread count with torch, so torch's is put back afterwards. chunksize: numba's
+    parallel chunk size for this call (0: its default; 1: work items handed out one at a time)."""
+    threads = torch.get_num_threads()
+    previous_chunk = numba.set_parallel_chunksize(chunksize)
+    previous = numba.get_num_threads()
+    try:
+        numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+        return kernel(*args)
+    finally:
+        numba.set_parallel_chunksize(previous_chunk)
+        numba.set_num_threads(previous)
+        torch.set_num_threads(threads)

@@ -36,7 +36,7 @@ BACKENDS = ("auto", "torch", "numba")
 BACKEND_ENV = "EDMCGS_RASTERIZER"
 
 
-def _backend(backend: str | None, means: Tensor) -> str:
+def backend_of(backend: str | None, means: Tensor) -> str:
     """The compositor to use: the argument, else the environment variable, else auto."""
     source = "backend"
     if backend is None:
@@ -85,7 +85,7 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
                                 "(rasterize_fast takes numpy arrays)")
     chk = check_inputs(means, quats, scales, opacities, colors, w2c, intrinsics, background, near)
     width, height = intrinsics.width, intrinsics.height
-    backend = _backend(backend, chk.means)
+    backend = backend_of(backend, chk.means)
     need_grad = torch.is_grad_enabled() and any(
         t.requires_grad for t in (chk.means, chk.quats, chk.scales, chk.opacities, chk.colors))
 

@@ -4,7 +4,7 @@ Three kernels: per-Gaussian preprocessing (EWA projection, SH colour, screen rec
 of ``projection`` and ``sh``, in float64, parallel over Gaussians), binning into 16x16 tiles in
 depth order, and per-tile front-to-back blending, parallel over tiles. Blending visits each splat's
 ``screen_rect`` (the pixels where its alpha can reach ``alpha_min``; this changes no pixel value)
-in runs of 8 pixels with a branch-free float32 body and ``simd_exp``, which LLVM turns
+in runs of 8 or 16 pixels with a branch-free float32 body and ``simd_exp``, which LLVM turns
 into AVX2 code; a pixel that has stopped is marked by a negative transmittance.
 
 JIT cache: kernels are compiled with ``cache=True`` where numba finds a writable place (``jit``).
@@ -29,7 +29,7 @@ from edmcgs.model.render.tiles import bin_tiles
 __all__ = ["RenderOutput", "rasterize_fast"]
 
 
-@_jit()
+@_jit(parallel=True, nogil=True)
 def _preprocess(means, quats, scales, opac, coeffs, use_sh, w2c, fx, fy, cx, cy, width, height, near,
                 alpha_min, splat, depth, rect, color):
     """Per Gaussian, in float64: splat[i] = (mean x, mean y, -A/2, -B, -C/2, opacity) with
@@ -51,7 +51,7 @@ def _preprocess(means, quats, scales, opac, coeffs, use_sh, w2c, fx, fy, cx, cy,
     lim_yn, lim_yp = cy / fy + slack_y, (height - cy) / fy + slack_y
     grid_x = (width + TILE - 1) // TILE
     grid_y = (height + TILE - 1) // TILE
-    for i in range(n):
+    for i in numba.prange(n):
         rect[i, 0] = 0
         rect[i, 1] = 0
         rect[i, 2] = 0
@@ -175,11 +175,12 @@ item it is on, not a fixed half of the image."""
 
 
 @_jit(fastmath={"contract"}, inline="always")
-def _blend_run(st, p0, dx0, ca, rowb, rowc, o, c0, c1, c2, z, alpha_min, t_min):
-    """Blend one splat into the 8 pixels st[p0:p0 + 8] of a tile row; dx0 = x - mean x of the
-    first. Branch-free so that LLVM vectorises it; the indices are unsigned to spare it the
-    negative-index wraparound that would otherwise block vectorisation."""
-    for j in range(8):
+def _blend_run(st, p0, dx0, ca, rowb, rowc, o, c0, c1, c2, z, alpha_min, t_min, want_depth, lanes):
+    """Blend one splat into the ``lanes`` pixels st[p0:p0 + lanes] of a tile row (8 or 16, a constant
+    at each call); dx0 = x - mean x of the first. Branch-free so that LLVM vectorises it; the
+    indices are unsigned to spare it the negative-index wraparound that would otherwise block
+    vectorisation."""
+    for j in range(lanes):
         p = p0 + np.uint64(j)
         dx = dx0 + np.float32(j)
         alpha = min(o * exp_nonpositive(dx * (ca * dx + rowb) + rowc), np.float32(ALPHA_MAX))
@@ -192,14 +193,15 @@ def _blend_run(st, p0, dx0, ca, rowb, rowc, o, c0, c1, c2, z, alpha_min, t_min):
         st[np.uint64(TILE * TILE) + p] += w * c0
         st[np.uint64(2 * TILE * TILE) + p] += w * c1
         st[np.uint64(3 * TILE * TILE) + p] += w * c2
-        st[np.uint64(4 * TILE * TILE) + p] += w * z
+        if want_depth:  # loop-invariant: LLVM unswitches it out of the vector body
+            st[np.uint64(4 * TILE * TILE) + p] += w * z
         st[p] = t_next if take else (-t if stop else t)
 
 
-@_jit(parallel=True, fastmath={"contract"})
+@_jit(parallel=True, nogil=True, fastmath={"contract"})
 def _blend(start, ids, splat, depth, rect, color, background, width, height, grid_x, alpha_min, t_min,
-           image, alpha_out, depth_out):
-    """Front-to-back blending of every tile's list; writes image, alpha and expected depth."""
+           want_depth, image, alpha_out, depth_out):
+    """Front-to-back blending of every tile's list; writes image, alpha and (want_depth) expected depth."""
     nch = color.shape[1]
     n_tiles = grid_x * ((height + TILE - 1) // TILE)
     for item in numba.prange(_WORK_ITEMS):
@@ -225,14 +227,19 @@ def _blend(start, ids, splat, depth, rect, color, background, width, height, gri
                 c0 = color[g, 0]
                 c1 = color[g, 1] if nch == 3 else np.float32(0.0)
                 c2 = color[g, 2] if nch == 3 else np.float32(0.0)
-                # runs of 8 pixels covering [x0, x1): one run anywhere in the tile row when the
-                # span fits in it, else the two halves (pixels outside the span are skipped anyway)
-                first = min(x0, TILE - 8) if x1 - x0 <= 8 else 0
-                for ly in range(y0, y1):
-                    dy = np.float32(ly) - my
-                    for hx in range(first, x1, 8):
-                        _blend_run(st, np.uint64(ly * TILE + hx), np.float32(hx) - mx, ca, cb * dy,
-                                   cc * dy * dy, o, c0, c1, c2, z, alpha_min, t_min)
+                # one run per row covering [x0, x1): 8 pixels anywhere in the tile row when the span
+                # fits in them, else the whole row (pixels outside the span are skipped anyway)
+                if x1 - x0 <= 8:
+                    first = min(x0, TILE - 8)
+                    for ly in range(y0, y1):
+                        dy = np.float32(ly) - my
+                        _blend_run(st, np.uint64(ly * TILE + first), np.float32(first) - mx, ca, cb * dy,
+                                   cc * dy * dy, o, c0, c1, c2, z, alpha_min, t_min, want_depth, 8)
+                else:
+                    for ly in range(y0, y1):
+                        dy = np.float32(ly) - my
+                        _blend_run(st, np.uint64(ly * TILE), -mx, ca, cb * dy, cc * dy * dy, o, c0, c1, c2, z,
+                                   alpha_min, t_min, want_depth, TILE)
                 if (k - start[t]) % 16 == 15:  # every 16 splats: has every pixel stopped?
                     most = np.float32(-1.0)
                     for p in range(TILE * TILE):
@@ -247,7 +254,9 @@ def _blend(start, ids, splat, depth, rect, color, background, width, height, gri
                         image[oy + ly, ox + lx, ch] = st[(ch + 1) * TILE * TILE + p] + trans * background[ch]
                     a = np.float32(1.0) - trans
                     alpha_out[oy + ly, ox + lx] = a
-                    depth_out[oy + ly, ox + lx] = st[4 * TILE * TILE + p] / a if a > 0 else np.float32(0.0)
+                    if want_depth:
+                        z = st[4 * TILE * TILE + p]
+                        depth_out[oy + ly, ox + lx] = z / a if a > 0 else np.float32(0.0)
 
 
 def rasterize_fast(means, quats, scales, opacities, colors, w2c, intrinsics: Intrinsics, *, background=None,
@@ -282,23 +291,26 @@ def rasterize_fast(means, quats, scales, opacities, colors, w2c, intrinsics: Int
     depth_key = np.zeros(n, np.float32)
     rect = np.empty((n, 4), np.int32)
     color = np.zeros((n, chk.channels), np.float32)
-    _preprocess(chk.means, chk.quats, chk.scales, chk.opacities, coeffs, chk.colors.ndim == 3, chk.w2c,
-                intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, width, height, float(near),
-                float(alpha_min), splat, depth_key, rect, color)
     grid_x, grid_y = -(-width // TILE), -(-height // TILE)
-    start, ids = bin_tiles(rect, _depth_order(rect, depth_key.view(np.uint32)), grid_x, grid_y)
     image = np.empty((height, width, chk.channels), np.float32)
     alpha = np.empty((height, width), np.float32)
-    depth = np.empty((height, width), np.float32)
-    previous = numba.set_parallel_chunksize(1)  # work items go to threads one at a time
+    depth = np.empty((height, width) if return_depth else (0, 0), np.float32)
     previous_threads = numba.get_num_threads()
     try:
         if threads is not None:
             numba.set_num_threads(threads)
-        _blend(start, ids, splat, depth_key, rect, color, chk.background, width, height, grid_x,
-               np.float32(alpha_min), np.float32(t_min), image, alpha, depth)
+        _preprocess(chk.means, chk.quats, chk.scales, chk.opacities, coeffs, chk.colors.ndim == 3, chk.w2c,
+                    intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, width, height, float(near),
+                    float(alpha_min), splat, depth_key, rect, color)
+        order = _depth_order(rect, depth_key.view(np.uint32))
+        start, ids = bin_tiles(rect, order, grid_x, grid_y, numba.get_num_threads())
+        previous = numba.set_parallel_chunksize(1)  # work items go to threads one at a time
+        try:
+            _blend(start, ids, splat, depth_key, rect, color, chk.background, width, height, grid_x,
+                   np.float32(alpha_min), np.float32(t_min), bool(return_depth), image, alpha, depth)
+        finally:
+            numba.set_parallel_chunksize(previous)
     finally:
-        numba.set_parallel_chunksize(previous)
         numba.set_num_threads(previous_threads)
     return RenderOutput(image=image, alpha=alpha if return_alpha else None,
                         depth=depth if return_depth else None)

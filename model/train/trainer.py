@@ -22,6 +22,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from torch.profiler import record_function as stage  # a named range when profiled (bench.train_step)
 from tqdm.auto import tqdm
 
 from edmcgs.errors import InvalidInputError, TrainingError
@@ -158,10 +159,13 @@ class Trainer:
 
         n = int(self.rng.integers(len(self.anchor_times)))
         windows = model_has_windows(model)
-        anchor_state = model.state_at(self.anchor_times[n], static=static, window=n if windows else None)
-        anchor_state.means.retain_grad()
-        image = self._render(anchor_state, self.anchor_w2c[n])
-        terms["photo"] = photometric_loss(image, self.anchor_images[n], cfg.lambda_dssim)
+        with stage("anchor: deform"):
+            anchor_state = model.state_at(self.anchor_times[n], static=static, window=n if windows else None)
+            anchor_state.means.retain_grad()
+        with stage("anchor: render"):
+            image = self._render(anchor_state, self.anchor_w2c[n])
+        with stage("anchor: photometric loss"):
+            terms["photo"] = photometric_loss(image, self.anchor_images[n], cfg.lambda_dssim)
         loss = terms["photo"]
 
         cp = model.control.positions
@@ -170,32 +174,38 @@ class Trainer:
             s = self.grid.substeps
             a = 0 if self.rng.random() < cfg.anchored_pairs else int(self.rng.integers(0, s))
             b = int(self.rng.integers(a + 1, min(s, a + cfg.max_pair_steps) + 1))
-            trans_a, rot_a, disp_a = self._gap_motion(gap, a)
-            trans_b, rot_b, disp_b = self._gap_motion(gap, b)
+            with stage("event pair: control motion"):
+                trans_a, rot_a, disp_a = self._gap_motion(gap, a)
+                trans_b, rot_b, disp_b = self._gap_motion(gap, b)
             renders = []
             window = gap if windows else None
             for trans, rot, k in ((trans_a, rot_a, a), (trans_b, rot_b, b)):
-                st = model.state_from_motion(trans, rot, window)
-                st = GaussianState(st.means, st.quats, st.scales, st.opacities, st.colors.detach())
-                renders.append(self._render(st, self.grid_w2c[gap, k], self.event_intr, detach_layer=True))
-            events = self.grid.cum[gap, b] - self.grid.cum[gap, a]
-            ei = self.event_intr
-            events = _resize(events[None, :, :, None], ei.height, ei.width)[0, :, :, 0]
-            terms["event"] = event_loss(renders[0], renders[1], events, cfg.contrast_threshold, cfg.log_eps,
-                                        levels=cfg.event_loss_levels)
+                with stage("event pair: skin"):
+                    st = model.state_from_motion(trans, rot, window)
+                    st = GaussianState(st.means, st.quats, st.scales, st.opacities, st.colors.detach())
+                with stage("event pair: render"):
+                    renders.append(self._render(st, self.grid_w2c[gap, k], self.event_intr,
+                                                detach_layer=True))
+            with stage("event pair: event loss"):
+                events = self.grid.cum[gap, b] - self.grid.cum[gap, a]
+                ei = self.event_intr
+                events = _resize(events[None, :, :, None], ei.height, ei.width)[0, :, :, 0]
+                terms["event"] = event_loss(renders[0], renders[1], events, cfg.contrast_threshold,
+                                            cfg.log_eps, levels=cfg.event_loss_levels)
             loss = loss + cfg.lambda_event * terms["event"]
             if cfg.tli:
                 terms["tli"] = tli_loss(cp + trans_a, cp + trans_b, model.control.graph)
                 loss = loss + cfg.lambda_tli * terms["tli"]
             if windows and cfg.lambda_next > 0 and self.grid.ends_at_anchor[gap]:
                 # The gap's Gaussians carried by all its events to the next anchor frame.
-                s_end = self.grid.substeps
-                trans_e, rot_e, _ = (trans_b, rot_b, None) if b == s_end else self._gap_motion(gap, s_end)
-                st = model.state_from_motion(trans_e, rot_e, gap, motion_only=True)
-                image_next = self._render(st, self.anchor_w2c[gap + 1])
-                target = self.anchor_images[gap + 1]
-                terms["next"] = photometric_loss(image_next, target, cfg.lambda_dssim) \
-                    + pyramid_l1(image_next, target, cfg.next_levels)
+                with stage("next anchor"):
+                    s_end = self.grid.substeps
+                    trans_e, rot_e, _ = (trans_b, rot_b, None) if b == s_end else self._gap_motion(gap, s_end)
+                    st = model.state_from_motion(trans_e, rot_e, gap, motion_only=True)
+                    image_next = self._render(st, self.anchor_w2c[gap + 1])
+                    target = self.anchor_images[gap + 1]
+                    terms["next"] = photometric_loss(image_next, target, cfg.lambda_dssim) \
+                        + pyramid_l1(image_next, target, cfg.next_levels)
                 loss = loss + cfg.lambda_next * terms["next"]
             disps = [d for d in (disp_a, disp_b) if d is not None]
             if disps:
@@ -222,16 +232,19 @@ class Trainer:
                                     f"(step {self.step})")
             self.step += 1
             return {"loss": float("nan")}
-        loss.backward()
+        with stage("backward"):
+            loss.backward()
         self._sanitize_gradients()
         self.bad_steps = 0
         if cfg.densify_from <= progress < cfg.densify_until and anchor_state.means.grad is not None:
             self.stats.add(screen_space_grad(anchor_state.means.grad, anchor_state.means.detach(),
                                              self.anchor_w2c[n], self.intr.fx, self.intr.fy,
                                              self.intr.width, self.intr.height))
-        self.optimizer.step()
+        with stage("optimizer step"):
+            self.optimizer.step()
         self.step += 1
-        self._density_control(progress)
+        with stage("density control"):
+            self._density_control(progress)
         out = {name: float(value.detach()) for name, value in terms.items()}
         out["loss"] = float(loss.detach())
         return out

@@ -99,6 +99,7 @@ def test_deform_validates_its_inputs():
 def test_render_shapes_and_range():
     model, data = build()
     state = model.deform(tiny_scene.T0)
+    assert torch.get_num_threads() == 1  # the skinning kernel runs on torch's threads and leaves them
     for fast in (False, True):
         img = model.render(state, np.eye(4), model.meta.intrinsics, fast=fast)
         assert img.shape == (tiny_scene.H, tiny_scene.W, 3) and img.dtype == np.float32

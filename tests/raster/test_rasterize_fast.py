@@ -159,6 +159,22 @@ def test_non_finite_input_names_the_argument(name):
         fast(scene)
 
 
+@pytest.mark.parametrize("bad", [{"means": ((1, 2), np.nan)}, {"colors": ((2, 0), -np.inf)},
+                                 {"scales": ((3, 1), -1e-3)}, {"opacities": ((4,), 1.5)},
+                                 {"opacities": ((0,), np.nan)},
+                                 {"scales": ((0, 0), np.nan), "opacities": ((1,), -1.0)},
+                                 {"quats": ((2,), 0.0)}])
+def test_refuses_what_the_differentiable_path_refuses_with_its_message(bad):
+    """The fast path checks the values in one numba pass: same checks, same order, same words."""
+    scene = random_scene(6, 10, 8, seed=60, sh_degree=1)
+    scene = with_values(scene, **bad)
+    with pytest.raises(InvalidInputError) as slow:
+        rasterize(*(torch.tensor(scene[n]) for n in FIELDS), scene["w2c"], scene["intrinsics"])
+    with pytest.raises(InvalidInputError) as quick:
+        fast(scene)
+    assert str(quick.value) == str(slow.value)
+
+
 def test_thread_count_changes_nothing_but_speed():
     scene = random_scene(500, 70, 50, seed=61, sh_degree=1)
     one = fast(scene, background=BG, threads=1)

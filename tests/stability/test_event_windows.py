@@ -18,6 +18,7 @@ from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.motion.event_branch import FIELD
 from edmcgs.model.train.data import TrainingData
 from edmcgs.model.train.trainer import Trainer
+from edmcgs.pipeline import new_model
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.events import Events
 from tests.support import tiny_scene
@@ -124,9 +125,7 @@ def test_training_on_hot_pixel_noise_only_stays_finite():
                         anchor_poses=base.anchor_poses, intrinsics=base.intrinsics,
                         trajectory=base.trajectory, t_end_us=base.t_end_us, event_map=noise_map)
     cfg = TINY.replace(iterations=10, event_warmup=(0.0, 0.1), densify_from=0.9)
-    model = EdMCGS.from_arrays(anchors_t_us=data.anchors_t_us, anchor_images=data.anchor_images,
-                               intrinsics=data.intrinsics, anchor_poses=data.anchor_poses,
-                               t_end_us=data.t_end_us, trajectory=data.trajectory, config=cfg)
+    model = new_model(data, cfg)
     trainer = Trainer(model, data, progress=False)
     for _ in range(cfg.iterations):
         out = trainer.train_step()

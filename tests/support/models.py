@@ -6,6 +6,7 @@ import torch
 
 from edmcgs.model.config import preset
 from edmcgs.model.dynamic import EdMCGS
+from edmcgs.pipeline import new_model
 from tests.support import tiny_scene
 
 TINY = preset("demo").replace(init_points=600, num_control_points=32, deform_width=32, deform_depth=2,
@@ -16,9 +17,7 @@ TINY = preset("demo").replace(init_points=600, num_control_points=32, deform_wid
 
 def build(cfg=TINY, **kwargs) -> tuple[EdMCGS, object]:
     data = tiny_scene.data(**kwargs)
-    model = EdMCGS.from_arrays(anchors_t_us=data.anchors_t_us, anchor_images=data.anchor_images,
-                               intrinsics=data.intrinsics, anchor_poses=data.anchor_poses,
-                               t_end_us=data.t_end_us, trajectory=data.trajectory, config=cfg)
+    model = new_model(data, cfg)
     return model, data
 
 
