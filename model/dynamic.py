@@ -247,12 +247,15 @@ class EdMCGS(nn.Module):
         return trans, rot, event_disp
 
     def state_from_motion(self, trans: Tensor, rot: Tensor, window: int | None = None, *,
-                          motion_only: bool = False) -> GaussianState:
+                          motion_only: bool = False, weights: Tensor | None = None) -> GaussianState:
         """Skin the canonical Gaussians by control-point transforms [M, 3], [M, 4]; with anchor windows,
         ``window`` (an anchor index) zeroes the opacity of the Gaussians living in other gaps.
-        motion_only: the canonical Gaussians enter detached (a loss on the result trains the motion)."""
+        motion_only: the canonical Gaussians enter detached (a loss on the result trains the motion).
+        weights: ``control.weights(gaussians.means)`` when the caller already has them (a training
+        step skins several times with the same parameters)."""
         g = self.gaussians
-        weights = self.control.weights(g.means)
+        if weights is None:
+            weights = self.control.weights(g.means)
         canon = [g.means, g.quats, g.scales(), g.opacities(), g.colors()]
         if motion_only:
             canon = [t.detach() for t in canon]
@@ -264,13 +267,15 @@ class EdMCGS(nn.Module):
         return GaussianState(means, quats, canon[2], opacities, canon[4])
 
     def state_at(self, t: float, event_map: Tensor | None = None, ev_w2c: Tensor | None = None, *,
-                 static: bool = False, window: int | None = None) -> GaussianState:
+                 static: bool = False, window: int | None = None,
+                 weights: Tensor | None = None) -> GaussianState:
         """The (differentiable) Gaussians at normalised time ``t``; see ``control_motion``. ``window``:
-        the anchor (index) whose Gaussians are drawn, moved relative to that anchor's time."""
+        the anchor (index) whose Gaussians are drawn, moved relative to that anchor's time. weights:
+        as in ``state_from_motion``."""
         since = None if window is None or self.gaussians.birth is None else \
             self.meta.normalized_time(int(self.meta.anchors_us[window]))
         trans, rot, _ = self.control_motion(t, event_map, ev_w2c, static=static, since=since)
-        return self.state_from_motion(trans, rot, window)
+        return self.state_from_motion(trans, rot, window, weights=weights)
 
     # ------------------------------------------------------------------ inference API
     @torch.no_grad()

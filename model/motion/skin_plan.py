@@ -23,8 +23,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from edmcgs.geometry import quat_multiply, quat_normalize, quat_to_rotmat
+from edmcgs.geometry import quat_normalize
 from edmcgs.model.motion.gaussians import GaussianState
+from edmcgs.model.motion.skinning import blend, control_affine
 
 
 @dataclass
@@ -86,9 +87,7 @@ def skin(plan: SkinPlan, control: Tensor, rotations: Tensor, translations: Tenso
     translations: Tensor  # [M, 3] T_k^t
     """
     c = plan.canonical
-    rot = quat_to_rotmat(rotations)                                                   # [M, 3, 3]
-    offset = control + translations - (rot @ control[..., None])[..., 0]              # [M, 3]
-    affine = torch.cat([rot, offset[..., None]], -1).reshape(-1, 12)                  # [M, 12]
+    affine = control_affine(control, rotations, translations)                        # [M, 12]
     if c.means.device.type == "cpu":
         return _skin_cpu(plan, affine, rotations)
     return _skin_torch(plan, affine, rotations)
@@ -97,15 +96,11 @@ def skin(plan: SkinPlan, control: Tensor, rotations: Tensor, translations: Tenso
 def _skin_torch(plan: SkinPlan, affine: Tensor, rotations: Tensor) -> GaussianState:
     """The blend in torch ops (any device)."""
     c = plan.canonical
-    w = plan.weights[..., None]                                                       # [Nm, K, 1]
-    blended = (w * affine[plan.bind]).sum(1).reshape(-1, 3, 4)                        # [Nm, 3, 4]
-    q_blend = quat_normalize((w * rotations[plan.bind]).sum(1))                       # [Nm, 4]
     if plan.moving is None:
         means, quats = c.means, c.quats
     else:
         means, quats = c.means[plan.moving], c.quats[plan.moving]
-    moved = (blended[..., :3] @ means[..., None])[..., 0] + blended[..., 3]
-    turned = quat_multiply(q_blend, quats)
+    moved, turned = blend(means, quats, affine, rotations, plan.bind, plan.weights)
     if plan.moving is not None:
         moved = c.means.index_copy(0, plan.moving, moved)
         turned = c.quats.index_copy(0, plan.moving, turned)

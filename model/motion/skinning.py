@@ -26,6 +26,27 @@ def skinning_weights(means: Tensor, control: Tensor, log_radius: Tensor, idx: Te
     return torch.softmax(-0.5 * d2 * torch.exp(-2.0 * log_radius[idx]), dim=-1)
 
 
+def control_affine(control: Tensor, rotations: Tensor, translations: Tensor) -> Tensor:
+    """[M, 12] row-major 3x4 maps x -> R_k (x - p_k) + p_k + T_k = R_k x + (p_k + T_k - R_k p_k)."""
+    rot = quat_to_rotmat(rotations)                                                   # [M, 3, 3]
+    offset = control + translations - (rot @ control[..., None])[..., 0]              # [M, 3]
+    return torch.cat([rot, offset[..., None]], -1).reshape(-1, 12)
+
+
+def blend(means: Tensor, quats: Tensor, affine: Tensor, rotations: Tensor, idx: Tensor,
+          weights: Tensor) -> tuple[Tensor, Tensor]:
+    """The skinning blend: the weighted control-point maps applied to each mean (sum_k w_k A_k, one
+    3x4 map per Gaussian, then one product), the weighted rotations normalised onto each quaternion.
+
+    means [N, 3], quats [N, 4] unit; affine [M, 12] (``control_affine``), rotations [M, 4] unit;
+    idx, weights [N, K]. returns (means_t [N, 3], quats_t [N, 4] unit)
+    """
+    blended = torch.einsum("nk,nke->ne", weights, affine[idx]).reshape(-1, 3, 4)     # [N, 3, 4]
+    means_t = (blended[..., :3] @ means[..., None])[..., 0] + blended[..., 3]
+    q_blend = quat_normalize(torch.einsum("nk,nkj->nj", weights, rotations[idx]))
+    return means_t, quat_multiply(q_blend, quats)
+
+
 def lbs(means: Tensor, quats: Tensor, control: Tensor, rotations: Tensor, translations: Tensor,
         idx: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
     """Move Gaussians by their control points' rigid transforms.
@@ -38,14 +59,8 @@ def lbs(means: Tensor, quats: Tensor, control: Tensor, rotations: Tensor, transl
     idx, weights: Tensor  # [N, K] int64, [N, K] float32 (rows sum to 1)
     returns (means_t [N, 3], quats_t [N, 4] unit)
     """
-    rot = quat_to_rotmat(rotations)[idx]                        # [N, K, 3, 3]
-    anchor = control[idx]                                       # [N, K, 3]
-    local = (means[:, None, :] - anchor)[..., None]             # [N, K, 3, 1]
-    moved = (rot @ local)[..., 0] + anchor + translations[idx]  # [N, K, 3]
-    means_t = (weights[..., None] * moved).sum(1)
-    blended = quat_normalize((weights[..., None] * rotations[idx]).sum(1))
-    quats_t = quat_multiply(blended, quat_normalize(quats))
-    return means_t, quats_t
+    return blend(means, quat_normalize(quats), control_affine(control, rotations, translations), rotations,
+                 idx, weights)
 
 
 def identity_rotations(m: int, *, device=None, dtype=torch.float32) -> Tensor:

@@ -160,7 +160,9 @@ class Trainer:
         n = int(self.rng.integers(len(self.anchor_times)))
         windows = model_has_windows(model)
         with stage("anchor: deform"):
-            anchor_state = model.state_at(self.anchor_times[n], static=static, window=n if windows else None)
+            weights = model.control.weights(model.gaussians.means)  # the same for every skin of this step
+            anchor_state = model.state_at(self.anchor_times[n], static=static, window=n if windows else None,
+                                          weights=weights)
             anchor_state.means.retain_grad()
         with stage("anchor: render"):
             image = self._render(anchor_state, self.anchor_w2c[n])
@@ -181,7 +183,7 @@ class Trainer:
             window = gap if windows else None
             for trans, rot, k in ((trans_a, rot_a, a), (trans_b, rot_b, b)):
                 with stage("event pair: skin"):
-                    st = model.state_from_motion(trans, rot, window)
+                    st = model.state_from_motion(trans, rot, window, weights=weights)
                     st = GaussianState(st.means, st.quats, st.scales, st.opacities, st.colors.detach())
                 with stage("event pair: render"):
                     renders.append(self._render(st, self.grid_w2c[gap, k], self.event_intr,
@@ -201,7 +203,7 @@ class Trainer:
                 with stage("next anchor"):
                     s_end = self.grid.substeps
                     trans_e, rot_e, _ = (trans_b, rot_b, None) if b == s_end else self._gap_motion(gap, s_end)
-                    st = model.state_from_motion(trans_e, rot_e, gap, motion_only=True)
+                    st = model.state_from_motion(trans_e, rot_e, gap, motion_only=True, weights=weights)
                     image_next = self._render(st, self.anchor_w2c[gap + 1])
                     target = self.anchor_images[gap + 1]
                     terms["next"] = photometric_loss(image_next, target, cfg.lambda_dssim) \
