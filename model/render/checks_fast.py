@@ -1,4 +1,4 @@
-"""The value checks of ``io.check_inputs`` for numpy inputs in one numba pass (no temporaries)."""
+"""The value checks of ``io.check_inputs`` for numpy inputs, compiled (no temporary arrays)."""
 
 from __future__ import annotations
 
@@ -26,10 +26,7 @@ def _nonfinite(values):
 
 @njit_cached(nogil=True)
 def _flags(means, quats, scales, opacities, colors):
-    bad = np.zeros(len(PROBLEMS), np.bool_)
-    flat = (means.reshape(-1), quats.reshape(-1), scales.reshape(-1), opacities, colors.reshape(-1))
-    for k, values in enumerate(flat):
-        bad[k] = _nonfinite(values) > 0
+    """One flag per entry of PROBLEMS (a plain tuple: no Python object is read inside the kernel)."""
     negative = 0
     for v in scales.reshape(-1):
         negative += v < 0
@@ -39,15 +36,14 @@ def _flags(means, quats, scales, opacities, colors):
     zero = 0
     for i in range(quats.shape[0]):
         zero += (quats[i, 0] == 0) & (quats[i, 1] == 0) & (quats[i, 2] == 0) & (quats[i, 3] == 0)
-    bad[5], bad[6], bad[7] = negative > 0, outside > 0, zero > 0
-    return bad
+    return (_nonfinite(means.reshape(-1)) > 0, _nonfinite(quats.reshape(-1)) > 0,
+            _nonfinite(scales.reshape(-1)) > 0, _nonfinite(opacities) > 0, _nonfinite(colors.reshape(-1)) > 0,
+            negative > 0, outside > 0, zero > 0)
 
 
 def first_problem(means, quats, scales, opacities, colors) -> str | None:
     """The message of the first failed check, or None; C-contiguous float arrays of checked shapes."""
-    bad = _flags(means, quats, scales, opacities, colors)
-    for i in range(len(PROBLEMS)):
-        if bad[i]:
-            # a NaN opacity fails both its checks: report it as non-finite, as the torch path does
-            return PROBLEMS[i]
+    for problem, bad in zip(PROBLEMS, _flags(means, quats, scales, opacities, colors), strict=True):
+        if bad:  # the first in PROBLEMS' order, as the torch path checks them
+            return problem
     return None

@@ -263,8 +263,7 @@ class _Tiles:
         grid_y = -(-height // TILE)
         order = torch.sort(depth.detach(), stable=True).indices.numpy()
         self.rect = np.ascontiguousarray(rect.numpy())
-        self.start, self.ids = in_torch_threads(bin_tiles, self.rect, order, self.grid_x, grid_y,
-                                                torch.get_num_threads())
+        self.start, self.ids = bin_tiles(self.rect, order, self.grid_x, grid_y)
         self.dt = np.float64 if dtype == torch.float64 else np.float32
         # the thresholds as the torch path compares them: in the tensors' dtype
         self.alpha_min, self.alpha_max = self.dt(ALPHA_MIN), self.dt(ALPHA_MAX)

@@ -303,7 +303,7 @@ def rasterize_fast(means, quats, scales, opacities, colors, w2c, intrinsics: Int
                     intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, width, height, float(near),
                     float(alpha_min), splat, depth_key, rect, color)
         order = _depth_order(rect, depth_key.view(np.uint32))
-        start, ids = bin_tiles(rect, order, grid_x, grid_y, numba.get_num_threads())
+        start, ids = bin_tiles(rect, order, grid_x, grid_y)
         previous = numba.set_parallel_chunksize(1)  # work items go to threads one at a time
         try:
             _blend(start, ids, splat, depth_key, rect, color, chk.background, width, height, grid_x,

@@ -2,43 +2,39 @@
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
 from edmcgs.model.render.jit import njit_cached
 from edmcgs.model.render.projection import TILE
 
+SHIFT = TILE.bit_length() - 1
+"""Pixel -> tile index by a shift (pixels are >= 0): numba's signed floor division costs branches."""
+assert 1 << SHIFT == TILE
 
-@njit_cached(nogil=True, parallel=True)
-def bin_tiles(rect, order, grid_x, grid_y, bands=1):
+
+@njit_cached(nogil=True)
+def bin_tiles(rect, order, grid_x, grid_y):
     """Tile lists: ids[start[t]:start[t + 1]] are the splats (taken in ``order``) whose rectangle
-    touches tile t.
-
-    bands: bands of tile rows binned in parallel (one per thread): each scans every splat and writes
-    only its own tiles, so the lists come out exactly as one sequential pass writes them.
-    """
-    bands = max(min(bands, grid_y), 1)
+    touches tile t. ``order`` holds every splat with a non-empty rectangle (empty ones are skipped)."""
     start = np.zeros(grid_x * grid_y + 1, np.int64)
-    for b in numba.prange(bands):
-        lo, hi = b * grid_y // bands, (b + 1) * grid_y // bands
-        for g in order:
-            if rect[g, 2] <= rect[g, 0] or rect[g, 3] <= rect[g, 1]:
-                continue
-            for ty in range(max(rect[g, 1] // TILE, lo), min((rect[g, 3] - 1) // TILE + 1, hi)):
-                for tx in range(rect[g, 0] // TILE, (rect[g, 2] - 1) // TILE + 1):
-                    start[ty * grid_x + tx + 1] += 1
+    for g in range(rect.shape[0]):  # counting needs no order: memory order is faster
+        x0, y0, x1, y1 = rect[g, 0], rect[g, 1], rect[g, 2], rect[g, 3]
+        if x1 <= x0 or y1 <= y0:
+            continue
+        for ty in range(y0 >> SHIFT, ((y1 - 1) >> SHIFT) + 1):
+            for tx in range(x0 >> SHIFT, ((x1 - 1) >> SHIFT) + 1):
+                start[ty * grid_x + tx + 1] += 1
     for t in range(grid_x * grid_y):
         start[t + 1] += start[t]
+    fill = start[:-1].copy()
     ids = np.empty(start[-1], np.int32)
-    for b in numba.prange(bands):
-        lo, hi = b * grid_y // bands, (b + 1) * grid_y // bands
-        fill = start[lo * grid_x:hi * grid_x].copy()
-        for g in order:
-            if rect[g, 2] <= rect[g, 0] or rect[g, 3] <= rect[g, 1]:
-                continue
-            for ty in range(max(rect[g, 1] // TILE, lo), min((rect[g, 3] - 1) // TILE + 1, hi)):
-                for tx in range(rect[g, 0] // TILE, (rect[g, 2] - 1) // TILE + 1):
-                    t = ty * grid_x + tx - lo * grid_x
-                    ids[fill[t]] = g
-                    fill[t] += 1
+    for g in order:
+        x0, y0, x1, y1 = rect[g, 0], rect[g, 1], rect[g, 2], rect[g, 3]
+        if x1 <= x0 or y1 <= y0:
+            continue
+        for ty in range(y0 >> SHIFT, ((y1 - 1) >> SHIFT) + 1):
+            for tx in range(x0 >> SHIFT, ((x1 - 1) >> SHIFT) + 1):
+                t = ty * grid_x + tx
+                ids[fill[t]] = g
+                fill[t] += 1
     return start, ids
