@@ -43,7 +43,7 @@ from edmcgs.errors import InvalidInputError
 from edmcgs.model.render.jit import in_torch_threads, njit_cached
 from edmcgs.model.render.projection import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE
 from edmcgs.model.render.simd_exp import exp_nonpositive
-from edmcgs.model.render.tiles import bin_tiles
+from edmcgs.model.render.tiles import bin_tiles, depth_order
 
 __all__ = ["composite_fast"]
 
@@ -261,8 +261,11 @@ class _Tiles:
         self.width, self.height = width, height
         self.grid_x = -(-width // TILE)
         grid_y = -(-height // TILE)
-        order = torch.sort(depth.detach(), stable=True).indices.numpy()
         self.rect = np.ascontiguousarray(rect.numpy())
+        if depth.dtype == torch.float32:  # the radix sort of the float32 bits: the same order, faster
+            order = depth_order(self.rect, depth.detach().contiguous().numpy().view(np.uint32))
+        else:
+            order = torch.sort(depth.detach(), stable=True).indices.numpy()
         self.start, self.ids = bin_tiles(self.rect, order, self.grid_x, grid_y)
         self.dt = np.float64 if dtype == torch.float64 else np.float32
         # the thresholds as the torch path compares them: in the tensors' dtype

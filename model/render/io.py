@@ -106,7 +106,7 @@ def check_inputs(means, quats, scales, opacities, colors, w2c, intrinsics, backg
     if isinstance(near, bool) or not isinstance(near, (int, float)) or not math.isfinite(near) or near <= 0:
         raise InvalidInputError(f"near must be a finite number > 0, got {near!r}")
 
-    if is_torch:
+    if is_torch and (means.device.type != "cpu" or means.dtype not in (torch.float32, torch.float64)):
         with torch.no_grad():
             for name, value in named.items():
                 if not bool(torch.isfinite(value).all()):
@@ -118,10 +118,12 @@ def check_inputs(means, quats, scales, opacities, colors, w2c, intrinsics, backg
             if not bool((quats != 0).any(-1).all()):
                 raise InvalidInputError("quats has a zero quaternion; it describes no rotation")
     else:
-        # the same checks, in the same order, in one pass (imported here: only the fast path has numpy)
+        # float32/64 on the CPU: the same checks, in the same order, compiled (imported here: numba
+        # stays off a GPU's path); a contiguous CPU tensor is viewed, not copied
         from edmcgs.model.render.checks_fast import first_problem
 
-        problem = first_problem(*(np.ascontiguousarray(v) for v in named.values()))
+        arrays = (v.detach().numpy() if is_torch else v for v in named.values())
+        problem = first_problem(*(np.ascontiguousarray(a) for a in arrays))
         if problem is not None:
             raise InvalidInputError(problem)
 

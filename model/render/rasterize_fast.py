@@ -24,7 +24,7 @@ from edmcgs.model.render.jit import njit_cached as _jit
 from edmcgs.model.render.projection import ALPHA_MAX, ALPHA_MIN, FRUSTUM_SLACK, LOWPASS, SIGMAS, T_MIN, TILE
 from edmcgs.model.render.sh import SH_C0, SH_C1, SH_C2, SH_C3
 from edmcgs.model.render.simd_exp import exp_nonpositive
-from edmcgs.model.render.tiles import bin_tiles
+from edmcgs.model.render.tiles import bin_tiles, depth_order
 
 __all__ = ["RenderOutput", "rasterize_fast"]
 
@@ -144,26 +144,6 @@ def _preprocess(means, quats, scales, opac, coeffs, use_sh, w2c, fx, fy, cx, cy,
                         + SH_C3[5] * dz * (xx - yy) * coeffs[i, 14, ch]
                         + SH_C3[6] * dx * (xx - 3 * yy) * coeffs[i, 15, ch])
             color[i, ch] = max(acc + 0.5, 0.0)
-
-
-@_jit()
-def _depth_order(rect, depth_bits):
-    """The splats with a non-empty rectangle, sorted by depth, ties by index: an LSD radix sort
-    (stable) of the float32 depths' bit patterns, which order like the depths as these are > 0."""
-    order = np.nonzero((rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1]))[0]
-    spare = np.empty_like(order)
-    for shift in (0, 11, 22):
-        count = np.zeros(2049, np.int64)
-        for g in order:
-            count[((depth_bits[g] >> shift) & 2047) + 1] += 1
-        for d in range(2048):
-            count[d + 1] += count[d]
-        for g in order:
-            d = (depth_bits[g] >> shift) & 2047
-            spare[count[d]] = g
-            count[d] += 1
-        order, spare = spare, order
-    return order
 
 
 _STATE = 5 * TILE * TILE
@@ -302,7 +282,7 @@ def rasterize_fast(means, quats, scales, opacities, colors, w2c, intrinsics: Int
         _preprocess(chk.means, chk.quats, chk.scales, chk.opacities, coeffs, chk.colors.ndim == 3, chk.w2c,
                     intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, width, height, float(near),
                     float(alpha_min), splat, depth_key, rect, color)
-        order = _depth_order(rect, depth_key.view(np.uint32))
+        order = depth_order(rect, depth_key.view(np.uint32))
         start, ids = bin_tiles(rect, order, grid_x, grid_y)
         previous = numba.set_parallel_chunksize(1)  # work items go to threads one at a time
         try:

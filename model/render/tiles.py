@@ -1,4 +1,5 @@
-"""Tile lists: which splats touch which TILE x TILE tile, in a given order (both numba rasterizers)."""
+"""Depth order and tile lists: which splats touch which TILE x TILE tile, front to back (both numba
+rasterizers)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,26 @@ from edmcgs.model.render.projection import TILE
 SHIFT = TILE.bit_length() - 1
 """Pixel -> tile index by a shift (pixels are >= 0): numba's signed floor division costs branches."""
 assert 1 << SHIFT == TILE
+
+
+@njit_cached(nogil=True)
+def depth_order(rect, depth_bits):
+    """The splats with a non-empty rectangle, sorted by depth, ties by index: an LSD radix sort
+    (stable) of the float32 depths' bit patterns, which order like the depths as these are > 0."""
+    order = np.nonzero((rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1]))[0]
+    spare = np.empty_like(order)
+    for shift in (0, 11, 22):
+        count = np.zeros(2049, np.int64)
+        for g in order:
+            count[((depth_bits[g] >> shift) & 2047) + 1] += 1
+        for d in range(2048):
+            count[d + 1] += count[d]
+        for g in order:
+            d = (depth_bits[g] >> shift) & 2047
+            spare[count[d]] = g
+            count[d] += 1
+        order, spare = spare, order
+    return order
 
 
 @njit_cached(nogil=True)

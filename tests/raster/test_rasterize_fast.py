@@ -207,13 +207,13 @@ def test_a_new_process_loads_the_kernels_from_the_jit_cache():
     fast(random_scene(20, 20, 10, seed=60, sh_degree=2))  # make sure the cache is written
     script = (
         "import json, numpy as np\n"
-        "from edmcgs.model.render import rasterize_fast as rf\n"
+        "from edmcgs.model.render import checks_fast, rasterize_fast as rf\n"
         "from edmcgs.geometry import Intrinsics\n"
         "rf.rasterize_fast(np.zeros((1, 3)) + [0, 0, 2], [[1, 0, 0, 0]], np.full((1, 3), .1), [.5],"
         " np.zeros((1, 9, 3)), np.eye(4), Intrinsics(10., 10., 4., 4., 9, 9))\n"
         "print(json.dumps({k: [sum(f.stats.cache_hits.values()), sum(f.stats.cache_misses.values())]"
-        " for k, f in (('pre', rf._preprocess), ('order', rf._depth_order), ('bin', rf.bin_tiles),"
-        " ('blend', rf._blend))}))\n"
+        " for k, f in (('checks', checks_fast._flags), ('pre', rf._preprocess), ('order', rf.depth_order),"
+        " ('bin', rf.bin_tiles), ('blend', rf._blend))}))\n"
     )
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_DISABLE_JIT"}
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=ROOT, env=env,
