@@ -5,14 +5,15 @@
 
 The default is small (one scene, 1 s, 200 steps per run: about 10 minutes on a shared 2-core CPU);
 ``--full`` is the paper's grid (four scenes at 5 and 10 fps, every ablation, 3000 steps per run: hours
-on a CPU). Built recordings and trained runs are cached under ``OUT/cache``, so a second run only
-redoes what changed. Sections: the ablation table (with the paper's averages beside it), held-out
-error against training time, render error against time per frame over the fast path's knobs, the
-stability cases too slow for the test suite, and what each checkpoint leaves out (measured against its
-full twin, with a grey variant of the first scene: one more training run). Run it from the repository
-root: the render sweep uses the float64 reference renderer in bench/. ``--ray`` trains the grid's runs
-as Ray tasks side by side (``--threads`` CPUs each, the 'ray' extra; RAY_ADDRESS joins a cluster),
-into the same cache; the rest of the report then runs as without it.
+on a CPU). Built recordings and trained runs are cached under ``OUT/cache``, so a second run only redoes
+what changed. Sections: the ablation table (with the paper's averages beside it), held-out error against
+training time, render error against time per frame over the fast path's knobs, the stability cases too
+slow for the test suite, what each checkpoint leaves out (measured against its full twin, with a grey
+variant of the first scene: one more training run), and the full model served past its span with online
+anchors (a recording of the first scene four times as long). Run it from the repository root: the render
+sweep uses the float64 reference renderer in bench/. ``--ray`` trains the grid's runs as Ray tasks side
+by side (``--threads`` CPUs each, the 'ray' extra; RAY_ADDRESS joins a cluster), into the same cache;
+the rest of the report then runs as without it.
 """
 
 from __future__ import annotations
@@ -34,7 +35,9 @@ from bench.report.data import scene_recordings
 from bench.report.lean import event_branch_ms, grey_recording, lean_rows, median_threshold, refrozen
 from bench.report.lean import section as lean_section
 from bench.report.markdown import summary
-from bench.report.plots import ablation_bars, error_vs_time, render_knobs
+from bench.report.online import long_recording, online_rows
+from bench.report.online import section as online_section
+from bench.report.plots import ablation_bars, error_vs_time, online_drift, render_knobs
 from bench.report.render import render_sweep
 from bench.report.settings import FULL, SMALL, VARIANTS, ReportSettings
 from bench.report.stability import (
@@ -143,8 +146,13 @@ def collect(s: ReportSettings, cache: Path, *, device: str, progress: bool,
     resolution = {"recording_s": span_us / 1e6, "recording_us": span_us * 2.0**-24,
                   "day_ms": DAY_US * 2.0**-24 / 1000}
     lean, lean_context = collect_lean(s, recs, run, cache, fps, progress=progress)
+    base_fps = max(set(s.fps) | set(s.sparse_fps))  # the rate scene_recordings built the first scene at
+    long, prefix_diff = long_recording(first, fps, base_fps, rec, s, cache / "recordings", progress=progress)
+    online, predictions, online_context = online_rows(long, cache / "runs" / full[fps]["checkpoint"])
+    online_context |= {"label": f"{first} {fps:g} fps", "prefix_diff": prefix_diff}
     return {"runs": runs, "baselines": baseline_rows(recs, runs), "knobs": knobs, "context": context,
-            "stability": stability, "time_resolution": resolution, "lean": lean, "lean_context": lean_context}
+            "stability": stability, "time_resolution": resolution, "lean": lean, "lean_context": lean_context,
+            "online": online, "online_predictions": predictions, "online_context": online_context}
 
 
 def collect_lean(s: ReportSettings, recs: dict, run, cache: Path, fps: float, *,
@@ -195,7 +203,12 @@ def write_outputs(out: Path, s: ReportSettings, r: dict, *, command: str, minute
     write_csv(out / "render_knobs.csv", r["knobs"])
     write_csv(out / "stability.csv", r["stability"])
     write_csv(out / "lean.csv", r["lean"])
+    write_csv(out / "online_drift.csv", r["online"])
     ablation_bars(table, out / "ablation.png")
+    if r["online"]:
+        c = r["online_context"]
+        online_drift(r["online"], r["online_predictions"], out / "online_drift.png",
+                     f"{c['steps']} steps at {c['scale']:g}x size")
     error_vs_time(runs, out / "error_vs_time.png", threads)
     render_knobs(r["knobs"], out / "render_knobs.png")
     machine = (f"{os.cpu_count()} CPUs ({threads} thread(s) used, load average {os.getloadavg()[0]:.1f} at "
@@ -203,13 +216,15 @@ def write_outputs(out: Path, s: ReportSettings, r: dict, *, command: str, minute
     text = summary(settings=s, command=command, machine=machine, minutes=minutes, runs=runs,
                    baselines=r["baselines"], knobs=r["knobs"],
                    knob_context=r["context"], stability=r["stability"], tests=TEST_CASES,
-                   time_resolution=r["time_resolution"], lean=lean_section(r["lean"], r["lean_context"]))
+                   time_resolution=r["time_resolution"], lean=lean_section(r["lean"], r["lean_context"]),
+                   online=online_section(r["online"], r["online_predictions"], r["online_context"]))
     (out / "summary.md").write_text(text)
     payload = {"settings": s.__dict__, "command": command, "minutes": minutes, "ablation": table,
                "baselines": r["baselines"],
                "curves": curves, "render_knobs": r["knobs"], "render_context": r["context"],
                "stability": r["stability"], "time_resolution": r["time_resolution"], "lean": r["lean"],
-               "lean_context": r["lean_context"]}
+               "lean_context": r["lean_context"], "online": r["online"],
+               "online_predictions": r["online_predictions"], "online_context": r["online_context"]}
     (out / "report.json").write_text(json.dumps(payload, indent=1, default=str))
     return text
 

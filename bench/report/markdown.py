@@ -16,9 +16,11 @@ FILES = {
     "render_knobs.csv": "the fast path's knob sweep: times, error against the float64 reference and truth",
     "stability.csv": "the stability cases measured by the report (the fast ones are in tests/)",
     "lean.csv": "what each checkpoint leaves out; deform, render, size and error against its full twin",
+    "online_drift.csv": "per held-out frame past the span: the live render, uncorrected, and the baselines",
     "ablation.png": "mean PSNR per variant and rate beside the paper's averages",
     "error_vs_time.png": "held-out PSNR / SSIM against training time, every variant",
     "render_knobs.png": "error against time per frame for each fast-path knob",
+    "online_drift.png": "PSNR against time since training ended, online anchors beside the baselines",
     "report.json": "everything above in one file",
 }
 
@@ -114,7 +116,8 @@ def stability_table(rows: list[dict], tests: list[tuple[str, str, str]]) -> list
 
 def summary(*, settings: ReportSettings, command: str, machine: str, minutes: float, runs: list[dict],
             baselines: list[dict], knobs: list[dict], knob_context: dict, stability: list[dict],
-            tests: list[tuple[str, str, str]], time_resolution: dict, lean: list[str]) -> str:
+            tests: list[tuple[str, str, str]], time_resolution: dict, lean: list[str],
+            online: list[str]) -> str:
     s, c, tr = settings, knob_context, time_resolution
     if s.name == "small":
         scale = ("a smoke-scale run: far from converged and not comparable with the paper's numbers "
@@ -168,6 +171,7 @@ def summary(*, settings: ReportSettings, command: str, machine: str, minutes: fl
         f"{tr['day_ms']:.1f} ms over a 24-hour recording (the networks cannot tell apart times closer than "
         "that; the event windows can).", "",
         *lean,
+        *online,
         "## Files", "",
         *[f"- `{name}`: {what}" for name, what in FILES.items()],
         "- `cache/`: the built recordings and trained checkpoints (delete it to start over)", "",
