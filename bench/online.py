@@ -40,7 +40,7 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     return 99.0 if mse == 0 else 10 * np.log10(1.0 / mse)
 
 
-def drift(recording, checkpoint: Path, steps: int, scale: float) -> tuple[list[dict], dict]:
+def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float) -> tuple[list[dict], dict]:
     """recording: a path or a ``Recording``; see the module docstring."""
     from edmcgs.geometry import Trajectory
     from edmcgs.model import online as model_online
@@ -71,7 +71,7 @@ def drift(recording, checkpoint: Path, steps: int, scale: float) -> tuple[list[d
         ring = EventRingBuffer(len(rec.events) + 1)
         ring.push(rec.events, complete_until_us=rec.t_range_us[1] + 1)
         online = OnlineAnchors(model, ring, capacity=10**6, fit=False, fit_steps=steps, fit_scale=scale,
-                               default_pose=pose)
+                               fit_lr=lr, default_pose=pose)
         engine = Engine(model, ring, None, cache_size=4, online=online)
         engine.timeline = Timeline(start, start)
         anchors = rec.anchors
@@ -110,7 +110,7 @@ def drift(recording, checkpoint: Path, steps: int, scale: float) -> tuple[list[d
     return rows, {"pred": pred_rows}
 
 
-def timing(checkpoint: Path, recording: Path, width: int, height: int, steps: int, scale: float,
+def timing(checkpoint: Path, recording: Path, width: int, height: int, steps: int, scale: float, lr: float,
            n: int = 6) -> dict:
     """Median predict and correct time per anchor of ``checkpoint``'s model, its anchors rendered and
     compared at width x height (intrinsics scaled, the frame resized to match)."""
@@ -138,7 +138,7 @@ def timing(checkpoint: Path, recording: Path, width: int, height: int, steps: in
         t0 = time.perf_counter()
         motion = model_online.advance(model, motion, emap, c2w)
         t1 = time.perf_counter()
-        motion, _, _ = model_online.correct(model, motion, image, c2w, intr, steps=steps, scale=scale)
+        motion, _, _ = model_online.correct(model, motion, image, c2w, intr, steps=steps, lr=lr, scale=scale)
         t2 = time.perf_counter()
         if k:  # the first warms up
             preds.append(t1 - t0)
@@ -148,26 +148,30 @@ def timing(checkpoint: Path, recording: Path, width: int, height: int, steps: in
 
 
 def main(argv=None) -> None:
+    from edmcgs.server.settings import Settings
+
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--recording", type=Path)
     p.add_argument("--checkpoint", type=Path)
-    p.add_argument("--steps", type=int, default=10)
-    p.add_argument("--scale", type=float, default=0.5)
+    fit = Settings.model_fields  # the server's defaults
+    p.add_argument("--steps", type=int, default=fit["online_fit_steps"].default, help="fit steps per anchor")
+    p.add_argument("--scale", type=float, default=fit["online_fit_scale"].default, help="fit size")
+    p.add_argument("--lr", type=float, default=fit["online_fit_lr"].default, help="fit step size")
     p.add_argument("--timing-only", action="store_true", help="only the CPU figures (no drift)")
     p.add_argument("--plot", type=Path, help="the drift plot (PNG)")
     p.add_argument("--json", type=Path)
     p.add_argument("--csv", type=Path)
     args = p.parse_args(argv)
     torch.set_num_threads(1)
-    results: dict = {"steps": args.steps, "scale": args.scale}
+    results: dict = {"steps": args.steps, "scale": args.scale, "lr": args.lr}
     for w, h in ((173, 130), (346, 260)):
-        t = timing(args.checkpoint, args.recording, w, h, args.steps, args.scale)
+        t = timing(args.checkpoint, args.recording, w, h, args.steps, args.scale, args.lr)
         results[f"predict_ms_{w}x{h}"] = 1e3 * t["predict_s"]
         results[f"correct_ms_{w}x{h}"] = 1e3 * t["correct_s"]
         results[f"anchors_per_s_{w}x{h}"] = 1.0 / (t["predict_s"] + t["correct_s"])
         results[f"gaussians_{w}x{h}"] = t["gaussians"]
     if not args.timing_only:
-        rows, extra = drift(args.recording, args.checkpoint, args.steps, args.scale)
+        rows, extra = drift(args.recording, args.checkpoint, args.steps, args.scale, args.lr)
         for name in ("live", "no_corr", "hold_last", "integrate"):
             results[f"psnr_{name}"] = float(np.mean([r[name] for r in rows]))
         results["live_minus_hold_last_worst_db"] = float(min(r["live"] - r["hold_last"] for r in rows))
@@ -184,7 +188,8 @@ def main(argv=None) -> None:
             from bench.report.plots import online_drift
 
             args.plot.parent.mkdir(parents=True, exist_ok=True)
-            online_drift(rows, extra["pred"], args.plot, f"{args.steps} steps at {args.scale:g}x size")
+            online_drift(rows, extra["pred"], args.plot,
+                         f"{args.steps} steps of {args.lr:g} at {args.scale:g}x size")
     print(table(results, TARGETS))
     write_json(args.json, results)
 

@@ -82,7 +82,7 @@ def state_of(model: EdMCGS, motion: Motion) -> GaussianState:
 
 
 def correct(model: EdMCGS, motion: Motion, image: np.ndarray, c2w: np.ndarray, intrinsics: Intrinsics, *,
-            steps: int, lr: float = 2e-3, scale: float = 1.0,
+            steps: int, lr: float = 6e-3, scale: float = 1.0,
             reg: float = 1e-2) -> tuple[Motion, float, float]:
     """Fit a translation residual to ``image`` (uint8 [H, W, C]) seen from ``c2w``.
 

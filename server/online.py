@@ -58,11 +58,12 @@ class OnlineAnchor:
 class OnlineAnchors:
     """The online anchor store, its predictor (called by the ingest thread) and its fit worker."""
 
-    def __init__(self, model: EdMCGS, ring: EventRingBuffer, *, capacity: int = 64, fit_steps: int = 10,
-                 fit_scale: float = 1.0, fit: bool = True,
+    def __init__(self, model: EdMCGS, ring: EventRingBuffer, *, capacity: int = 64, fit_steps: int = 5,
+                 fit_scale: float = 1.0, fit_lr: float = 6e-3, fit: bool = True,
                  default_pose: Callable[[int], np.ndarray | None] | None = None):
         self.model, self.ring = model, ring
         self.capacity, self.fit_steps, self.fit_scale = int(capacity), int(fit_steps), float(fit_scale)
+        self.fit_lr = float(fit_lr)
         self.fit_enabled = fit and fit_steps > 0
         self.default_pose = default_pose or self._trajectory_pose
         meta = model.meta
@@ -232,7 +233,7 @@ class OnlineAnchors:
         t0 = time.perf_counter()
         (trans, _), before, after = model_online.correct(
             self.model, current.motion, image, c2w, self.model.meta.intrinsics, steps=self.fit_steps,
-            scale=self.fit_scale)
+            lr=self.fit_lr, scale=self.fit_scale)
         seconds = time.perf_counter() - t0
         delta = trans - current.motion[0]
         with self._lock:

@@ -89,9 +89,11 @@ class Settings(BaseSettings):
     online_anchors: int = Field(64, gt=0, le=100_000,
         description="Online anchors kept past the checkpoint's span (the stream's frames, predicted and "
                     "corrected); older ones also expire with their events.")
-    online_fit_steps: int = Field(10, ge=0, le=10_000,
+    online_fit_steps: int = Field(5, ge=0, le=10_000,
         description="Optimisation steps correcting each online anchor against its frame, in a background "
                     "thread (0: predictions only).")
+    online_fit_lr: float = Field(6e-3, gt=0, le=1,
+        description="Adam step size of that correction, as a fraction of the scene's extent.")
     online_fit_scale: float = Field(0.5, gt=0, le=1,
         description="Fraction of the frame's size the correction renders and compares at.")
     raster_threads: int | None = Field(None, gt=0, le=1024,

@@ -32,3 +32,18 @@ def test_baselines_stand_beside_the_ablations_on_the_same_frames():
     assert f"| {rows[0]['ssim_3dgs']:.4f} |" in line
     full = next(x for x in table if x.startswith("| Full |"))
     assert "| 30.00 | — |" in full
+
+
+def test_the_summary_says_which_baselines_the_full_model_does_not_beat():
+    from bench.report.markdown import baseline_verdict
+
+    runs = [{"variant": "full", "fps": 5.0, "psnr": 25.0}, {"variant": "no_events", "fps": 5.0, "psnr": 26.0},
+            {"variant": "full", "fps": 10.0, "psnr": 27.0}]
+    baselines = [{"baseline": "hold last anchor", "fps": 5.0, "psnr": 24.0},
+                 {"baseline": "events integrated onto the last anchor", "fps": 5.0, "psnr": 25.5},
+                 {"baseline": "hold last anchor", "fps": 10.0, "psnr": 26.0}]
+    text = baseline_verdict(runs, baselines)
+    assert "at 5 fps the full model (25.00 dB) does **not** beat events integrated onto the last anchor " \
+           "(25.50 dB)" in text
+    assert "hold last anchor (24.00" not in text  # beaten: not listed
+    assert "at 10 fps the full model (27.00 dB) beats every baseline" in text

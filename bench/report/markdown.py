@@ -65,6 +65,24 @@ def ablation_table(runs: list[dict], settings: ReportSettings, baselines: list[d
     return lines
 
 
+def baseline_verdict(runs: list[dict], baselines: list[dict]) -> str:
+    """One sentence per rate: which baselines the full model does not beat (mean PSNR), or that it beats
+    them all."""
+    parts = []
+    for fps in sorted({r["fps"] for r in runs}):
+        full = _mean([r for r in runs if r["variant"] == "full" and r["fps"] == fps], "psnr")
+        names = dict.fromkeys(b["baseline"] for b in baselines if b["fps"] == fps)
+        losing = [(n, _mean([b for b in baselines if b["baseline"] == n and b["fps"] == fps], "psnr"))
+                  for n in names]
+        losing = [(n, v) for n, v in losing if v >= full]
+        if losing:
+            parts.append(f"at {fps:g} fps the full model ({full:.2f} dB) does **not** beat "
+                         + " nor ".join(f"{n} ({v:.2f} dB)" for n, v in losing))
+        elif names:
+            parts.append(f"at {fps:g} fps the full model ({full:.2f} dB) beats every baseline")
+    return ("Against the baselines: " + "; ".join(parts) + ".") if parts else ""
+
+
 def per_run_table(runs: list[dict]) -> list[str]:
     lines = ["| scene | fps | variant | PSNR (dB) | SSIM | SSIM (3DGS) | LPIPS | frames | train s "
              "| s / step | Gaussians | non-finite steps |",
@@ -144,7 +162,8 @@ def summary(*, settings: ReportSettings, command: str, machine: str, minutes: fl
         "in the 3DGS papers' convention (zero-padded windows over the full image), as the paper's; the "
         "per-run table below has both (SSIM: windows inside the image only, as `edmcgs eval` prints first).",
         "",
-        *ablation_table(runs, s, baselines), "", "![ablations](ablation.png)", "", *per_run_table(runs), "",
+        *ablation_table(runs, s, baselines), "", baseline_verdict(runs, baselines), "",
+        "![ablations](ablation.png)", "", *per_run_table(runs), "",
         "LPIPS (VGG): scored on the weights found on disk." if any(r.get("lpips") is not None for r in runs)
         else f"{LPIPS_SKIPPED}.", "",
         "## 2. Error against training time", "",

@@ -47,10 +47,9 @@ def online_rows(rec: Recording, checkpoint: Path) -> tuple[list[dict], list[dict
     from bench.online import drift
     from edmcgs.server.settings import Settings
 
-    steps = Settings.model_fields["online_fit_steps"].default
-    scale = Settings.model_fields["online_fit_scale"].default
-    rows, extra = drift(rec, checkpoint, steps, scale)
-    return rows, extra["pred"], {"steps": steps, "scale": scale}
+    fit = {k: Settings.model_fields[f"online_fit_{k}"].default for k in ("steps", "scale", "lr")}
+    rows, extra = drift(rec, checkpoint, fit["steps"], fit["scale"], fit["lr"])
+    return rows, extra["pred"], fit
 
 
 def section(rows: list[dict], predictions: list[dict], context: dict) -> list[str]:
@@ -65,7 +64,8 @@ def section(rows: list[dict], predictions: list[dict], context: dict) -> list[st
            + ("" if context["prefix_diff"] == 0 else
               f"; it differs from it by up to {context['prefix_diff']:g} of 255 in an anchor pixel") + "). "
            "Past the span every new anchor frame is predicted by the event transition, then corrected with "
-           f"the server's default fit ({context['steps']} Adam steps at {context['scale']:g}x size) before "
+           f"the server's default fit ({context['steps']} Adam steps of {context['lr']:g} at "
+           f"{context['scale']:g}x size) before "
            f"the next; {len(rows)} held-out frames past the span, mean PSNR (dB):", "",
            "| | mean PSNR | first half | second half | frames >= hold-last |", "|---|---|---|---|---|"]
     half = len(rows) // 2

@@ -197,7 +197,7 @@ def test_a_correction_equals_refitting_through_the_full_skinning(long_scene):
     motion = model_online.checkpoint_motion(model, t)
     i = int(np.searchsorted(rec.anchors.t_us, t))
     image, c2w, intr = rec.anchors.images[i], rec.anchors.poses[i], model.meta.intrinsics
-    (got, _), first, last = model_online.correct(model, motion, image, c2w, intr, steps=4)
+    (got, _), first, last = model_online.correct(model, motion, image, c2w, intr, steps=4, lr=2e-3)
 
     trans0, rot = motion
     target = torch.as_tensor(image, dtype=torch.float32) / 255.0
