@@ -40,8 +40,10 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     return 99.0 if mse == 0 else 10 * np.log10(1.0 / mse)
 
 
-def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float) -> tuple[list[dict], dict]:
-    """recording: a path or a ``Recording``; see the module docstring."""
+def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, finetune_steps: int = 0,
+          finetune_lr: float = 1e-4) -> tuple[list[dict], dict]:
+    """recording: a path or a ``Recording``; finetune_*: the server's ``online_finetune_*``; see the
+    module docstring."""
     from edmcgs.geometry import Trajectory
     from edmcgs.model import online as model_online
     from edmcgs.model.checkpoint import load_checkpoint
@@ -71,7 +73,8 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float) -> t
         ring = EventRingBuffer(len(rec.events) + 1)
         ring.push(rec.events, complete_until_us=rec.t_range_us[1] + 1)
         online = OnlineAnchors(model, ring, capacity=10**6, fit=False, fit_steps=steps, fit_scale=scale,
-                               fit_lr=lr, default_pose=pose)
+                               fit_lr=lr, finetune_steps=finetune_steps, finetune_lr=finetune_lr,
+                               default_pose=pose)
         engine = Engine(model, ring, None, cache_size=4, online=online)
         engine.timeline = Timeline(start, start)
         anchors = rec.anchors
@@ -157,13 +160,17 @@ def main(argv=None) -> None:
     p.add_argument("--steps", type=int, default=fit["online_fit_steps"].default, help="fit steps per anchor")
     p.add_argument("--scale", type=float, default=fit["online_fit_scale"].default, help="fit size")
     p.add_argument("--lr", type=float, default=fit["online_fit_lr"].default, help="fit step size")
+    p.add_argument("--finetune-steps", type=int, default=fit["online_finetune_steps"].default,
+                   help="g_phi fine-tune steps after each correction (0: off)")
+    p.add_argument("--finetune-lr", type=float, default=fit["online_finetune_lr"].default)
     p.add_argument("--timing-only", action="store_true", help="only the CPU figures (no drift)")
     p.add_argument("--plot", type=Path, help="the drift plot (PNG)")
     p.add_argument("--json", type=Path)
     p.add_argument("--csv", type=Path)
     args = p.parse_args(argv)
     torch.set_num_threads(1)
-    results: dict = {"steps": args.steps, "scale": args.scale, "lr": args.lr}
+    results: dict = {"steps": args.steps, "scale": args.scale, "lr": args.lr,
+                     "finetune_steps": args.finetune_steps, "finetune_lr": args.finetune_lr}
     for w, h in ((173, 130), (346, 260)):
         t = timing(args.checkpoint, args.recording, w, h, args.steps, args.scale, args.lr)
         results[f"predict_ms_{w}x{h}"] = 1e3 * t["predict_s"]
@@ -171,7 +178,8 @@ def main(argv=None) -> None:
         results[f"anchors_per_s_{w}x{h}"] = 1.0 / (t["predict_s"] + t["correct_s"])
         results[f"gaussians_{w}x{h}"] = t["gaussians"]
     if not args.timing_only:
-        rows, extra = drift(args.recording, args.checkpoint, args.steps, args.scale, args.lr)
+        rows, extra = drift(args.recording, args.checkpoint, args.steps, args.scale, args.lr,
+                            args.finetune_steps, args.finetune_lr)
         for name in ("live", "no_corr", "hold_last", "integrate"):
             results[f"psnr_{name}"] = float(np.mean([r[name] for r in rows]))
         results["live_minus_hold_last_worst_db"] = float(min(r["live"] - r["hold_last"] for r in rows))

@@ -13,7 +13,8 @@ events carry the motion:
 
 ``correct`` refines a predicted state against the frame: a per-control-point translation residual,
 optimised for a bounded number of Adam steps on the photometric loss through the differentiable
-rasterizer, with the canonical Gaussians and the networks frozen.
+rasterizer, with the canonical Gaussians and the networks frozen. ``finetune`` (off by default in the
+server) then lets a copy of g_phi learn from the correction, for the predictions past the span only.
 """
 
 from __future__ import annotations
@@ -45,15 +46,28 @@ def checkpoint_motion(model: EdMCGS, t_us: int, event_map: np.ndarray | None = N
 
 @torch.no_grad()
 def event_displacement(model: EdMCGS, base_trans: Tensor, event_map: np.ndarray | Tensor | None,
-                       ev_c2w: np.ndarray | None) -> Tensor:
+                       ev_c2w: np.ndarray | None, transition: torch.nn.Module | None = None) -> Tensor:
     """g_phi's displacement [M, 3] of the control points from the state ``base_trans`` by the events
-    ``event_map`` ([He, We] signed polarity sum); zeros without an event branch or events."""
+    ``event_map`` ([He, We] signed polarity sum); zeros without an event branch or events.
+    transition: g_phi to use (default: the model's; ``finetune`` makes online copies)."""
+    codes = motion_codes(model, base_trans, event_map, ev_c2w)
+    if codes is None:
+        return torch.zeros_like(model.control.positions)
+    g = model.transition if transition is None else transition
+    return g(model.normalize_points(model.control.positions), codes) * (model.extent * model.event_scale)
+
+
+@torch.no_grad()
+def motion_codes(model: EdMCGS, base_trans: Tensor, event_map: np.ndarray | Tensor | None,
+                 ev_c2w: np.ndarray | None) -> Tensor | None:
+    """The control points' motion codes [M, 32] of ``event_map`` seen from the state ``base_trans``
+    (Phi, then local or global sampling); None without an event branch or events."""
     cp = model.control.positions
     if model.transition is None or event_map is None:
-        return torch.zeros_like(cp)
+        return None
     emap = torch.as_tensor(event_map, dtype=torch.float32, device=cp.device)
     if not bool(torch.any(emap != 0)):
-        return torch.zeros_like(cp)
+        return None
     feats = model.encoder(model.config.contrast_threshold * emap[None, None])[0]
     if model.config.local_sampling:
         if ev_c2w is None:
@@ -62,16 +76,45 @@ def event_displacement(model: EdMCGS, base_trans: Tensor, event_map: np.ndarray 
                               device=cp.device)
         intr = model.meta.event_intrinsics
         uv, depth = project(cp + base_trans, w2c, intr)
-        codes = sample_local(feats, uv, depth > NEAR, intr.width, intr.height)
-    else:
-        codes = sample_global(feats, cp.shape[0])
-    return model.transition(model.normalize_points(cp), codes) * (model.extent * model.event_scale)
+        return sample_local(feats, uv, depth > NEAR, intr.width, intr.height)
+    return sample_global(feats, cp.shape[0])
 
 
-def advance(model: EdMCGS, motion: Motion, event_map, ev_c2w) -> Motion:
-    """The Markov transition from an anchor's ``motion`` by the events since it."""
+def advance(model: EdMCGS, motion: Motion, event_map, ev_c2w,
+            transition: torch.nn.Module | None = None) -> Motion:
+    """The Markov transition from an anchor's ``motion`` by the events since it (``transition``: as in
+    ``event_displacement``)."""
     trans, rot = motion
-    return trans + event_displacement(model, trans, event_map, ev_c2w), rot
+    return trans + event_displacement(model, trans, event_map, ev_c2w, transition), rot
+
+
+def finetune(model: EdMCGS, transition: torch.nn.Module, prev_motion: Motion, event_map, ev_c2w,
+             target_trans: Tensor, *, steps: int, lr: float) -> tuple[torch.nn.Module, float, float] | None:
+    """A copy of ``transition`` (g_phi) after ``steps`` Adam steps toward predicting ``target_trans`` (a
+    corrected anchor) from ``prev_motion`` (the anchor before it) by the events between them: later
+    predictions learn from the corrections. Phi, the prior and the Gaussians stay frozen; ``transition``
+    itself is untouched (renders may be reading it). Returns (copy, loss before, loss after: mean squared
+    displacement error in g_phi's units), or None when the events give g_phi nothing to learn from."""
+    import copy
+
+    codes = motion_codes(model, prev_motion[0], event_map, ev_c2w)
+    if codes is None or steps <= 0:
+        return None
+    tuned = copy.deepcopy(transition).requires_grad_(True)
+    x = model.normalize_points(model.control.positions)
+    target = ((target_trans - prev_motion[0]) / (model.extent * model.event_scale)).detach()
+    opt = torch.optim.Adam(tuned.parameters(), lr=lr)
+    losses = []
+    for _ in range(steps):
+        loss = (tuned(x, codes) - target).pow(2).sum(-1).mean()
+        losses.append(float(loss.detach()))
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    tuned.requires_grad_(False)
+    with torch.no_grad():
+        after = float((tuned(x, codes) - target).pow(2).sum(-1).mean())
+    return tuned, losses[0], after
 
 
 @torch.no_grad()

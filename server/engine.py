@@ -186,7 +186,8 @@ class Engine:
     def state(self, instant: Instant) -> tuple[object, int]:
         """(GaussianState at the instant, events in its window), shared by all clients (cached)."""
         online = self.online.get(instant.window[0]) if self.online is not None else None
-        key = (instant.t_us, instant.anchor_us, instant.window, None if online is None else online.version)
+        key = (instant.t_us, instant.anchor_us, instant.window,
+               None if online is None else (online.version, self.online.transition_version))
         return self.cache.get(key, lambda: self._deform(instant, online))
 
     def anchor_kind(self, instant: Instant) -> str:
@@ -207,7 +208,7 @@ class Engine:
                 c2w = self.default_pose(instant.t_us)
             except InvalidInputError:  # no trajectory and no frame poses: global sampling only
                 c2w = None
-            motion = model_online.advance(self.model, online.motion, emap, c2w)
+            motion = model_online.advance(self.model, online.motion, emap, c2w, self.online.transition)
             return model_online.state_of(self.model, motion), len(events)
         return self.model.deform(instant.t_us, emap), len(events)
 

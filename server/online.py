@@ -4,7 +4,9 @@
                    predicted: the previous anchor's state + g_phi(events [prev, T))  ──> published
                    ──> one-slot fit queue (newest wins; the one it replaces counts as skipped)
     fit thread:    a bounded number of steps against the frame (model/online.correct) ──> published
-                   as corrected; its residual carried on to the anchors predicted from it meanwhile
+                   as corrected; its residual carried on to the anchors predicted from it meanwhile;
+                   optionally (finetune_steps > 0) a copy of g_phi learns from the correction and
+                   replaces the one the next predictions and renders past the span use
 
 Anchors are keyed by stream time (a looping replay passes the same scene times again; each pass chains
 from the checkpoint's last anchor anew). The store is bounded (``capacity``) and drops anchors whose
@@ -59,11 +61,18 @@ class OnlineAnchors:
     """The online anchor store, its predictor (called by the ingest thread) and its fit worker."""
 
     def __init__(self, model: EdMCGS, ring: EventRingBuffer, *, capacity: int = 64, fit_steps: int = 5,
-                 fit_scale: float = 1.0, fit_lr: float = 6e-3, fit: bool = True,
+                 fit_scale: float = 1.0, fit_lr: float = 6e-3, finetune_steps: int = 0,
+                 finetune_lr: float = 1e-4, fit: bool = True,
                  default_pose: Callable[[int], np.ndarray | None] | None = None):
         self.model, self.ring = model, ring
         self.capacity, self.fit_steps, self.fit_scale = int(capacity), int(fit_steps), float(fit_scale)
         self.fit_lr = float(fit_lr)
+        self.finetune_steps, self.finetune_lr = int(finetune_steps), float(finetune_lr)
+        self.transition = model.transition
+        """g_phi of the predictions past the span: the model's, or a copy fine-tuned on the corrections
+        (``finetune_steps`` > 0), replaced whole after each fit (readers take the reference once)."""
+        self.transition_version = 0
+        self.last_finetune: tuple[float, float] | None = None  # (loss before, after) of the last one
         self.fit_enabled = fit and fit_steps > 0
         self.default_pose = default_pose or self._trajectory_pose
         meta = model.meta
@@ -185,7 +194,7 @@ class OnlineAnchors:
             if prev is None:
                 motion = model_online.checkpoint_motion(model, scene_t, emap, c2w)
             else:
-                motion = model_online.advance(model, prev.motion, emap, c2w)
+                motion = model_online.advance(model, prev.motion, emap, c2w, self.transition)
             anchor = OnlineAnchor(t, scene_t, motion, False, 0, pose)
             self._publish((*self._anchors, anchor))
             self.predicted += 1
@@ -248,10 +257,31 @@ class OnlineAnchors:
                 out.append(a)
             self._publish(tuple(out))
         self.corrected += 1
+        if self.finetune_steps > 0:
+            self._finetune(anchor, trans, c2w)
+            seconds = time.perf_counter() - t0
         self.last_fit_s, self.last_loss = seconds, (before, after)
         self.fit_seconds = [*self.fit_seconds[-63:], seconds]
         if self.on_fit is not None:
             self.on_fit(seconds, before, after)
+
+    def _finetune(self, anchor: OnlineAnchor, corrected: torch.Tensor, c2w: np.ndarray) -> None:
+        """Fit thread: let a copy of g_phi learn to predict the corrected anchor from the one before it by
+        the events between them, then publish the copy for the next predictions and renders."""
+        model = self.model
+        prev_stream = self.tau(anchor.stream_us - 1, anchor.t_us - 1)
+        prev = self.get(prev_stream)
+        base = prev.motion if prev is not None else model_online.checkpoint_motion(model, anchor.t_us)
+        try:
+            events = self.ring.slice(prev_stream, anchor.stream_us)
+        except WindowUnavailable:
+            return
+        emap = accumulate(events, model.meta.event_width, model.meta.event_height) if len(events) else None
+        tuned = model_online.finetune(model, self.transition, base, emap, c2w, corrected,
+                                      steps=self.finetune_steps, lr=self.finetune_lr)
+        if tuned is not None:
+            self.transition, self.last_finetune = tuned[0], tuned[1:]
+            self.transition_version += 1
 
     def wait_idle(self, timeout: float = 30.0) -> bool:
         """Until the fit queue is empty and no fit runs (tests, benchmarks)."""

@@ -94,6 +94,10 @@ class Settings(BaseSettings):
                     "thread (0: predictions only).")
     online_fit_lr: float = Field(6e-3, gt=0, le=1,
         description="Adam step size of that correction, as a fraction of the scene's extent.")
+    online_finetune_steps: int = Field(0, ge=0, le=10_000,
+        description="After each correction, Adam steps letting a copy of g_phi (the event transition) "
+                    "learn from it, for the predictions past the span only (0: g_phi stays as trained).")
+    online_finetune_lr: float = Field(1e-4, gt=0, le=1, description="Adam step size of that fine-tune.")
     online_fit_scale: float = Field(0.5, gt=0, le=1,
         description="Fraction of the frame's size the correction renders and compares at.")
     raster_threads: int | None = Field(None, gt=0, le=1024,

@@ -216,3 +216,44 @@ def test_a_correction_equals_refitting_through_the_full_skinning(long_scene):
     assert first == pytest.approx(losses[0], rel=1e-5) and last == pytest.approx(losses[-1], rel=1e-4)
     assert torch.allclose(got, trans0 + delta.detach() * extent, atol=1e-6 * extent)
     assert last < first  # the fit moves toward the frame
+
+
+def test_fine_tuning_g_phi_learns_from_corrections_and_touches_only_the_span_past_the_checkpoint(long_scene):
+    rec, model = long_scene
+    own = [p.detach().clone() for p in model.transition.parameters()]
+    ring = EventRingBuffer(10**6)
+    online = OnlineAnchors(model, ring, fit=False, fit_steps=3, fit_scale=0.5, finetune_steps=4,
+                           finetune_lr=1e-3)
+    start = rec.t_range_us[0]
+    tl = Timeline(start, start)
+    engine = Engine(model, ring, None, cache_size=4, online=online)
+    engine.timeline = tl
+    _feed(online, ring, rec, int(model.meta.t_end_us) + 3 * STEP_US + 1, tl)
+    inside = int(model.meta.anchors_us[1]) + STEP_US // 2
+    before = engine.render(inside, None, 64, 48).pixels
+    first, second = online.anchors()[:2]
+    online._fit(first, rec.anchors.images[int(np.searchsorted(rec.anchors.t_us, first.stream_us))])
+    assert online.transition is not model.transition and online.transition_version == 1
+    tuned_once = online.transition
+    online._fit(second, rec.anchors.images[int(np.searchsorted(rec.anchors.t_us, second.stream_us))])
+    assert online.transition is not tuned_once and online.transition_version == 2
+    loss_before, loss_after = online.last_finetune
+    assert np.isfinite(loss_before) and loss_after < loss_before  # it learns the correction
+    assert all(torch.equal(p, q) for p, q in zip(own, model.transition.parameters(), strict=True))
+    assert not any(p.requires_grad for p in online.transition.parameters())
+    # the checkpoint's span renders exactly as before; past it the new transition drives the motion
+    assert np.array_equal(engine.render(inside, None, 64, 48).pixels, before)
+    later = int(second.stream_us) + STEP_US // 2
+    tuned = engine.render(later, None, 64, 48).pixels
+    online.transition, online.transition_version = model.transition, 0
+    assert not np.array_equal(engine.render(later, None, 64, 48).pixels, tuned)
+
+
+def test_finetune_without_events_has_nothing_to_learn(long_scene):
+    _, model = long_scene
+    motion = model_online.checkpoint_motion(model, int(model.meta.t_end_us))
+    assert model_online.finetune(model, model.transition, motion, None, None, motion[0], steps=3,
+                                 lr=1e-3) is None
+    empty = np.zeros((model.meta.event_height, model.meta.event_width), np.float32)
+    assert model_online.finetune(model, model.transition, motion, empty, None, motion[0], steps=3,
+                                 lr=1e-3) is None
