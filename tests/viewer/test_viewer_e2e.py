@@ -85,7 +85,9 @@ def test_viewer_streams_orbits_and_shows_the_scene(page, served, tmp_path):
     page.mouse.up()
     page.wait_for_function(f"{IDLE} && {FRAMES} > {before}")
     pose = page.evaluate("edmcgsViewer.currentPose()")
-    assert pose is not None and page.locator("#pose").inner_text().startswith("[")
+    assert pose is not None
+    # the readouts refresh on a 250 ms timer: the frame can arrive before the next tick
+    page.wait_for_function("document.getElementById('pose').textContent.startsWith('[')", timeout=5_000)
     base = np.array(page.evaluate(f"edmcgsViewer.poseAt(edmcgsViewer.state.scene.trajectory, {t_us})"))
     pose = np.array(pose)
     assert np.abs(pose - base).max() > 0.1
