@@ -141,6 +141,10 @@ class WebSocketSession:
             if item.close is not None:
                 return
 
+    def disconnect(self, code: int = 1000) -> None:
+        """The client went away: the app sees a disconnect (``messages()`` ends once the app does)."""
+        self._inbox.put_nowait({"type": "websocket.disconnect", "code": code})
+
     async def close(self, code: int = 1000) -> None:
         """The client went away: the app sees a disconnect; wait for it briefly, then cancel it."""
         self._inbox.put_nowait({"type": "websocket.disconnect", "code": code})

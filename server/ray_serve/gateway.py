@@ -12,6 +12,7 @@ import html
 import json
 import logging
 
+import ray
 from fastapi import FastAPI, Request, WebSocket
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
 from ray import serve
@@ -20,6 +21,7 @@ from ray.serve.exceptions import BackPressureError
 from edmcgs import protocol
 from edmcgs.server.auth import check_token
 from edmcgs.server.errors import Unauthorized
+from edmcgs.server.ray_serve.mailbox import Mailbox
 from edmcgs.server.ray_serve.relay import StreamRelay
 from edmcgs.server.ray_serve.retry import Retrier, retryable
 
@@ -52,6 +54,8 @@ class Gateway:
         self.info = info
         self.token = token  # the gateway's own pages; each scene's routes check it in the scene's app
         self.retrier = Retrier()
+        # Client messages into running replica sessions; an actor of this gateway's, gone with it.
+        self.mailbox = ray.remote(Mailbox).options(num_cpus=0, max_concurrency=10_000).remote()
 
     def _auth(self, request: Request) -> JSONResponse | None:
         """401 unless the request carries the token (when one is set), as every route of a scene."""
@@ -147,5 +151,5 @@ class Gateway:
             await ws.send_bytes(protocol.pack(body.to_message()))
             await ws.close(code=1008, reason="no such scene")
             return
-        relay = StreamRelay(ws, self.scenes[name], self.retrier, _client(ws))
+        relay = StreamRelay(ws, self.scenes[name], self.retrier, _client(ws), self.mailbox)
         await relay.run()

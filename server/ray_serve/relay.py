@@ -1,16 +1,17 @@
 """A client's websocket relayed to a scene's replicas.
 
-The client's messages are kept, and the replica-side session (``SceneReplica.stream``, a streaming
-call) is (re)started from them, so a stream survives its replica's death (its ``seq`` starts over).
-A new client message also restarts the replica-side session with every message so far, since a
-streaming call takes no more input once started (a sweep then starts over from its ``t0``); the
-replies to messages already answered are not sent twice.
+One replica-side session (``SceneReplica.stream``, a streaming call) lives as long as the connection:
+the client's later messages reach it through the gateway's mailbox (``mailbox.py``), so a running
+sweep keeps its position when the viewer sends a new pose. The client's messages are also kept, and
+when the replica dies the session is started again on a live one from all of them (its ``seq``
+starts over); the replies to messages already answered are not sent twice.
 """
 
 import asyncio
 import contextlib
 import logging
 import time
+import uuid
 
 from fastapi import WebSocket
 from starlette.websockets import WebSocketDisconnect
@@ -30,12 +31,14 @@ CONTROL = ("subscribed", "error")
 class StreamRelay:
     """One client's websocket relayed to a scene (see the module docstring)."""
 
-    def __init__(self, ws: WebSocket, handle, retrier: Retrier, client: str):
+    def __init__(self, ws: WebSocket, handle, retrier: Retrier, client: str, mailbox):
         self.ws, self.handle, self.retrier, self.client = ws, handle, retrier, client
+        self.mailbox = mailbox
         self.history: list[bytes | str] = []
         self.replies = 0  # control replies (subscribed / error) the client has had, one per message
         self.inbox: asyncio.Queue = asyncio.Queue()
         self.delivered = False  # a message reached the client since the last look
+        self.session: str | None = None  # the running replica-side session's id in the mailbox
         self.query = ws.url.query
         self.headers = list(ws.headers.items())
 
@@ -51,11 +54,24 @@ class StreamRelay:
         finally:
             await self.inbox.put(None)
 
-    async def _pump(self) -> WsMessage | None:
+    async def _start(self) -> asyncio.Task:
+        """A new replica-side session fed every message so far; later ones go through the mailbox."""
+        await self._end_session()
+        self.session = uuid.uuid4().hex
+        await self.mailbox.open.remote(self.session)
+        return asyncio.create_task(self._pump(list(self.history), self.session))
+
+    async def _end_session(self) -> None:
+        session, self.session = self.session, None
+        if session is not None:
+            with contextlib.suppress(Exception):
+                await self.mailbox.close.remote(session)
+
+    async def _pump(self, history: list, session: str) -> WsMessage | None:
         """One replica-side session: forward what it sends; return its close (None: it just ended)."""
         skip = self.replies
         gen = self.handle.options(stream=True).stream.remote("/stream", self.query, self.headers,
-                                                             list(self.history), self.client)
+                                                             history, self.client, self.mailbox, session)
         try:
             async for item in gen:
                 if item.close is not None:
@@ -86,7 +102,7 @@ class StreamRelay:
         try:
             while True:
                 if pump is None:
-                    pump = asyncio.create_task(self._pump())
+                    pump = await self._start()
                 getter = asyncio.create_task(self.inbox.get())
                 done, _ = await asyncio.wait({pump, getter}, return_when=asyncio.FIRST_COMPLETED)
                 if getter in done:
@@ -94,15 +110,11 @@ class StreamRelay:
                     if data is None:  # the client went away
                         return
                     self.history = [*self.history, data][-MAX_HISTORY:]
-                    pump.cancel()
-                    with contextlib.suppress(BaseException):
-                        await pump
-                    if pump.done() and not pump.cancelled() and pump.exception() is None \
-                            and pump.result() is not None:
-                        await self._close(pump.result())
+                    if not await self.mailbox.put.remote(self.session, data) and not pump.done():
+                        await self._close(WsMessage(close=1008, reason="the client sends faster than "
+                                                                       "the scene takes its messages"))
                         return
-                    pump = None
-                    continue
+                    continue  # a session that ended meanwhile is handled below, history and all
                 getter.cancel()
                 exc = pump.exception()
                 if self.delivered:
@@ -119,6 +131,7 @@ class StreamRelay:
                     await self._close(WsMessage(close=1011, reason="no replica of the scene answers"))
                     return
                 self.retrier.retries += 1
+                self.retrier.stream_restarts += 1
                 log.warning("stream: its replica died (%s); restarting the session", type(exc).__name__)
                 await asyncio.sleep(0.05)
                 pump = None
@@ -130,6 +143,7 @@ class StreamRelay:
                 pump.cancel()
                 with contextlib.suppress(BaseException):
                     await pump
+            await self._end_session()
 
     async def _close(self, item: WsMessage) -> None:
         with contextlib.suppress(Exception):

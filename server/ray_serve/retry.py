@@ -41,7 +41,8 @@ class Retrier:
 
     def __init__(self, retry_for_s: float = RETRY_FOR_S):
         self.retry_for_s = retry_for_s
-        self.retries = 0
+        self.retries = 0  # calls sent again, a stream's restarts included
+        self.stream_restarts = 0  # relayed websocket sessions started again on another replica
 
     async def run(self, call: Callable[[], Awaitable[T]]) -> T:
         deadline = time.monotonic() + self.retry_for_s

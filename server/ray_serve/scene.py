@@ -119,9 +119,11 @@ class SceneReplica:
         return result
 
     async def stream(self, path: str, query: str, headers: list[tuple[str, str]],
-                     messages: list[bytes | str], client: str = "127.0.0.1") -> AsyncIterator[WsMessage]:
-        """A websocket session: ``messages`` (the client's so far) are sent in order, then what the
-        app sends is yielded until it closes or the caller stops iterating."""
+                     messages: list[bytes | str], client: str = "127.0.0.1", mailbox=None,
+                     session_id: str | None = None) -> AsyncIterator[WsMessage]:
+        """A websocket session: ``messages`` (the client's so far) are sent in order, then those the
+        gateway puts in ``mailbox`` under ``session_id`` as they come (see ``mailbox.py``); what the
+        app sends is yielded until it closes, the mailbox closes the session, or the caller stops."""
         if self.app is None:
             body = protocol.ErrorBody(protocol.ErrorCode.NOT_READY,
                                       f"scene {self.name!r} failed to open: {self.failure}").to_message()
@@ -129,10 +131,33 @@ class SceneReplica:
             yield WsMessage(close=1013, reason="scene not ready")
             return
         session = WebSocketSession(self.app, path, query, headers, client).start()
+        pull = None
         try:
             for message in messages:
                 session.send(message)
+            if mailbox is not None:
+                pull = asyncio.create_task(_pull(mailbox, session_id, session))
             async for item in session.messages():
                 yield item
         finally:
+            if pull is not None:
+                pull.cancel()
             await session.close()
+
+
+async def _pull(mailbox, session_id: str, session: WebSocketSession) -> None:
+    """Feed the session the client's messages from the gateway's mailbox until it closes the session
+    (the client went away) or the mailbox is gone (the gateway died): then the app sees a disconnect."""
+    try:
+        while True:
+            batch = await mailbox.get.remote(session_id)
+            if batch is None:
+                break
+            for data in batch:
+                session.send(data)
+    except asyncio.CancelledError:
+        raise
+    except Exception as exc:  # the mailbox's actor died with its gateway
+        log.warning("stream %s: its mailbox is gone (%s); ending the session", session_id,
+                    type(exc).__name__)
+    session.disconnect()

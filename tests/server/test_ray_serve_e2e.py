@@ -19,6 +19,7 @@ from tests.support.server import HEIGHT, WIDTH, build_scene
 pytestmark = pytest.mark.slow
 
 REPLICA = "x-edmcgs-replica"
+SIDE_POSE = [0.05, 0.0, 0.0, 0.995, 0.0, 0.0998, 0.0]
 
 
 @pytest.fixture(scope="module")
@@ -97,6 +98,34 @@ def test_the_websocket_streams_through_the_gateway(cluster):
                 break
             assert message["type"] in ("frame", "subscribed", "end")
         assert kinds.count("subscribed") == 1
+
+
+def test_a_sweep_keeps_its_position_when_a_pose_arrives_mid_stream(cluster):
+    """One replica-side session for the connection's life: a new pose reaches the running sweep, which
+    goes on from where it was (its seq and t keep rising) instead of starting over."""
+    from websockets.sync.client import connect
+
+    url = cluster.url.replace("http://", "ws://") + "/scenes/beta/stream"
+    with connect(url, open_timeout=30) as ws:
+        ws.send(protocol.pack({"mode": "sweep", "t0": 0.0, "t1": 1.5, "fps": 10, "speed": 1.0,
+                               "format": "raw"}))
+        assert protocol.unpack(ws.recv(timeout=30))["type"] == "subscribed"
+        before = [protocol.unpack(ws.recv(timeout=30)) for _ in range(4)]
+        assert [m["type"] for m in before] == ["frame"] * 4
+        ws.send(protocol.pack({"pose": SIDE_POSE}))
+        after, replies = [], 0
+        while len(after) < 4:
+            message = protocol.unpack(ws.recv(timeout=30))
+            if message["type"] == "subscribed":
+                replies += 1
+            else:
+                assert message["type"] == "frame", message
+                after.append(message)
+    assert replies == 1, "the pose update is answered once"
+    ts = [m["t"] for m in before + after]
+    seqs = [m["seq"] for m in before + after]
+    assert ts == sorted(ts) and ts[-1] > ts[3] >= 0.25, f"the sweep started over: t = {ts}"
+    assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs), f"seq started over: {seqs}"
 
 
 def test_a_replica_killed_mid_load_costs_no_failed_request(cluster):
