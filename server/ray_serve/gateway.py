@@ -24,6 +24,8 @@ from edmcgs.server.errors import Unauthorized
 from edmcgs.server.ray_serve.mailbox import Mailbox
 from edmcgs.server.ray_serve.relay import StreamRelay
 from edmcgs.server.ray_serve.retry import Retrier, retryable
+from edmcgs.server.ray_serve.scene import REPLICA_HEADER
+from edmcgs.server.ray_serve.scrape import BOARD_NAME, MetricsBoard, gateway_series, merge
 
 log = logging.getLogger("edmcgs.server.ray")
 
@@ -53,9 +55,16 @@ class Gateway:
         self.scenes = scenes
         self.info = info
         self.token = token  # the gateway's own pages; each scene's routes check it in the scene's app
-        self.retrier = Retrier()
-        # Client messages into running replica sessions; an actor of this gateway's, gone with it.
+        self.retriers = {name: Retrier() for name in scenes}
+        # Actors of this gateway's, gone with it: client messages into running replica sessions, and
+        # the replicas' metrics (found by name: each replica pushes to it).
         self.mailbox = ray.remote(Mailbox).options(num_cpus=0, max_concurrency=10_000).remote()
+        try:
+            app_name = serve.get_replica_context().app_name
+        except Exception:  # constructed outside Serve
+            app_name = "local"
+        self.board = ray.remote(MetricsBoard).options(
+            num_cpus=0, name=BOARD_NAME.format(app=app_name), namespace="serve", get_if_exists=True).remote()
 
     def _auth(self, request: Request) -> JSONResponse | None:
         """401 unless the request carries the token (when one is set), as every route of a scene."""
@@ -68,11 +77,10 @@ class Gateway:
 
     # ------------------------------------------------------------------ index
     async def _health(self, name: str) -> dict:
+        """The scene's /healthz as its replica sees it (asked with the scene's own token)."""
         try:
-            headers = [("host", "localhost")]
-            if self.token is not None:
-                headers.append(("authorization", f"Bearer {self.token}"))
-            result = await asyncio.wait_for(self._http(name, "GET", "/healthz", "", headers),
+            handle = self.scenes[name]
+            result = await asyncio.wait_for(self.retriers[name].run(lambda: handle.probe.remote("/healthz")),
                                             HEALTH_TIMEOUT_S)
             return json.loads(result.body)
         except Exception as exc:
@@ -93,7 +101,7 @@ class Gateway:
     async def healthz(self) -> dict:
         names = list(self.scenes)
         healths = await asyncio.gather(*(self._health(n) for n in names))
-        return {"ready": True, "retries": self.retrier.retries,
+        return {"ready": True, "retries": sum(r.retries for r in self.retriers.values()),
                 "scenes": {n: bool(h.get("ready")) for n, h in zip(names, healths, strict=True)}}
 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
@@ -111,13 +119,28 @@ class Gateway:
     async def _http(self, name: str, method: str, path: str, query: str, headers: list, client: str
                     = "127.0.0.1"):
         handle = self.scenes[name]
-        return await self.retrier.run(lambda: handle.http.remote(method, path, query, headers, client))
+        return await self.retriers[name].run(lambda: handle.http.remote(method, path, query, headers, client))
 
     @app.get("/scenes/{name}", include_in_schema=False)
     async def scene_root(self, name: str) -> Response:
         if name not in self.scenes:
             return self._unknown(name)
         return RedirectResponse(f"/scenes/{name}/", status_code=308)
+
+    @app.get("/scenes/{name}/metrics", summary="The scene's metrics: every replica's series, labelled "
+             "replica, and the gateway's counters of the scene", response_class=Response)
+    async def scene_metrics(self, name: str, request: Request) -> Response:
+        # Asked of a replica first, so the scene's own token (or open_probes) decides who may read them.
+        answer = await self.scene_route(name, "metrics", request)
+        if answer.status_code != 200:
+            return answer
+        expositions, lost = await self.board.scene.remote(name)
+        retrier = self.retriers[name]
+        text = merge(expositions) + gateway_series(name, retries=retrier.retries, replicas=len(expositions),
+                                                   stream_restarts=retrier.stream_restarts, lost=lost)
+        return Response(text, media_type=answer.media_type or "text/plain; version=0.0.4",
+                        headers={k: v for k, v in answer.headers.items()
+                                 if k.lower() in (REPLICA_HEADER.lower(),)})
 
     @app.api_route("/scenes/{name}/{path:path}", methods=["GET", "HEAD"],
                    summary="The scene's own API (see edmcgs-serve's /docs)")
@@ -151,5 +174,5 @@ class Gateway:
             await ws.send_bytes(protocol.pack(body.to_message()))
             await ws.close(code=1008, reason="no such scene")
             return
-        relay = StreamRelay(ws, self.scenes[name], self.retrier, _client(ws), self.mailbox)
+        relay = StreamRelay(ws, self.scenes[name], self.retriers[name], _client(ws), self.mailbox)
         await relay.run()

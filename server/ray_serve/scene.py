@@ -57,6 +57,8 @@ class SceneReplica:
         self.started_unix = time.time()
         self._service = None
         self.app = None
+        self._token: str | None = None
+        self._pusher: asyncio.Task | None = None
         try:
             parsed = Settings(**settings)
             self._service = await asyncio.to_thread(Service.open, parsed)
@@ -65,12 +67,39 @@ class SceneReplica:
             log.error("scene %s failed to open: %s", name, self.failure)
             return
         service = self._service
+        self._token = parsed.token.get_secret_value() if parsed.token is not None else None
         self.app = create_app(parsed, service_factory=lambda _settings: service)
         # The app's lifespan starts the ingest thread and binds the service to this replica's loop.
         self._lifespan = self.app.router.lifespan_context(self.app)
         await self._lifespan.__aenter__()
         await self._await_span(parsed)
+        self._pusher = asyncio.create_task(self._push_metrics())
         log.info("scene %s: replica ready", name)
+
+    async def _push_metrics(self) -> None:
+        """Send this replica's exposition to the gateway's board (``scrape.py``) while it lives."""
+        import ray
+        from ray import serve
+
+        from edmcgs.server.ray_serve.scrape import BOARD_NAME, PUSH_PERIOD_S
+
+        try:
+            board_name = BOARD_NAME.format(app=serve.get_replica_context().app_name)
+        except Exception:  # constructed outside Serve: nobody to push to
+            return
+        board = None
+        while True:
+            try:
+                if board is None:
+                    board = ray.get_actor(board_name, namespace="serve")
+                result = await self.probe("/metrics")
+                await board.push.remote(self.name, self.replica, result.body.decode())
+            except ValueError:  # the gateway has not made its board yet
+                pass
+            except Exception as exc:  # the board went with its gateway: find the next one
+                log.debug("scene %s: metrics not pushed (%s)", self.name, type(exc).__name__)
+                board = None
+            await asyncio.sleep(PUSH_PERIOD_S)
 
     async def _await_span(self, settings) -> None:
         """A replay's replica takes traffic once its own replay has covered the checkpoint's span, so a
@@ -92,6 +121,9 @@ class SceneReplica:
                     budget)
 
     def __del__(self):
+        pusher = getattr(self, "_pusher", None)
+        if pusher is not None:
+            pusher.cancel()
         service, self._service = getattr(self, "_service", None), None
         if service is not None:
             service.close()
@@ -117,6 +149,14 @@ class SceneReplica:
             self.app, method, path, query, headers, client)
         result.headers.append((REPLICA_HEADER, self.replica))
         return result
+
+    async def probe(self, path: str) -> HttpResult:
+        """GET ``path`` as the gateway itself (the scene's own token, whatever the client's): the
+        health the gateway lists and the metrics the replica pushes."""
+        headers = [("host", "localhost")]
+        if self._token is not None:
+            headers.append(("authorization", f"Bearer {self._token}"))
+        return await self.http("GET", path, "", headers)
 
     async def stream(self, path: str, query: str, headers: list[tuple[str, str]],
                      messages: list[bytes | str], client: str = "127.0.0.1", mailbox=None,

@@ -4,6 +4,7 @@ whose source fails isolated from the others."""
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 
@@ -19,6 +20,7 @@ from tests.support.server import HEIGHT, WIDTH, build_scene
 pytestmark = pytest.mark.slow
 
 REPLICA = "x-edmcgs-replica"
+TOKEN = "scene-own-token"
 SIDE_POSE = [0.05, 0.0, 0.0, 0.995, 0.0, 0.0998, 0.0]
 
 
@@ -32,20 +34,23 @@ def cluster(tmp_path_factory):
     broken.write_bytes(b"this is not an HDF5 recording")
     scenes = [scene_entry("alpha", ckpt_a, rec_a),
               scene_entry("beta", ckpt_b, rec_b, replicas=2),
-              scene_entry("broken", ckpt_a, broken)]
+              scene_entry("broken", ckpt_a, broken),
+              scene_entry("secret", ckpt_a, rec_a, token=TOKEN)]
     with LocalServe(scenes) as local:
         local.wait_renderable("alpha")
         local.wait_renderable("beta")
+        local.wait_renderable("secret", token=TOKEN)
         yield local
 
 
 def test_scenes_lists_every_scene_with_its_health(cluster):
     body = httpx.get(cluster.url + "/scenes", timeout=30).json()
     by_name = {s["name"]: s for s in body["scenes"]}
-    assert list(by_name) == ["alpha", "beta", "broken"]
+    assert list(by_name) == ["alpha", "beta", "broken", "secret"]
     assert by_name["beta"]["replicas"] == 2 and by_name["beta"]["url"] == "/scenes/beta/"
     assert by_name["alpha"]["health"]["ready"] is True and by_name["beta"]["health"]["ready"] is True
     assert by_name["broken"]["health"]["ready"] is False
+    assert by_name["secret"]["health"]["ready"] is True, "the gateway asks with the scene's own token"
 
 
 def test_each_scene_answers_under_its_name(cluster):
@@ -128,6 +133,54 @@ def test_a_sweep_keeps_its_position_when_a_pose_arrives_mid_stream(cluster):
     assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs), f"seq started over: {seqs}"
 
 
+def test_a_scene_with_its_own_token_refuses_without_it_and_leaves_the_others_open(cluster):
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    url = cluster.url + "/scenes/secret/render"
+    r = httpx.get(url, params={"t": 0.5}, timeout=30)
+    assert r.status_code == 401 and r.json()["error"] == "unauthorized"
+    assert httpx.get(url, params={"t": 0.5}, headers={"Authorization": "Bearer wrong"},
+                     timeout=30).status_code == 401
+    r = httpx.get(url, params={"t": 0.5}, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=30)
+    assert r.status_code == 200 and r.headers["content-type"].startswith("image/")
+    assert httpx.get(cluster.url + "/scenes/alpha/render", params={"t": 0.5}, timeout=30).status_code == 200
+
+    ws_url = cluster.url.replace("http://", "ws://") + "/scenes/secret/stream"
+    sweep = protocol.pack({"mode": "sweep", "t0": 0.0, "t1": 0.5, "fps": 10, "format": "raw"})
+    with connect(ws_url, open_timeout=30) as ws:
+        ws.send(sweep)
+        with pytest.raises(ConnectionClosed) as closed:
+            ws.recv(timeout=30)
+    assert closed.value.rcvd.code == 1008
+    with connect(ws_url + f"?token={TOKEN}", open_timeout=30) as ws:
+        ws.send(sweep)
+        assert protocol.unpack(ws.recv(timeout=30))["type"] == "subscribed"
+        assert protocol.unpack(ws.recv(timeout=30))["type"] == "frame"
+
+
+def test_a_scenes_metrics_gather_every_replica_and_the_gateways_counters(cluster):
+    for _ in range(6):  # requests on both replicas (power of two choices spreads them)
+        httpx.get(cluster.url + "/scenes/beta/render", params={"t": 0.5}, timeout=30)
+    deadline = time.monotonic() + 30
+    while True:
+        r = httpx.get(cluster.url + "/scenes/beta/metrics", timeout=30)
+        assert r.status_code == 200 and r.headers["content-type"].startswith("text/plain")
+        replicas = set(re.findall(r'^edmcgs_http_requests_total\{replica="([^"]+)"', r.text, re.M))
+        if len(replicas) == 2:
+            break
+        assert time.monotonic() < deadline, f"replicas reporting: {replicas}\n{r.text[:2000]}"
+        time.sleep(0.5)
+    assert r.text.count("# TYPE edmcgs_http_requests_total counter") == 1, "one family, both replicas"
+    assert 'edmcgs_gateway_replicas_reporting{scene="beta"} 2' in r.text
+    assert re.search(r'^edmcgs_gateway_retries_total\{scene="beta"\} \d+$', r.text, re.M)
+    # The secret scene's metrics follow its token.
+    assert httpx.get(cluster.url + "/scenes/secret/metrics", timeout=30).status_code == 401
+    r = httpx.get(cluster.url + "/scenes/secret/metrics", headers={"Authorization": f"Bearer {TOKEN}"},
+                  timeout=30)
+    assert r.status_code == 200 and 'edmcgs_gateway_replicas_reporting{scene="secret"}' in r.text
+
+
 def test_a_replica_killed_mid_load_costs_no_failed_request(cluster):
     url = cluster.url + "/scenes/beta/render"
     statuses: list[int] = []
@@ -179,7 +232,7 @@ def test_a_failing_source_is_reported_by_its_scene_alone(cluster):
         r = httpx.get(f"{cluster.url}/scenes/{name}/render", params={"t": 0.5}, timeout=30)
         assert r.status_code == 200
     health = httpx.get(cluster.url + "/healthz", timeout=30).json()
-    assert health["scenes"] == {"alpha": True, "beta": True, "broken": False}
+    assert health["scenes"] == {"alpha": True, "beta": True, "broken": False, "secret": True}
 
 
 def test_a_stream_and_a_render_outlive_a_scenes_only_replica(cluster):

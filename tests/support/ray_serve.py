@@ -73,12 +73,13 @@ class LocalServe:
         finally:
             ray.shutdown()
 
-    def wait_renderable(self, name: str, timeout: float = 60.0) -> dict:
+    def wait_renderable(self, name: str, timeout: float = 60.0, token: str | None = None) -> dict:
         """The scene's GET /scene once its replay covers the whole span (every replica's ring fills as
         its own replay plays)."""
         deadline = time.monotonic() + timeout
         while True:
-            scene = httpx.get(f"{self.url}/scenes/{name}/scene", timeout=30).json()
+            headers = {"Authorization": f"Bearer {token}"} if token else None
+            scene = httpx.get(f"{self.url}/scenes/{name}/scene", headers=headers, timeout=30).json()
             r = scene.get("renderable")
             if r and r["t_us_max"] >= scene["t_end_us"] - 20_000:
                 return scene
