@@ -39,7 +39,7 @@ class AccessMiddleware:
                 await JSONResponse(body, status_code=421)(scope, receive, send)
                 _record(scope, 421, 0.0)
             return
-        if self.token is not None and scope.get("path") not in self.open_paths:
+        if self.token is not None and _route_path(scope) not in self.open_paths:
             try:
                 check_token(self.token, _header(scope, b"authorization"), _query_token(scope))
             except Unauthorized as exc:
@@ -103,6 +103,15 @@ def _record(scope, status: int, seconds: float) -> None:
     name = "unmatched" if route is None else getattr(route, "path", "") or "/"
     service.metrics.requests.labels(name, str(status)).inc()
     service.metrics.latency.labels(name).observe(seconds)
+
+
+def _route_path(scope) -> str:
+    """The path within the app: ASGI's ``path`` includes ``root_path`` (the prefix a proxy serves it
+    under, as the Ray gateway does)."""
+    path, root = scope.get("path", ""), scope.get("root_path", "")
+    if root and path.startswith(root + "/"):
+        return path[len(root):]
+    return path
 
 
 def _header(scope, name: bytes) -> str | None:

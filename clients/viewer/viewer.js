@@ -862,7 +862,42 @@ function bindControls() {
   });
 }
 
+// ---------------------------------------------------------------- scene picker
+// Under the Ray gateway the page is /scenes/<name>/ and GET /scenes lists the scenes: a picker switches
+// to another one's viewer (the same page, the token passed on). Served alone, there is no picker.
+
+const SCENE_PATH = /^(.*)\/scenes\/([^/]+)\/$/;
+
+async function loadScenePicker() {
+  const match = SCENE_PATH.exec(location.pathname);
+  if (!match) return;
+  const [, base, current] = match;
+  let scenes;
+  try {
+    const response = await fetch(new URL(`${base}/scenes`, location.href), { headers: authHeaders });
+    if (!response.ok) return;  // a gateway token this page lacks: no picker, the scene still plays
+    scenes = (await response.json()).scenes;
+  } catch {
+    return;
+  }
+  if (!Array.isArray(scenes) || scenes.length === 0) return;
+  const picker = $("scene-picker");
+  for (const scene of scenes) {
+    const ready = scene.health && scene.health.ready;
+    const option = new Option(ready ? scene.name : `${scene.name} (not ready)`, scene.name);
+    option.selected = scene.name === decodeURIComponent(current);
+    picker.append(option);
+  }
+  picker.addEventListener("change", () => {
+    const url = new URL(`${base}/scenes/${encodeURIComponent(picker.value)}/`, location.href);
+    if (token) url.searchParams.set("token", token);
+    location.assign(url);
+  });
+  picker.hidden = false;
+}
+
 async function start() {
+  loadScenePicker();
   bindControls();
   bindMouse();
   setInterval(updateReadouts, 250);

@@ -33,17 +33,22 @@ def forwarded(headers: list[tuple[str, str]]) -> list[tuple[bytes, bytes]]:
             if k.lower() not in HOP_BY_HOP]
 
 
-def _scope(kind: str, path: str, query: str, headers: list[tuple[str, str]], client: str) -> dict:
+def _scope(kind: str, path: str, query: str, headers: list[tuple[str, str]], client: str,
+           root_path: str = "") -> dict:
+    # ``root_path``: where the client sees the app (the pages that link to the app's own URLs use it);
+    # as ASGI says, ``path`` includes it.
+    full = root_path + path
     return {"type": kind, "asgi": {"version": "3.0"}, "http_version": "1.1", "scheme":
-            "http" if kind == "http" else "ws", "path": path, "raw_path": path.encode(), "root_path": "",
+            "http" if kind == "http" else "ws", "path": full, "raw_path": full.encode(),
+            "root_path": root_path,
             "query_string": query.encode("latin-1"), "headers": forwarded(headers),
             "client": (client, 0), "server": ("127.0.0.1", 80), "subprotocols": [], "extensions": {}}
 
 
 async def http_request(app, method: str, path: str, query: str, headers: list[tuple[str, str]],
-                       client: str = "127.0.0.1") -> HttpResult:
+                       client: str = "127.0.0.1", root_path: str = "") -> HttpResult:
     """One request through ``app``; the whole body is collected."""
-    scope = _scope("http", path, query, headers, client)
+    scope = _scope("http", path, query, headers, client, root_path)
     scope["method"] = method.upper()
     sent_request = False
     done = asyncio.Event()

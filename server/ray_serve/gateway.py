@@ -119,7 +119,9 @@ class Gateway:
     async def _http(self, name: str, method: str, path: str, query: str, headers: list, client: str
                     = "127.0.0.1"):
         handle = self.scenes[name]
-        return await self.retriers[name].run(lambda: handle.http.remote(method, path, query, headers, client))
+        root = f"/scenes/{name}"
+        return await self.retriers[name].run(
+            lambda: handle.http.remote(method, path, query, headers, client, root))
 
     @app.get("/scenes/{name}", include_in_schema=False)
     async def scene_root(self, name: str) -> Response:
@@ -141,6 +143,20 @@ class Gateway:
         return Response(text, media_type=answer.media_type or "text/plain; version=0.0.4",
                         headers={k: v for k, v in answer.headers.items()
                                  if k.lower() in (REPLICA_HEADER.lower(),)})
+
+    @app.get("/scenes/{name}/openapi.json", include_in_schema=False)
+    async def scene_openapi(self, name: str, request: Request) -> Response:
+        """The scene's own schema (its replica's), its paths under the scene's prefix: the scene's
+        /docs (served by the replica, pointed here) then tries its routes where they are."""
+        answer = await self.scene_route(name, "openapi.json", request)
+        if answer.status_code != 200:
+            return answer
+        schema = json.loads(answer.body)
+        schema["paths"] = {f"/scenes/{name}{path}": ops for path, ops in schema.get("paths", {}).items()}
+        schema.pop("servers", None)
+        info = schema.setdefault("info", {})
+        info["title"] = f"{info.get('title', 'edmcgs')}: scene {name}"
+        return JSONResponse(schema)
 
     @app.api_route("/scenes/{name}/{path:path}", methods=["GET", "HEAD"],
                    summary="The scene's own API (see edmcgs-serve's /docs)")

@@ -143,10 +143,11 @@ class SceneReplica:
                           json.dumps(body).encode())
 
     async def http(self, method: str, path: str, query: str, headers: list[tuple[str, str]],
-                   client: str = "127.0.0.1") -> HttpResult:
-        """One HTTP request of the scene's API (``path`` without the ``/scenes/{name}`` prefix)."""
+                   client: str = "127.0.0.1", root_path: str = "") -> HttpResult:
+        """One HTTP request of the scene's API (``path`` without the ``/scenes/{name}`` prefix, which
+        the gateway gives as ``root_path``)."""
         result = self._failed(path) if self.app is None else await http_request(
-            self.app, method, path, query, headers, client)
+            self.app, method, path, query, headers, client, root_path)
         result.headers.append((REPLICA_HEADER, self.replica))
         return result
 

@@ -80,6 +80,42 @@ def test_the_viewer_is_served_per_scene(cluster):
     assert 'href="scenes/beta/"' in httpx.get(cluster.url + "/", timeout=30).text
 
 
+def test_the_viewer_picks_a_scene_from_the_gateways_list(cluster):
+    from tests.support.viewer import chromium
+
+    with chromium() as browser:
+        page = browser.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.goto(cluster.url + "/scenes/alpha/")
+        page.wait_for_function("!document.getElementById('scene-picker').hidden", timeout=30_000)
+        options = page.eval_on_selector_all("#scene-picker option", "os => os.map(o => o.value)")
+        assert options == ["alpha", "beta", "broken", "secret"]
+        assert page.eval_on_selector("#scene-picker", "p => p.value") == "alpha"
+        page.wait_for_function("window.edmcgsViewer.state.scene !== null", timeout=30_000)
+        alpha_start = page.evaluate("window.edmcgsViewer.state.scene.t_start_us")
+        page.select_option("#scene-picker", "beta")
+        page.wait_for_url("**/scenes/beta/", timeout=30_000)
+        page.wait_for_function("window.edmcgsViewer && window.edmcgsViewer.state.scene", timeout=30_000)
+        beta_start = page.evaluate("window.edmcgsViewer.state.scene.t_start_us")
+        assert page.eval_on_selector("#scene-picker", "p => p.value") == "beta"
+        page.close()
+    assert alpha_start < 1_700_000_000_000_000 <= beta_start, "the picker switched scenes"
+    assert errors == []
+
+
+def test_a_scenes_docs_show_its_own_schema_under_its_prefix(cluster):
+    page = httpx.get(cluster.url + "/scenes/beta/docs", timeout=30)
+    assert page.status_code == 200 and "/scenes/beta/openapi.json" in page.text
+    assert "/scenes/beta/docs/assets/swagger-ui-bundle.js" in page.text
+    assert httpx.get(cluster.url + "/scenes/beta/docs/assets/swagger-ui-bundle.js",
+                     timeout=30).status_code == 200
+    schema = httpx.get(cluster.url + "/scenes/beta/openapi.json", timeout=30).json()
+    assert "/scenes/beta/render" in schema["paths"] and "/render" not in schema["paths"]
+    assert "/scenes" not in schema["paths"], "the scene's schema, not the gateway's"
+    assert schema["info"]["title"].endswith("scene beta")
+
+
 def test_the_websocket_streams_through_the_gateway(cluster):
     from websockets.sync.client import connect
 
