@@ -101,7 +101,9 @@ class Service:
 
     # ------------------------------------------------------------------ lifecycle
     @classmethod
-    def open(cls, settings: Settings) -> Service:
+    def open(cls, settings: Settings, source: EventSource | None = None) -> Service:
+        """``source``: an already open one to serve instead of the settings' (a camera shared by several
+        processes is read through one); closed with the service."""
         inputs = resolve_inputs(settings)
         if settings.torch_threads is not None:
             import torch
@@ -112,7 +114,8 @@ class Service:
             return cls._open_sensorless(settings, inputs, model)
         meta = model.meta
         pacing = Pacing(factor=settings.speed, loop=inputs.loop, batch_us=settings.replay_batch_us)
-        source = open_source(inputs.replay, live=inputs.live, pacing=pacing)
+        if source is None:
+            source = open_source(inputs.replay, live=inputs.live, pacing=pacing)
         try:
             info = source.info
             if (info.width, info.height) != (meta.event_width, meta.event_height):
@@ -366,15 +369,20 @@ class Service:
 
         def dropped() -> dict[str, float]:
             s = ring.stats()
-            return {"overflow": s.overflowed, "late": s.late,
-                    "invalid": 0 if self.source is None else self.source.stats.dropped}
+            out = {"overflow": s.overflowed, "late": s.late,
+                   "invalid": 0 if self.source is None else self.source.stats.dropped}
+            behind = getattr(self.source, "missed_events", None)  # a shared source this process lags
+            if behind is not None:
+                out["behind"] = behind
+            return out
 
         gauge("edmcgs_up", "1 when the service is ready (model loaded, source delivering).",
               lambda: float(self.health()[0]))
         counter("edmcgs_events_ingested_total", "Events offered to the ring buffer.",
                 lambda: ring.stats().pushed)
         counter("edmcgs_events_dropped_total", "Events dropped: ring overflow (oldest first), late "
-                "(behind the watermark), invalid (rejected by the source's validation).", dropped, "reason")
+                "(behind the watermark), invalid (rejected by the source's validation), behind (a shared "
+                "source's batches this process fell too far behind to get).", dropped, "reason")
         counter("edmcgs_events_expired_total", "Events aged out of the ring's retention (a looping replay "
                 "keeps two passes): older than any render can use, so not dropped.",
                 lambda: ring.stats().expired)

@@ -52,10 +52,26 @@ def describe(scene: SceneConfig) -> dict[str, Any]:
         checkpoint = "bundled demo"
     else:
         checkpoint = scene.checkpoint.name
-        source = ({"kind": "live"} if scene.live else
+        source = ({"kind": "live", "shared": True} | ({"replay": scene.replay.name} if scene.replay else {})
+                  if scene.live else
                   {"kind": "replay", "file": scene.replay.name, "loop": scene.loop} if scene.replay else
                   {"kind": "none"})
     return {"name": scene.name, "checkpoint": checkpoint, "source": source, "replicas": scene.replicas}
+
+
+def _ingest(scene: SceneConfig, values: dict[str, Any]):
+    """A live scene's ingest deployment (``shared_source.py``), bound; None for the others."""
+    if not scene.live:
+        return None
+    from edmcgs.server.ray_serve.shared_source import SceneIngest
+    from edmcgs.server.settings import Settings
+
+    batch_us = values.get("replay_batch_us", Settings.model_fields["replay_batch_us"].default)
+    deployment = serve.deployment(SceneIngest).options(
+        name=f"ingest-{scene.name}", num_replicas=1, ray_actor_options={"num_cpus": 0},
+        max_ongoing_requests=10_000, health_check_period_s=HEALTH_CHECK_PERIOD_S)
+    replay = None if scene.replay is None else str(scene.replay)
+    return deployment.bind(scene.name, replay, scene.speed, scene.loop, batch_us)
 
 
 def build(config: RayConfig):
@@ -82,7 +98,7 @@ def build(config: RayConfig):
             # Each open stream holds a call for its life; renders past the pool's queue get its 503.
             max_ongoing_requests=concurrency, max_queued_requests=scene.max_queued,
             health_check_period_s=HEALTH_CHECK_PERIOD_S, graceful_shutdown_timeout_s=5)
-        scenes[scene.name] = deployment.bind(scene.name, values)
+        scenes[scene.name] = deployment.bind(scene.name, values, _ingest(scene, values))
         info[scene.name] = describe(scene)
     gateway = serve.deployment(Gateway).options(name="gateway", num_replicas=1,
                                                 ray_actor_options={"num_cpus": 0},

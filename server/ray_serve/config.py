@@ -5,9 +5,11 @@
     scenes:
       - name: street                           # its routes live under /scenes/street/
         checkpoint: street.ckpt                # relative paths: from the config file's folder
-        replay: street.h5                      # or live: true, or neither (a checkpoint without events)
+        replay: street.h5                      # or live: true, or neither (a checkpoint without events);
+                                               # live: true with a replay plays it as a camera
         loop: true
-        replicas: 2                            # render replicas, each with the scene's source and ring
+        replicas: 2                            # render replicas, each with its ring; a replay is
+                                               # each one's own, a live source one shared by all
         max_replicas: 4                        # optional: Serve scales between replicas and this by load
         cpus_per_replica: 1
         settings: {render_workers: 2}          # any other edmcgs-serve setting (edmcgs.server.settings)
@@ -49,7 +51,8 @@ class SceneConfig(BaseModel):
     demo: bool = Field(False, description="serve the bundled demo scene (no checkpoint, no replay)")
     checkpoint: Path | None = None
     replay: Path | None = None
-    live: bool = False
+    live: bool = Field(False, description="a camera (or, with replay, the recording played as one), "
+                                          "read once and shared by the scene's replicas")
     loop: bool = False
     speed: float = Field(1.0, gt=0, le=1e6)
     replicas: int = Field(1, ge=1, le=1024)
@@ -69,15 +72,8 @@ class SceneConfig(BaseModel):
             raise ValueError("demo: true serves the bundled scene; give no checkpoint, replay or live")
         if not self.demo and self.checkpoint is None:
             raise ValueError("give a checkpoint (or demo: true)")
-        if self.live and self.replay is not None:
-            raise ValueError("replay and live are exclusive: give one event source")
-        if self.live and self.replicas != 1:
-            raise ValueError(f"a live camera is opened by one process only: replicas must be 1, got "
-                             f"{self.replicas}")
         if self.max_replicas is not None and self.max_replicas < self.replicas:
             raise ValueError(f"max_replicas ({self.max_replicas}) is below replicas ({self.replicas})")
-        if self.live and self.max_replicas not in (None, 1):
-            raise ValueError("a live camera is opened by one process only: no max_replicas above 1")
         own = sorted(OWN_FIELDS & self.settings.keys())
         if own:
             raise ValueError(f"settings: {', '.join(own)} are the scene's own keys (or the gateway's), "
@@ -89,7 +85,7 @@ class SceneConfig(BaseModel):
         out: dict[str, Any] = dict(self.settings)
         if not self.demo:
             out.update(checkpoint=str(self.checkpoint), live=self.live, loop=self.loop, speed=self.speed)
-            if self.replay is not None:
+            if self.replay is not None and not self.live:  # a live scene's replay is its ingest's
                 out["replay"] = str(self.replay)
         else:
             out["speed"] = self.speed

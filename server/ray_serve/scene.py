@@ -43,7 +43,7 @@ def _replica_name() -> str:
 class SceneReplica:
     """Serve deployment class of a scene (``app.py`` wraps it with ``serve.deployment``)."""
 
-    async def __init__(self, name: str, settings: dict):
+    async def __init__(self, name: str, settings: dict, ingest=None):
         # As edmcgs-serve does, before torch and numba start their pools (see server/cli.py).
         os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
         from edmcgs.errors import EdmcgsError
@@ -61,7 +61,12 @@ class SceneReplica:
         self._pusher: asyncio.Task | None = None
         try:
             parsed = Settings(**settings)
-            self._service = await asyncio.to_thread(Service.open, parsed)
+            source = None
+            if ingest is not None:  # a live scene: its one source, shared by every replica
+                from edmcgs.server.ray_serve.shared_source import RemoteSource
+
+                source = await asyncio.to_thread(RemoteSource, ingest, name)
+            self._service = await asyncio.to_thread(Service.open, parsed, source)
         except (EdmcgsError, OSError, ValueError) as exc:
             self.failure = f"{type(exc).__name__}: {exc}"
             log.error("scene %s failed to open: %s", name, self.failure)

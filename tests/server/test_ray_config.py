@@ -39,10 +39,16 @@ def test_a_valid_config_resolves_paths_from_its_folder(files):
     assert "checkpoint" not in config.scene("demo").settings_dict()
 
 
+def test_a_live_scene_takes_many_replicas_and_keeps_its_replay_for_its_ingest(files):
+    config = parse_config({"scenes": [scene(live=True, replicas=2, max_replicas=3)]}, base=files)
+    settings = config.scene("street").settings_dict()
+    assert settings["live"] is True and "replay" not in settings, "the replicas read the shared source"
+    assert config.scene("street").replay == (files / "s.h5").resolve()
+
+
 @pytest.mark.parametrize(("entry", "says"), [
     (scene(name="Street!"), "scenes[0] (Street!): name 'Street!'"),
     (scene(replicas=0), "scenes[0] (street).replicas: Input should be greater than or equal to 1"),
-    (scene(replay=None, live=True, replicas=2), "replicas must be 1"),
     (scene(settings={"port": 1}), "settings: port are the scene's own keys"),
     (scene(replicas=3, max_replicas=2), "max_replicas (2) is below replicas (3)"),
     (scene(colour="red"), "scenes[0] (street).colour: Extra inputs are not permitted"),

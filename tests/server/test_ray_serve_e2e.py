@@ -35,7 +35,8 @@ def cluster(tmp_path_factory):
     scenes = [scene_entry("alpha", ckpt_a, rec_a),
               scene_entry("beta", ckpt_b, rec_b, replicas=2),
               scene_entry("broken", ckpt_a, broken),
-              scene_entry("secret", ckpt_a, rec_a, token=TOKEN)]
+              scene_entry("secret", ckpt_a, rec_a, token=TOKEN),
+              {**scene_entry("cam", ckpt_a, rec_a, replicas=2), "live": True}]
     with LocalServe(scenes) as local:
         local.wait_renderable("alpha")
         local.wait_renderable("beta")
@@ -46,7 +47,7 @@ def cluster(tmp_path_factory):
 def test_scenes_lists_every_scene_with_its_health(cluster):
     body = httpx.get(cluster.url + "/scenes", timeout=30).json()
     by_name = {s["name"]: s for s in body["scenes"]}
-    assert list(by_name) == ["alpha", "beta", "broken", "secret"]
+    assert list(by_name) == ["alpha", "beta", "broken", "secret", "cam"]
     assert by_name["beta"]["replicas"] == 2 and by_name["beta"]["url"] == "/scenes/beta/"
     assert by_name["alpha"]["health"]["ready"] is True and by_name["beta"]["health"]["ready"] is True
     assert by_name["broken"]["health"]["ready"] is False
@@ -90,7 +91,7 @@ def test_the_viewer_picks_a_scene_from_the_gateways_list(cluster):
         page.goto(cluster.url + "/scenes/alpha/")
         page.wait_for_function("!document.getElementById('scene-picker').hidden", timeout=30_000)
         options = page.eval_on_selector_all("#scene-picker option", "os => os.map(o => o.value)")
-        assert options == ["alpha", "beta", "broken", "secret"]
+        assert options == ["alpha", "beta", "broken", "secret", "cam"]
         assert page.eval_on_selector("#scene-picker", "p => p.value") == "alpha"
         page.wait_for_function("window.edmcgsViewer.state.scene !== null", timeout=30_000)
         alpha_start = page.evaluate("window.edmcgsViewer.state.scene.t_start_us")
@@ -217,6 +218,34 @@ def test_a_scenes_metrics_gather_every_replica_and_the_gateways_counters(cluster
     assert r.status_code == 200 and 'edmcgs_gateway_replicas_reporting{scene="secret"}' in r.text
 
 
+def test_a_live_scenes_replicas_share_its_one_source(cluster):
+    """A recording played as a live camera: one ingest replica reads it, both render replicas pull
+    its batches into their own rings, and neither misses any."""
+    scene = next(s for s in httpx.get(cluster.url + "/scenes", timeout=30).json()["scenes"]
+                 if s["name"] == "cam")
+    assert scene["source"] == {"kind": "live", "shared": True, "replay": "scene.h5"}
+    assert cluster.running_replicas("ingest-cam") == 1 and cluster.running_replicas("scene-cam") == 2
+    replicas: set[str] = set()
+    deadline = time.monotonic() + 60
+    while len(replicas) < 2:
+        assert time.monotonic() < deadline, f"only {replicas} rendered the live head"
+        r = httpx.get(cluster.url + "/scenes/cam/render", params={"format": "jpeg"}, timeout=30)
+        if r.status_code == 200:
+            replicas.add(r.headers[REPLICA])
+    deadline = time.monotonic() + 30
+    while True:
+        text = httpx.get(cluster.url + "/scenes/cam/metrics", timeout=30).text
+        ingested = {m[0]: float(m[1]) for m in re.findall(
+            r'^edmcgs_events_ingested_total\{replica="([^"]+)"\} (\S+)$', text, re.M)}
+        if len(ingested) == 2:
+            break
+        assert time.monotonic() < deadline, text[:2000]
+        time.sleep(0.5)
+    assert all(n > 0 for n in ingested.values()), ingested
+    behind = re.findall(r'^edmcgs_events_dropped_total\{replica="[^"]+",reason="behind"\} (\S+)$', text, re.M)
+    assert behind and all(float(v) == 0 for v in behind), "no replica fell behind the shared ring"
+
+
 def test_a_replica_killed_mid_load_costs_no_failed_request(cluster):
     url = cluster.url + "/scenes/beta/render"
     statuses: list[int] = []
@@ -268,7 +297,7 @@ def test_a_failing_source_is_reported_by_its_scene_alone(cluster):
         r = httpx.get(f"{cluster.url}/scenes/{name}/render", params={"t": 0.5}, timeout=30)
         assert r.status_code == 200
     health = httpx.get(cluster.url + "/healthz", timeout=30).json()
-    assert health["scenes"] == {"alpha": True, "beta": True, "broken": False, "secret": True}
+    assert health["scenes"] == {"alpha": True, "beta": True, "broken": False, "secret": True, "cam": True}
 
 
 def test_a_stream_and_a_render_outlive_a_scenes_only_replica(cluster):

@@ -1,0 +1,175 @@
+"""One live source shared by a scene's render replicas.
+
+A camera is opened by one process only. The scene's ingest deployment (``SceneIngest``, one replica)
+owns it and keeps its latest batches in a bounded ring, each numbered; every render replica reads
+them through ``RemoteSource``, an ``EventSource`` like any other, so its ``Ingest`` thread, ring,
+anchors and online anchors are the single-process ones. A replica that falls behind the shared ring
+loses the batches that left it: it says so (a warning, ``missed_batches`` / ``missed_events``, the
+``behind`` reason of ``edmcgs_events_dropped_total``) and goes on from the oldest batch still held.
+
+``live: true`` with a ``replay`` in the Ray config plays the recording as a live camera through the
+same path (a live scene tried without a camera): its batches carry no replay range, so each replica's
+clock starts at its first event, as for a camera.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+from collections import deque
+from dataclasses import replace
+
+from edmcgs.errors import SensorError
+from edmcgs.sensor.events import Events, EventStats
+from edmcgs.sensor.sources.base import SensorBatch, StreamInfo
+
+log = logging.getLogger("edmcgs.server.ray")
+
+RING_BATCHES = 2048
+"""Batches the shared ring holds (at the default 5 ms per replay batch, about 10 s of stream)."""
+PULL_WAIT_S = 1.0
+"""Longest a pull waits for a new batch (the replica's ingest thread checks for stop between pulls)."""
+PULL_MAX = 64
+"""Batches handed over per pull at most."""
+
+
+class SceneIngest:
+    """Serve deployment class (one replica per live scene): the source, its reader thread and the ring."""
+
+    async def __init__(self, name: str, replay: str | None, speed: float, loop: bool, batch_us: int):
+        from edmcgs.sensor.sources.open import open_source
+        from edmcgs.sensor.sources.pacing import Pacing
+
+        self.name = name
+        self.error: str | None = None
+        self.ended = False
+        self.ring: deque[tuple[int, int, SensorBatch]] = deque(maxlen=RING_BATCHES)  # (seq, events before)
+        self.next_seq = 0
+        self.events = 0
+        self._lock = threading.Lock()
+        self._loop = asyncio.get_running_loop()  # the replica's: pull runs on it
+        self._new = asyncio.Event()
+        if replay is not None:
+            self.source = open_source(replay, pacing=Pacing(factor=speed, loop=loop, batch_us=batch_us))
+            self._info = replace(self.source.info, live=True, t_range_us=None)
+        else:
+            self.source = open_source(live=True)
+            self._info = self.source.info
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._read, name=f"edmcgs-ingest-{name}", daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        try:
+            while not self._stop.is_set():
+                batch = self.source.read()
+                if batch is None:
+                    self.ended = True
+                    break
+                with self._lock:
+                    self.ring.append((self.next_seq, self.events, batch))
+                    self.next_seq += 1
+                    self.events += len(batch.events)
+                self._loop.call_soon_threadsafe(self._new.set)
+        except Exception as exc:  # reported to every replica's pull, and so on each one's /healthz
+            self.error = f"{type(exc).__name__}: {exc}"
+            log.error("scene %s: the shared source failed: %s", self.name, self.error)
+        finally:
+            self._loop.call_soon_threadsafe(self._new.set)
+
+    def info(self) -> StreamInfo:
+        return self._info
+
+    def stats(self) -> EventStats:
+        return self.source.stats
+
+    async def pull(self, after: int | None, wait_s: float = PULL_WAIT_S) -> dict:
+        """The batches after ``after`` (None: from the oldest held), waiting up to ``wait_s`` for one.
+        ``first_events``: events the stream held before the first batch returned (the caller's count
+        of what it got tells what it missed); ``end``: no more will come; ``error``: the source's."""
+        deadline = time.monotonic() + wait_s
+        while True:
+            self._new.clear()
+            with self._lock:
+                start = 0 if after is None else after + 1
+                oldest = self.ring[0][0] if self.ring else self.next_seq
+                start = max(start, oldest)
+                items = [item for item in self.ring if item[0] >= start][:PULL_MAX]
+                first_events = items[0][1] if items else self.events
+            if items or self.ended or self.error is not None or time.monotonic() >= deadline:
+                return {"batches": [b for _, _, b in items], "first_seq": start, "first_events": first_events,
+                        "missed": 0 if after is None else start - (after + 1), "end": self.ended and not
+                        items, "error": self.error}
+            try:
+                await asyncio.wait_for(self._new.wait(), max(0.0, deadline - time.monotonic()))
+            except TimeoutError:
+                pass
+
+    def check_health(self) -> None:
+        """Serve's probe: a failed source is reported to the replicas (their health), not restarted."""
+
+    def __del__(self):
+        stop = getattr(self, "_stop", None)
+        if stop is not None:
+            stop.set()
+            self.source.close()
+
+
+class RemoteSource:
+    """An ``EventSource`` reading the scene's ``SceneIngest`` through its Serve handle (blocking calls:
+    it runs in the replica's ingest thread)."""
+
+    def __init__(self, handle, scene: str):
+        self.handle, self.scene = handle, scene
+        self._info: StreamInfo = handle.info.remote().result(timeout_s=60)
+        self._stats = EventStats()
+        self.after: int | None = None
+        self.received_events = 0
+        self.missed_batches = 0
+        self.missed_events = 0
+        self.pending: deque[SensorBatch] = deque()
+
+    @property
+    def info(self) -> StreamInfo:
+        return self._info
+
+    @property
+    def stats(self) -> EventStats:
+        return self._stats
+
+    def read(self) -> SensorBatch | None:
+        while not self.pending:
+            answer = self.handle.pull.remote(self.after, PULL_WAIT_S).result(timeout_s=PULL_WAIT_S + 30)
+            if answer["error"] is not None:
+                raise SensorError(f"the scene's shared source failed: {answer['error']}")
+            batches = answer["batches"]
+            if answer["missed"] > 0:
+                missed_events = answer["first_events"] - self.received_events
+                self.missed_batches += answer["missed"]
+                self.missed_events += missed_events
+                log.warning("scene %s: this replica fell behind the shared source and missed %d batches "
+                            "(%d events)", self.scene, answer["missed"], missed_events)
+            if batches:
+                self.after = answer["first_seq"] + len(batches) - 1
+                self.received_events = answer["first_events"] + sum(len(b.events) for b in batches)
+                self.pending.extend(batches)
+            elif answer["end"]:
+                return None
+            else:
+                return SensorBatch(events=_no_events())  # nothing new yet: the ingest loop checks for stop
+        return self.pending.popleft()
+
+    def close(self) -> None:
+        self.pending.clear()
+
+    def __enter__(self) -> RemoteSource:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _no_events() -> Events:
+    return Events.empty()
