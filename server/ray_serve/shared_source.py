@@ -35,6 +35,58 @@ PULL_MAX = 64
 """Batches handed over per pull at most."""
 
 
+class SharedRing:
+    """The latest batches of a stream, numbered from 0, for any number of readers at their own pace.
+    ``append``/``finish``/``fail`` from the reader thread; ``pull`` on ``loop`` (the replica's)."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop | None = None, capacity: int = RING_BATCHES):
+        self.ring: deque[tuple[int, int, SensorBatch]] = deque(maxlen=capacity)  # (seq, events before)
+        self.next_seq = 0
+        self.events = 0
+        self.ended = False
+        self.error: str | None = None
+        self._lock = threading.Lock()
+        self._loop = loop
+        self._new = asyncio.Event()
+
+    def _wake(self) -> None:
+        if self._loop is not None:
+            self._loop.call_soon_threadsafe(self._new.set)
+
+    def append(self, batch: SensorBatch) -> None:
+        with self._lock:
+            self.ring.append((self.next_seq, self.events, batch))
+            self.next_seq += 1
+            self.events += len(batch.events)
+        self._wake()
+
+    def finish(self, error: str | None = None) -> None:
+        self.ended, self.error = error is None, error
+        self._wake()
+
+    async def pull(self, after: int | None, wait_s: float = PULL_WAIT_S) -> dict:
+        """The batches after ``after`` (None: from the oldest held), waiting up to ``wait_s`` for one.
+        ``first_events``: events the stream held before the first batch returned (the caller's count
+        of what it got tells what it missed); ``missed``: batches after ``after`` that left the ring;
+        ``end``: no more will come; ``error``: the source's."""
+        deadline = time.monotonic() + wait_s
+        while True:
+            self._new.clear()
+            with self._lock:
+                oldest = self.ring[0][0] if self.ring else self.next_seq
+                start = max(0 if after is None else after + 1, oldest)
+                items = [item for item in self.ring if item[0] >= start][:PULL_MAX]
+                first_events = items[0][1] if items else self.events
+            if items or self.ended or self.error is not None or time.monotonic() >= deadline:
+                return {"batches": [b for _, _, b in items], "first_seq": start, "first_events": first_events,
+                        "missed": 0 if after is None else start - (after + 1),
+                        "end": self.ended and not items, "error": self.error}
+            try:
+                await asyncio.wait_for(self._new.wait(), max(0.0, deadline - time.monotonic()))
+            except TimeoutError:
+                pass
+
+
 class SceneIngest:
     """Serve deployment class (one replica per live scene): the source, its reader thread and the ring."""
 
@@ -43,14 +95,7 @@ class SceneIngest:
         from edmcgs.sensor.sources.pacing import Pacing
 
         self.name = name
-        self.error: str | None = None
-        self.ended = False
-        self.ring: deque[tuple[int, int, SensorBatch]] = deque(maxlen=RING_BATCHES)  # (seq, events before)
-        self.next_seq = 0
-        self.events = 0
-        self._lock = threading.Lock()
-        self._loop = asyncio.get_running_loop()  # the replica's: pull runs on it
-        self._new = asyncio.Event()
+        self.shared = SharedRing(asyncio.get_running_loop())  # the replica's loop: pull runs on it
         if replay is not None:
             self.source = open_source(replay, pacing=Pacing(factor=speed, loop=loop, batch_us=batch_us))
             self._info = replace(self.source.info, live=True, t_range_us=None)
@@ -66,46 +111,19 @@ class SceneIngest:
             while not self._stop.is_set():
                 batch = self.source.read()
                 if batch is None:
-                    self.ended = True
                     break
-                with self._lock:
-                    self.ring.append((self.next_seq, self.events, batch))
-                    self.next_seq += 1
-                    self.events += len(batch.events)
-                self._loop.call_soon_threadsafe(self._new.set)
+                self.shared.append(batch)
         except Exception as exc:  # reported to every replica's pull, and so on each one's /healthz
-            self.error = f"{type(exc).__name__}: {exc}"
-            log.error("scene %s: the shared source failed: %s", self.name, self.error)
-        finally:
-            self._loop.call_soon_threadsafe(self._new.set)
+            log.error("scene %s: the shared source failed: %s: %s", self.name, type(exc).__name__, exc)
+            self.shared.finish(f"{type(exc).__name__}: {exc}")
+        else:
+            self.shared.finish()
 
     def info(self) -> StreamInfo:
         return self._info
 
-    def stats(self) -> EventStats:
-        return self.source.stats
-
     async def pull(self, after: int | None, wait_s: float = PULL_WAIT_S) -> dict:
-        """The batches after ``after`` (None: from the oldest held), waiting up to ``wait_s`` for one.
-        ``first_events``: events the stream held before the first batch returned (the caller's count
-        of what it got tells what it missed); ``end``: no more will come; ``error``: the source's."""
-        deadline = time.monotonic() + wait_s
-        while True:
-            self._new.clear()
-            with self._lock:
-                start = 0 if after is None else after + 1
-                oldest = self.ring[0][0] if self.ring else self.next_seq
-                start = max(start, oldest)
-                items = [item for item in self.ring if item[0] >= start][:PULL_MAX]
-                first_events = items[0][1] if items else self.events
-            if items or self.ended or self.error is not None or time.monotonic() >= deadline:
-                return {"batches": [b for _, _, b in items], "first_seq": start, "first_events": first_events,
-                        "missed": 0 if after is None else start - (after + 1), "end": self.ended and not
-                        items, "error": self.error}
-            try:
-                await asyncio.wait_for(self._new.wait(), max(0.0, deadline - time.monotonic()))
-            except TimeoutError:
-                pass
+        return await self.shared.pull(after, wait_s)
 
     def check_health(self) -> None:
         """Serve's probe: a failed source is reported to the replicas (their health), not restarted."""

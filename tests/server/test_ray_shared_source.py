@@ -1,0 +1,91 @@
+"""A live source shared by a scene's replicas, in-process: the shared ring and a replica's reader
+(``RemoteSource``) over a stand-in for the Serve handle (no Ray needed)."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+
+import numpy as np
+import pytest
+
+from edmcgs.errors import SensorError
+from edmcgs.sensor.events import Events
+from edmcgs.sensor.sources.base import SensorBatch, StreamInfo
+from edmcgs.server.ray_serve.shared_source import RemoteSource, SharedRing
+
+INFO = StreamInfo(width=8, height=6, sensor="test", has_frames=False, has_imu=False, live=True)
+
+
+def batch(t0: int, n: int = 3) -> SensorBatch:
+    t = np.arange(t0, t0 + n, dtype=np.int64)
+    z = np.zeros(n, np.uint16)
+    return SensorBatch(events=Events(t, z, z, np.ones(n, np.int8)))
+
+
+class Call:
+    def __init__(self, value):
+        self.value = value
+
+    def result(self, timeout_s=None):
+        return self.value
+
+
+class Method:
+    def __init__(self, fn):
+        self.fn = fn
+
+    def remote(self, *args):
+        return Call(self.fn(*args))
+
+
+class Handle:
+    """What ``RemoteSource`` uses of a DeploymentHandle to ``SceneIngest``."""
+
+    def __init__(self, shared: SharedRing):
+        self.info = Method(lambda: INFO)
+        self.pull = Method(lambda after, wait_s: asyncio.run(shared.pull(after, 0.0)))
+
+
+def test_every_reader_gets_every_batch_in_order():
+    shared = SharedRing()
+    readers = [RemoteSource(Handle(shared), "cam"), RemoteSource(Handle(shared), "cam")]
+    for i in range(5):
+        shared.append(batch(100 * i))
+    for reader in readers:
+        got = [int(reader.read().events.t[0]) for _ in range(5)]
+        assert got == [0, 100, 200, 300, 400] and reader.missed_batches == 0
+        assert len(reader.read().events) == 0, "nothing new yet: an empty batch, the stream still open"
+    shared.finish()
+    assert readers[0].read() is None
+
+
+def test_a_reader_that_falls_behind_says_what_it_missed(caplog):
+    shared = SharedRing(capacity=4)
+    reader = RemoteSource(Handle(shared), "cam")
+    shared.append(batch(0))
+    assert int(reader.read().events.t[0]) == 0
+    for i in range(1, 10):
+        shared.append(batch(100 * i, n=2))  # seq 1..9; the ring keeps 6..9
+    with caplog.at_level(logging.WARNING, "edmcgs.server.ray"):
+        assert int(reader.read().events.t[0]) == 600
+    assert reader.missed_batches == 5 and reader.missed_events == 10
+    assert "fell behind the shared source and missed 5 batches (10 events)" in caplog.text
+    assert [int(reader.read().events.t[0]) for _ in range(3)] == [700, 800, 900]
+    assert reader.missed_batches == 5, "no more missed once caught up"
+
+
+def test_a_late_reader_starts_at_the_oldest_batch_held_without_counting_a_loss():
+    shared = SharedRing(capacity=2)
+    for i in range(5):
+        shared.append(batch(100 * i))
+    reader = RemoteSource(Handle(shared), "cam")
+    assert int(reader.read().events.t[0]) == 300 and reader.missed_batches == 0
+
+
+def test_the_sources_failure_reaches_every_reader():
+    shared = SharedRing()
+    reader = RemoteSource(Handle(shared), "cam")
+    shared.finish("SensorError: the camera went away")
+    with pytest.raises(SensorError, match="the camera went away"):
+        reader.read()
