@@ -11,6 +11,11 @@ events carry the motion:
     online anchor A_k, k > 1:        T_k = T_{k-1} + g_phi(x, I_E[A_{k-1}, A_k)),  R_k = R_{k-1}
     a render at t in [A_k, A_k+1):   T(t) = T_k + g_phi(x, I_E[A_k, t))
 
+A checkpoint drawn in anchor windows (the ``real`` preset) draws, at each time, only the Gaussians of
+the window it falls in, moved relative to that window's anchor; past the span that is the last window, so
+online anchors carry its Gaussians forward (the prior taken relative to the last anchor, as ``deform``
+does there). A background layer is drawn behind them, in the fit as in the served render.
+
 ``correct`` refines a predicted state against the frame: a per-control-point translation residual,
 optimised for a bounded number of Adam steps on the photometric loss through the differentiable
 rasterizer, with the canonical Gaussians and the networks frozen. ``finetune`` (off by default in the
@@ -38,10 +43,18 @@ Motion = tuple[Tensor, Tensor]
 def checkpoint_motion(model: EdMCGS, t_us: int, event_map: np.ndarray | None = None,
                       ev_c2w: np.ndarray | None = None) -> Motion:
     """The model's own motion at ``t_us`` from its checkpoint anchor (prior clamped past the span)."""
-    trans, rot, _ = model.control_motion(model.meta.normalized_time(int(t_us)), None)
+    window = last_window(model)
+    since = None if window is None else model.meta.normalized_time(int(model.meta.anchors_us[window]))
+    trans, rot, _ = model.control_motion(model.meta.normalized_time(int(t_us)), None, since=since)
     if event_map is not None:
         trans = trans + event_displacement(model, trans, event_map, ev_c2w)
     return trans, rot
+
+
+def last_window(model: EdMCGS) -> int | None:
+    """The anchor window whose Gaussians online anchors carry forward (the last one), or None when the
+    model has no anchor windows (every Gaussian is drawn at every time)."""
+    return None if model.gaussians.birth is None else len(model.meta.anchors_us) - 1
 
 
 @torch.no_grad()
@@ -121,7 +134,12 @@ def finetune(model: EdMCGS, transition: torch.nn.Module, prev_motion: Motion, ev
 def state_of(model: EdMCGS, motion: Motion) -> GaussianState:
     """The Gaussians of a control-point motion (every Gaussian skinned: past the span nothing is frozen)."""
     trans, rot = motion
-    return skin(model.skin_plan(frozen=False), model.control.positions, rot, trans)
+    state = skin(model.skin_plan(frozen=False), model.control.positions, rot, trans)
+    visible = model.gaussians.visible_in(last_window(model))
+    if visible is not None:  # the other windows' Gaussians are not drawn
+        state = GaussianState(state.means, state.quats, state.scales,
+                              state.opacities * visible.to(state.opacities.device), state.colors)
+    return state
 
 
 def correct(model: EdMCGS, motion: Motion, image: np.ndarray, c2w: np.ndarray, intrinsics: Intrinsics, *,
@@ -143,6 +161,7 @@ def correct(model: EdMCGS, motion: Motion, image: np.ndarray, c2w: np.ndarray, i
                                                  mode="area")[0].permute(1, 2, 0)
         intr = intr.scaled(w, h)
     w2c = torch.as_tensor(world_to_camera(np.asarray(c2w, np.float64)), dtype=torch.float32)
+    layer = model.bg_layer
     bg = background_color(model.config, model.meta.channels)
     extent = float(model.extent)
     delta = torch.zeros_like(trans0, requires_grad=True)
@@ -150,14 +169,15 @@ def correct(model: EdMCGS, motion: Motion, image: np.ndarray, c2w: np.ndarray, i
     # Skinning is linear in the translations: sum_k w_ik (R_k (mu_i - p_k) + p_k + T_k + d_k) moves mean
     # i by sum_k w_ik d_k, and no rotation changes. Skin once, then each step adds the blended residual.
     with torch.no_grad():
-        base = model.state_from_motion(trans0, rot)
+        base = model.state_from_motion(trans0, rot, last_window(model))
+        behind = None if layer is None else layer.image(np.asarray(c2w, np.float64)[:3, :3], intr)
         cp = model.control
         weights = cp.weights(model.gaussians.means)[..., None]                        # [N, K, 1]
     first = last = None
     for _ in range(steps):
         moved = base.means + (weights * delta[cp.bind]).sum(1) * extent
         state = GaussianState(moved, base.quats, base.scales, base.opacities, base.colors)
-        out = render_image(state, w2c, intr, bg)
+        out = render_image(state, w2c, intr, bg, behind)
         loss = (out - target).abs().mean()
         value = float(loss.detach())
         first = value if first is None else first

@@ -124,13 +124,8 @@ class Service:
                     f"{meta.event_width}x{meta.event_height}: replay the recording it was trained on")
             ring = EventRingBuffer(settings.ring_events)
             online = None
-            # Past the span, the stream's frames become online anchors (online.py); not yet for a model
-            # drawn in anchor windows or over a background layer (the prediction and the fit know neither).
-            unsupported = [k for k in ("anchor_windows", "bg_layer") if getattr(model.config, k)]
-            if info.has_frames and unsupported:
-                log.warning("no online anchors past the checkpoint's span: it was trained with %s, which "
-                            "they do not support yet", " and ".join(unsupported))
-            elif info.has_frames:
+            # Past the span, the stream's frames become online anchors (online.py).
+            if info.has_frames:
                 online = OnlineAnchors(model, ring, capacity=settings.online_anchors,
                                        fit_steps=settings.online_fit_steps,
                                        fit_scale=settings.online_fit_scale, fit_lr=settings.online_fit_lr,

@@ -164,26 +164,68 @@ def test_the_engine_renders_past_the_span_up_to_the_head(long_scene):
     assert before.anchor == "checkpoint" and before.instant.anchor_us == int(model.meta.anchors_us[-1])
 
 
-@pytest.mark.parametrize("switch", ["anchor_windows", "bg_layer"])
-def test_a_checkpoint_the_online_anchors_cannot_continue_gets_none(tmp_path, monkeypatch, switch):
+REAL = {"anchor_windows": True, "bg_layer": True, "dynamic_threshold": 0.06}  # the real preset's switches
+
+
+@pytest.fixture(scope="module")
+def windowed_scene(tmp_path_factory):
+    """The long scene's recording with a checkpoint drawn in anchor windows over a background layer."""
+    rec_path, ckpt = build_scene(tmp_path_factory.mktemp("online_windows"), width=64, height=48,
+                                 duration_s=1.5, anchor_every_s=0.1, frames_per_anchor=2, event_rate=20_000,
+                                 init_points=1000, control_points=32, event_branch_seed=0, train_s=0.5,
+                                 config_overrides=REAL)
+    from edmcgs.sensor.files.recording import read_recording
+
+    model = load_checkpoint(ckpt)
+    assert model.gaussians.birth is not None and model.bg_layer is not None
+    return read_recording(rec_path), model, rec_path, ckpt
+
+
+def test_online_anchors_of_a_windowed_checkpoint_carry_its_last_window_forward(windowed_scene):
+    rec, model, *_ = windowed_scene
+    last = len(model.meta.anchors_us) - 1
+    t = int(model.meta.t_end_us) + STEP_US
+    # without events the prediction is the checkpoint's own state past its span (deform's rule there)
+    ours = model_online.state_of(model, model_online.checkpoint_motion(model, t))
+    theirs = model.deform(t)
+    torch.testing.assert_close(ours.means, theirs.means, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(ours.opacities, theirs.opacities)
+    drawn = ours.opacities > 0
+    assert bool(drawn.any()) and bool((model.gaussians.birth[drawn] == last).all())
+    # the fit composites the background layer behind the last window's Gaussians, and lowers the loss
+    i = int(np.searchsorted(rec.anchors.t_us, t))
+    (trans, _), first, after = model_online.correct(model, model_online.checkpoint_motion(model, t),
+                                                    rec.anchors.images[i], rec.anchors.poses[i],
+                                                    model.meta.intrinsics, steps=6, lr=6e-3)
+    assert np.isfinite(first) and after < first and bool(torch.isfinite(trans).all())
+    moved = ~(model.gaussians.birth == last)
+    fitted = model_online.state_of(model, (trans, model_online.checkpoint_motion(model, t)[1]))
+    assert float(fitted.opacities[moved].abs().max()) == 0.0  # other windows stay undrawn
+
+
+def test_a_windowed_checkpoint_renders_past_its_span_from_online_anchors(windowed_scene):
     from edmcgs.server import service as service_module
     from edmcgs.server.settings import Settings
 
-    rec_path, ckpt = build_scene(tmp_path, width=64, height=48, duration_s=1.0, anchor_every_s=0.1,
-                                 frames_per_anchor=2, event_rate=5_000, init_points=500, control_points=16,
-                                 train_s=0.5)
-
-    def load_with(path, device="cpu"):
-        model = load_checkpoint(path, device)
-        model.config = model.config.replace(**{switch: True})  # as a real-preset checkpoint states it
-        return model
-
-    monkeypatch.setattr(service_module, "load_checkpoint", load_with)
+    rec, model, rec_path, ckpt = windowed_scene
     service = service_module.Service.open(Settings(replay=rec_path, checkpoint=ckpt))
     try:
-        assert service.engine.online is None and service.online_info() is None
+        assert service.engine.online is not None
     finally:
         service.close()
+    ring = EventRingBuffer(10**6)
+    online = OnlineAnchors(model, ring, fit=False)
+    engine = Engine(model, ring, None, cache_size=4, online=online)
+    start = rec.t_range_us[0]
+    engine.timeline = tl = Timeline(start, start)
+    head = model.meta.t_end_us + 4 * STEP_US + 20_000
+    _feed(online, ring, rec, head + 1, tl)
+    assert len(online.anchors()) == 4
+    out = engine.render(None, None, 64, 48)
+    assert out.anchor == "predicted" and out.instant.anchor_us == online.anchors()[-1].t_us
+    frame = rec.anchors.images[int(np.searchsorted(rec.anchors.t_us, online.anchors()[-1].t_us))]
+    # the background layer is drawn behind: the render is close to the frame, not the flat colour
+    assert np.abs(out.pixels.astype(np.float64) - frame).mean() < 40
 
 
 def test_a_correction_equals_refitting_through_the_full_skinning(long_scene):
