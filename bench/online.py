@@ -14,6 +14,8 @@ past the span is scored (PSNR) for
     no_corr    the same chain, never corrected (the model's transition alone)
     hold_last  the newest anchor frame itself (no model)
     integrate  the events since it integrated onto that frame (no model; ``model/eval/baselines.py``)
+    blend      the anchor frames either side blended linearly in time (no model, not causal: None past
+               the last anchor)
 
 and each new anchor frame against its prediction before the correction (``pred``). Timing: one
 correction per anchor of the checkpoint's model at 173x130 and 346x260 (intrinsics scaled), anchors per
@@ -107,6 +109,12 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
         k = int(np.searchsorted(anchor_t, t, side="right")) - 1
         frame = rec.anchors.images[k] / 255.0
         row["hold_last"] = _psnr(frame, target)
+        # blend of the anchors either side (not causal: it needs the next frame), where there is one
+        if k + 1 < len(anchor_t):
+            w = (t - int(anchor_t[k])) / float(anchor_t[k + 1] - anchor_t[k])
+            row["blend"] = _psnr((1 - w) * frame + w * rec.anchors.images[k + 1] / 255.0, target)
+        else:
+            row["blend"] = None
         events = accumulate(rec.events.time_slice(int(anchor_t[k]), t), rec.width, rec.height)
         row["integrate"] = _psnr(integrate_events(frame, events, contrast), target)
         rows.append(row)
@@ -182,6 +190,8 @@ def main(argv=None) -> None:
                             args.finetune_steps, args.finetune_lr)
         for name in ("live", "no_corr", "hold_last", "integrate"):
             results[f"psnr_{name}"] = float(np.mean([r[name] for r in rows]))
+        blend = [r["blend"] for r in rows if r["blend"] is not None]
+        results["psnr_blend"] = float(np.mean(blend)) if blend else None
         results["live_minus_hold_last_worst_db"] = float(min(r["live"] - r["hold_last"] for r in rows))
         results["pred_psnr"] = float(np.mean([r["pred_psnr"] for r in extra["pred"]]))
         results["drift"] = rows

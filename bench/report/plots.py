@@ -130,6 +130,10 @@ def online_drift(rows: list[dict], predictions: list[dict], path: Path, fit: str
                                ("hold_last", "hold last anchor frame", "#888888"),
                                ("integrate", "events integrated onto the last anchor", "#66a182")):
         ax.plot(x, [r[key] for r in rows], marker="o", ms=2.5, lw=1, color=colour, label=label)
+    blend = [(r["since_end_s"], r["blend"]) for r in rows if r.get("blend") is not None]
+    if blend:
+        ax.plot([b[0] for b in blend], [b[1] for b in blend], ls="--", lw=1, color="#b07aa1",
+                label="blend of the anchors either side (not causal)")
     ax.plot([p["since_end_s"] for p in predictions], [p["pred_psnr"] for p in predictions], ls="none",
             marker="x", color="#edae49", label="prediction vs the new anchor frame")
     ax.set_xlabel("time since training ended (s)")

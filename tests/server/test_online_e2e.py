@@ -123,3 +123,34 @@ def test_fitting_that_falls_behind_skips_and_memory_stays_bounded_on_a_long_loop
             assert max(rss[2:]) - rss[2] < 60, rss
     finally:
         srv.stop()
+
+
+def test_a_checkpoint_drawn_in_anchor_windows_over_a_layer_renders_past_its_span(tmp_path):
+    # the real preset's switches: online anchors carry the last window's Gaussians over the layer
+    rec, ckpt = build_scene(tmp_path, width=WIDTH, height=HEIGHT, duration_s=1.5, anchor_every_s=0.1,
+                            frames_per_anchor=2, event_rate=20_000, init_points=1000, control_points=32,
+                            event_branch_seed=0, train_s=TRAIN_S,
+                            config_overrides={"anchor_windows": True, "bg_layer": True,
+                                              "dynamic_threshold": 0.06})
+    srv = ServerProcess(["--replay", str(rec), "--checkpoint", str(ckpt)],
+                        env={"EDMCGS_ONLINE_FIT_STEPS": "4"})
+    try:
+        srv.wait_ready()
+        with Client(srv.url, timeout=30) as client:
+            info = client.scene()
+            last = info["t_start_us"] + round(1.5e6)
+            deadline = time.monotonic() + 60
+            while client.scene()["head_us"] < last - 1:
+                assert time.monotonic() < deadline
+                time.sleep(0.1)
+            deadline = time.monotonic() + 60
+            while client.scene()["online"]["queue_depth"] and time.monotonic() < deadline:
+                time.sleep(0.2)
+            online = client.scene()["online"]
+            assert online["predicted"] == 20 and online["corrected"] >= 1
+            assert online["corrected"] + online["skipped"]["superseded"] == online["predicted"]
+            pixels, meta = client.render(t_us=last, format="msgpack")
+            assert meta.anchor_us == last and meta.anchor in ("predicted", "corrected")
+            assert pixels.shape == (HEIGHT, WIDTH, 3) and pixels.std() > 0
+    finally:
+        srv.stop()
