@@ -43,9 +43,9 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, finetune_steps: int = 0,
-          finetune_lr: float = 1e-4) -> tuple[list[dict], dict]:
-    """recording: a path or a ``Recording``; finetune_*: the server's ``online_finetune_*``; see the
-    module docstring."""
+          finetune_lr: float = 1e-4, spawn: int = 1000) -> tuple[list[dict], dict]:
+    """recording: a path or a ``Recording``; finetune_*, spawn: the server's ``online_finetune_*`` and
+    ``online_spawn``; see the module docstring."""
     from edmcgs.geometry import Trajectory
     from edmcgs.model import online as model_online
     from edmcgs.model.checkpoint import load_checkpoint
@@ -76,7 +76,7 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
         ring.push(rec.events, complete_until_us=rec.t_range_us[1] + 1)
         online = OnlineAnchors(model, ring, capacity=10**6, fit=False, fit_steps=steps, fit_scale=scale,
                                fit_lr=lr, finetune_steps=finetune_steps, finetune_lr=finetune_lr,
-                               default_pose=pose)
+                               spawn=spawn, default_pose=pose)
         engine = Engine(model, ring, None, cache_size=4, online=online)
         engine.timeline = Timeline(start, start)
         anchors = rec.anchors
@@ -87,7 +87,8 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
             online.on_frames(frame, engine.timeline.scene_of)
             a = online.anchors()[-1]
             if fit:
-                img = model.render(model_online.state_of(model, a.motion), pose(t), meta.intrinsics)
+                state = model_online.with_spawned(model_online.state_of(model, a.motion), a.spawned)
+                img = model.render(state, pose(t), meta.intrinsics)
                 pred = _psnr(img, anchors.images[i] / 255.0)
                 t0 = time.perf_counter()
                 online._fit(a, anchors.images[i])
@@ -171,6 +172,8 @@ def main(argv=None) -> None:
     p.add_argument("--finetune-steps", type=int, default=fit["online_finetune_steps"].default,
                    help="g_phi fine-tune steps after each correction (0: off)")
     p.add_argument("--finetune-lr", type=float, default=fit["online_finetune_lr"].default)
+    p.add_argument("--spawn", type=int, default=fit["online_spawn"].default,
+                   help="Gaussians added per corrected anchor of a checkpoint drawn in anchor windows")
     p.add_argument("--timing-only", action="store_true", help="only the CPU figures (no drift)")
     p.add_argument("--plot", type=Path, help="the drift plot (PNG)")
     p.add_argument("--json", type=Path)
@@ -178,7 +181,8 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     results: dict = {"steps": args.steps, "scale": args.scale, "lr": args.lr,
-                     "finetune_steps": args.finetune_steps, "finetune_lr": args.finetune_lr}
+                     "finetune_steps": args.finetune_steps, "finetune_lr": args.finetune_lr,
+                     "spawn": args.spawn}
     for w, h in ((173, 130), (346, 260)):
         t = timing(args.checkpoint, args.recording, w, h, args.steps, args.scale, args.lr)
         results[f"predict_ms_{w}x{h}"] = 1e3 * t["predict_s"]
@@ -187,7 +191,7 @@ def main(argv=None) -> None:
         results[f"gaussians_{w}x{h}"] = t["gaussians"]
     if not args.timing_only:
         rows, extra = drift(args.recording, args.checkpoint, args.steps, args.scale, args.lr,
-                            args.finetune_steps, args.finetune_lr)
+                            args.finetune_steps, args.finetune_lr, args.spawn)
         for name in ("live", "no_corr", "hold_last", "integrate"):
             results[f"psnr_{name}"] = float(np.mean([r[name] for r in rows]))
         blend = [r["blend"] for r in rows if r["blend"] is not None]

@@ -34,6 +34,7 @@ from edmcgs.model.dynamic import NEAR, EdMCGS, background_color, render_image
 from edmcgs.model.motion.event_branch import sample_global, sample_local
 from edmcgs.model.motion.gaussians import GaussianState
 from edmcgs.model.motion.skin_plan import skin
+from edmcgs.model.render.sh import SH_C0
 
 Motion = tuple[Tensor, Tensor]
 """(translations [M, 3], rotations [M, 4]) of the control points."""
@@ -188,3 +189,65 @@ def correct(model: EdMCGS, motion: Motion, image: np.ndarray, c2w: np.ndarray, i
     if first is None:
         return (trans0, rot), float("nan"), float("nan")
     return (trans0 + delta.detach() * extent, rot), first, last
+
+
+@torch.no_grad()
+def spawn(model: EdMCGS, state: GaussianState, image: np.ndarray, c2w: np.ndarray, intrinsics: Intrinsics,
+          *, limit: int, threshold: float = 0.08, opacity: float = 0.9) -> GaussianState | None:
+    """Gaussians for what the frame shows that the render of ``state`` lacks (an anchor window carried
+    forward has no Gaussians for what entered the view since): at most ``limit`` of them, on a regular
+    grid over the pixels where ``image`` (uint8 [H, W, C]) differs from the render by more than
+    ``threshold`` (of 1), each backprojected at the median depth of the drawn Gaussians (the scene's
+    depth where nothing better is known), coloured by the frame, sized to cover its grid cell. Static:
+    the events do not move them. None when nothing differs or ``limit`` is 0."""
+    if limit <= 0:
+        return None
+    frame = np.asarray(image, np.float32) / 255.0
+    rendered = model.render(state, c2w, intrinsics)
+    differs = np.abs(rendered - frame).max(-1) > threshold
+    count = int(differs.sum())
+    if count == 0:
+        return None
+    stride = max(1, int(np.ceil(np.sqrt(count / limit))))
+    grid = np.zeros_like(differs)
+    grid[stride // 2::stride, stride // 2::stride] = True
+    ys, xs = np.nonzero(differs & grid)
+    if len(ys) == 0:
+        return None
+    keep = np.linspace(0, len(ys) - 1, min(len(ys), limit)).round().astype(np.int64)
+    ys, xs = ys[keep], xs[keep]
+    c2w = np.asarray(c2w, np.float64)
+    w2c = world_to_camera(c2w)
+    means = state.means.detach().cpu().numpy().astype(np.float64)
+    z = means @ w2c[:3, :3].T[:, 2] + w2c[2, 3]
+    drawn = (state.opacities.detach().cpu().numpy() > 0.05) & (z > NEAR)
+    depth = float(np.median(z[drawn])) if drawn.any() else float(model.extent)
+    intr = intrinsics
+    rays = np.stack([(xs + 0.5 - intr.cx) / intr.fx, (ys + 0.5 - intr.cy) / intr.fy, np.ones(len(xs))], -1)
+    points = (rays * depth) @ c2w[:3, :3].T + c2w[:3, 3]
+    n = len(points)
+    size = 0.6 * stride * depth / intr.fx  # a grid cell's footprint, overlapping its neighbours
+    colors = torch.as_tensor(frame[ys, xs], dtype=torch.float32)
+    like = state.colors
+    if like.dim() == 3:  # SH coefficients: the colour in the DC term, the rest zero
+        sh = torch.zeros(n, like.shape[1], like.shape[2], dtype=like.dtype)
+        sh[:, 0] = (colors - 0.5) / SH_C0
+        colors = sh
+    dev = state.means.device
+    quats = torch.zeros(n, 4)
+    quats[:, 0] = 1.0
+    return GaussianState(torch.as_tensor(points, dtype=torch.float32, device=dev), quats.to(dev),
+                         torch.full((n, 3), size, dtype=torch.float32, device=dev),
+                         torch.full((n,), opacity, dtype=torch.float32, device=dev), colors.to(dev))
+
+
+def with_spawned(state: GaussianState, spawned: GaussianState | None) -> GaussianState:
+    """``state`` and an anchor's spawned Gaussians drawn together."""
+    if spawned is None:
+        return state
+    return GaussianState(*(torch.cat([a, b.to(a.dtype)]) for a, b in
+                           zip(_fields(state), _fields(spawned), strict=True)))
+
+
+def _fields(state: GaussianState) -> tuple[Tensor, ...]:
+    return state.means, state.quats, state.scales, state.opacities, state.colors

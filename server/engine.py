@@ -209,7 +209,8 @@ class Engine:
             except InvalidInputError:  # no trajectory and no frame poses: global sampling only
                 c2w = None
             motion = model_online.advance(self.model, online.motion, emap, c2w, self.online.transition)
-            return model_online.state_of(self.model, motion), len(events)
+            state = model_online.with_spawned(model_online.state_of(self.model, motion), online.spawned)
+            return state, len(events)
         return self.model.deform(instant.t_us, emap), len(events)
 
     def event_map(self, t_us: int | None) -> tuple[Instant, int, np.ndarray]:

@@ -29,6 +29,7 @@ import torch
 from edmcgs.errors import WindowUnavailable
 from edmcgs.model import online as model_online
 from edmcgs.model.dynamic import EdMCGS
+from edmcgs.model.motion.gaussians import GaussianState
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.frames import Frames
@@ -55,6 +56,9 @@ class OnlineAnchor:
     """Bumped whenever the state changes (the deform cache keys on it)."""
     pose: np.ndarray | None
     """The frame's camera-to-world, when the stream gives one."""
+    spawned: GaussianState | None = None
+    """Gaussians added for what the frame showed that the carried-forward window lacked (``spawn``);
+    a prediction inherits the anchor before it's."""
 
 
 class OnlineAnchors:
@@ -62,7 +66,7 @@ class OnlineAnchors:
 
     def __init__(self, model: EdMCGS, ring: EventRingBuffer, *, capacity: int = 64, fit_steps: int = 5,
                  fit_scale: float = 1.0, fit_lr: float = 6e-3, finetune_steps: int = 0,
-                 finetune_lr: float = 1e-4, fit: bool = True,
+                 finetune_lr: float = 1e-4, spawn: int = 1000, fit: bool = True,
                  default_pose: Callable[[int], np.ndarray | None] | None = None):
         self.model, self.ring = model, ring
         self.capacity, self.fit_steps, self.fit_scale = int(capacity), int(fit_steps), float(fit_scale)
@@ -72,6 +76,8 @@ class OnlineAnchors:
         """g_phi of the predictions past the span: the model's, or a copy fine-tuned on the corrections
         (``finetune_steps`` > 0), replaced whole after each fit (readers take the reference once)."""
         self.transition_version = 0
+        # Only a model drawn in anchor windows lacks Gaussians for what enters the view past its span.
+        self.spawn_limit = int(spawn) if model_online.last_window(model) is not None else 0
         self.last_finetune: tuple[float, float] | None = None  # (loss before, after) of the last one
         self.fit_enabled = fit and fit_steps > 0
         self.default_pose = default_pose or self._trajectory_pose
@@ -195,7 +201,7 @@ class OnlineAnchors:
                 motion = model_online.checkpoint_motion(model, scene_t, emap, c2w)
             else:
                 motion = model_online.advance(model, prev.motion, emap, c2w, self.transition)
-            anchor = OnlineAnchor(t, scene_t, motion, False, 0, pose)
+            anchor = OnlineAnchor(t, scene_t, motion, False, 0, pose, None if prev is None else prev.spawned)
             self._publish((*self._anchors, anchor))
             self.predicted += 1
         if self.fit_enabled:
@@ -243,6 +249,11 @@ class OnlineAnchors:
         (trans, _), before, after = model_online.correct(
             self.model, current.motion, image, c2w, self.model.meta.intrinsics, steps=self.fit_steps,
             lr=self.fit_lr, scale=self.fit_scale)
+        spawned = current.spawned
+        if self.spawn_limit:
+            state = model_online.state_of(self.model, (trans, current.motion[1]))
+            spawned = model_online.spawn(self.model, state, image, c2w, self.model.meta.intrinsics,
+                                         limit=self.spawn_limit)
         seconds = time.perf_counter() - t0
         delta = trans - current.motion[0]
         with self._lock:
@@ -250,7 +261,7 @@ class OnlineAnchors:
             for a in self._anchors:
                 if a.stream_us == anchor.stream_us:
                     a = replace(a, motion=(a.motion[0] + delta, a.motion[1]), corrected=True,
-                                version=a.version + 1)
+                                version=a.version + 1, spawned=spawned)
                 elif a.stream_us > anchor.stream_us and not a.corrected:
                     # predicted from this anchor's prediction: carry the correction on
                     a = replace(a, motion=(a.motion[0] + delta, a.motion[1]), version=a.version + 1)

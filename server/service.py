@@ -130,7 +130,8 @@ class Service:
                                        fit_steps=settings.online_fit_steps,
                                        fit_scale=settings.online_fit_scale, fit_lr=settings.online_fit_lr,
                                        finetune_steps=settings.online_finetune_steps,
-                                       finetune_lr=settings.online_finetune_lr)
+                                       finetune_lr=settings.online_finetune_lr,
+                                       spawn=settings.online_spawn)
             engine = Engine(model, ring, None, cache_size=settings.deform_cache,
                             raster_threads=settings.raster_threads, online=online)
             if info.t_range_us is not None:

@@ -203,6 +203,44 @@ def test_online_anchors_of_a_windowed_checkpoint_carry_its_last_window_forward(w
     assert float(fitted.opacities[moved].abs().max()) == 0.0  # other windows stay undrawn
 
 
+def test_spawned_gaussians_draw_what_the_frame_shows_that_the_render_lacks(windowed_scene):
+    rec, model, *_ = windowed_scene
+    t = int(model.meta.t_end_us) + STEP_US
+    i = int(np.searchsorted(rec.anchors.t_us, t))
+    c2w, intr = rec.anchors.poses[i], model.meta.intrinsics
+    state = model_online.state_of(model, model_online.checkpoint_motion(model, t))
+    rendered = np.round(model.render(state, c2w, intr) * 255).astype(np.uint8)
+    assert model_online.spawn(model, state, rendered, c2w, intr, limit=100) is None  # nothing lacking
+    frame = rendered.copy()
+    frame[10:30, 20:44] = [250, 20, 20]  # something new entered the view
+    spawned = model_online.spawn(model, state, frame, c2w, intr, limit=100)
+    assert spawned is not None and 0 < len(spawned) <= 100
+    assert bool(torch.isfinite(spawned.means).all()) and bool((spawned.scales > 0).all())
+    patch = (slice(10, 30), slice(20, 44))
+    before = np.abs(rendered[patch].astype(float) - frame[patch]).mean()
+    with_new = model.render(model_online.with_spawned(state, spawned), c2w, intr) * 255
+    assert np.abs(with_new[patch] - frame[patch]).mean() < 0.5 * before
+    assert model_online.spawn(model, state, frame, c2w, intr, limit=0) is None
+
+
+def test_a_corrected_anchor_of_a_windowed_checkpoint_carries_its_spawned_gaussians_on(windowed_scene):
+    rec, model, *_ = windowed_scene
+    ring = EventRingBuffer(10**6)
+    online = OnlineAnchors(model, ring, fit=False, fit_steps=2, spawn=50)
+    start = rec.t_range_us[0]
+    tl = Timeline(start, start)
+    first = int(model.meta.t_end_us) + STEP_US
+    _feed(online, ring, rec, first + 1, tl)
+    a = online.anchors()[-1]
+    online._fit(a, rec.anchors.images[int(np.searchsorted(rec.anchors.t_us, a.stream_us))])
+    fitted = online.anchors()[-1]
+    assert fitted.corrected and fitted.spawned is not None and len(fitted.spawned) <= 50
+    _feed(online, ring, rec, first + STEP_US + 1, tl, from_us=first + 1)
+    assert online.anchors()[-1].spawned is fitted.spawned  # the prediction inherits them
+    plain = OnlineAnchors(model, ring, fit=False, spawn=0)
+    assert plain.spawn_limit == 0
+
+
 def test_a_windowed_checkpoint_renders_past_its_span_from_online_anchors(windowed_scene):
     from edmcgs.server import service as service_module
     from edmcgs.server.settings import Settings
