@@ -43,7 +43,7 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, finetune_steps: int = 0,
-          finetune_lr: float = 1e-4, spawn: int = 1000) -> tuple[list[dict], dict]:
+          finetune_lr: float = 1e-4, spawn: int = 0) -> tuple[list[dict], dict]:
     """recording: a path or a ``Recording``; finetune_*, spawn: the server's ``online_finetune_*`` and
     ``online_spawn``; see the module docstring."""
     from edmcgs.geometry import Trajectory

@@ -66,7 +66,7 @@ class OnlineAnchors:
 
     def __init__(self, model: EdMCGS, ring: EventRingBuffer, *, capacity: int = 64, fit_steps: int = 5,
                  fit_scale: float = 1.0, fit_lr: float = 6e-3, finetune_steps: int = 0,
-                 finetune_lr: float = 1e-4, spawn: int = 1000, fit: bool = True,
+                 finetune_lr: float = 1e-4, spawn: int = 0, fit: bool = True,
                  default_pose: Callable[[int], np.ndarray | None] | None = None):
         self.model, self.ring = model, ring
         self.capacity, self.fit_steps, self.fit_scale = int(capacity), int(fit_steps), float(fit_scale)

@@ -98,10 +98,11 @@ class Settings(BaseSettings):
         description="After each correction, Adam steps letting a copy of g_phi (the event transition) "
                     "learn from it, for the predictions past the span only (0: g_phi stays as trained).")
     online_finetune_lr: float = Field(1e-4, gt=0, le=1, description="Adam step size of that fine-tune.")
-    online_spawn: int = Field(1000, ge=0, le=100_000,
-        description="For a checkpoint drawn in anchor windows (the real preset): at most this many Gaussians "
-        "added at each corrected online anchor where its frame differs from the render (what entered the "
-        "view since the checkpoint's last window); 0: none.")
+    online_spawn: int = Field(0, ge=0, le=100_000,
+        description="For a checkpoint drawn in anchor windows (the real preset): at most this many static "
+        "Gaussians added at each corrected online anchor where its frame differs from the render (what "
+        "entered the view since the checkpoint's last window); 0 (default): none, as they ghost once what "
+        "they show moves on (reports/online-traffic.md).")
     online_fit_scale: float = Field(0.5, gt=0, le=1,
         description="Fraction of the frame's size the correction renders and compares at.")
     raster_threads: int | None = Field(None, gt=0, le=1024,
