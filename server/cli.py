@@ -44,6 +44,12 @@ def _parser() -> argparse.ArgumentParser:
                                                    "'ray' extra; joins RAY_ADDRESS, else a local Ray)")
     p.add_argument("--ray-cpus", type=int, metavar="N", help="CPUs of the local Ray --ray starts")
     p.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
+    p.add_argument("--online-finetune-steps", type=int, metavar="N",
+                   help="after each online correction, N Adam steps fine-tuning a copy of g_phi for the "
+                        "span past the checkpoint (default 0: off; EDMCGS_ONLINE_FINETUNE_LR sets the step)")
+    p.add_argument("--online-spawn", type=int, metavar="N",
+                   help="a real-preset checkpoint's online anchors add up to N static Gaussians where the "
+                        "frame differs from the render (default 0: off)")
     p.add_argument("--version", action="version", version=f"edmcgs-serve {__version__}")
     return p
 

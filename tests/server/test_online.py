@@ -337,3 +337,11 @@ def test_finetune_without_events_has_nothing_to_learn(long_scene):
     empty = np.zeros((model.meta.event_height, model.meta.event_width), np.float32)
     assert model_online.finetune(model, model.transition, motion, empty, None, motion[0], steps=3,
                                  lr=1e-3) is None
+
+
+@pytest.mark.parametrize("flag", ["--online-spawn", "--online-finetune-steps"])
+def test_the_serve_flags_of_the_online_switches_are_checked(flag, capsys):
+    from edmcgs.server.cli import main
+
+    assert main([flag, "-1"]) == 2
+    assert flag.lstrip("-").replace("-", "_") in capsys.readouterr().err

@@ -132,8 +132,8 @@ def test_a_checkpoint_drawn_in_anchor_windows_over_a_layer_renders_past_its_span
                             event_branch_seed=0, train_s=TRAIN_S,
                             config_overrides={"anchor_windows": True, "bg_layer": True,
                                               "dynamic_threshold": 0.06})
-    srv = ServerProcess(["--replay", str(rec), "--checkpoint", str(ckpt)],
-                        env={"EDMCGS_ONLINE_FIT_STEPS": "4"})
+    srv = ServerProcess(["--replay", str(rec), "--checkpoint", str(ckpt), "--online-spawn", "50",
+                         "--online-finetune-steps", "2"], env={"EDMCGS_ONLINE_FIT_STEPS": "4"})
     try:
         srv.wait_ready()
         with Client(srv.url, timeout=30) as client:
