@@ -17,6 +17,10 @@ past the span is scored (PSNR) for
     blend      the anchor frames either side blended linearly in time (no model, not causal: None past
                the last anchor)
 
+each also on the moving pixels alone (``NAME_moving``: where the frame differs from the median of the
+span's anchor frames by more than ``MOVING``, as bench.traffic scores them, pooled over the frames in
+the results; None where none moves);
+
 and each new anchor frame against its prediction before the correction (``pred``). Timing: one
 correction per anchor of the checkpoint's model at 173x130 and 346x260 (intrinsics scaled), anchors per
 second sustained with predict + correct back to back, one torch thread.
@@ -35,6 +39,8 @@ import torch
 from bench.results import table, write_json
 
 TARGETS = {"anchors_per_s_173x130": (">=", 5.0)}
+MOVING = 0.06
+"""A pixel is moving in a frame where it differs from the span's anchors' median by more than this."""
 
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -99,25 +105,33 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
     held = rec.held_out
     rows = []
     anchor_t = rec.anchors.t_us
+    # moving pixels (as bench.traffic scores them): where a frame differs from the median of the
+    # checkpoint's span's anchor frames
+    still = np.median(rec.anchors.images[anchor_t <= end], axis=0) / 255.0
     for j in np.nonzero(held.t_us > end)[0]:
         t = int(held.t_us[j])
         target = held.images[j] / 255.0
         c2w = held.poses[j] if held.poses is not None else pose(t)
         row = {"t_us": t, "since_end_s": (t - end) / 1e6}
+        images = {}
         for name, engine in chains.items():
-            out = engine.render(t, c2w, meta.intrinsics.width, meta.intrinsics.height)
-            row[name] = _psnr(out.pixels / 255.0, target)
+            images[name] = engine.render(t, c2w, meta.intrinsics.width, meta.intrinsics.height).pixels / 255.0
         k = int(np.searchsorted(anchor_t, t, side="right")) - 1
         frame = rec.anchors.images[k] / 255.0
-        row["hold_last"] = _psnr(frame, target)
+        images["hold_last"] = frame
         # blend of the anchors either side (not causal: it needs the next frame), where there is one
         if k + 1 < len(anchor_t):
             w = (t - int(anchor_t[k])) / float(anchor_t[k + 1] - anchor_t[k])
-            row["blend"] = _psnr((1 - w) * frame + w * rec.anchors.images[k + 1] / 255.0, target)
-        else:
-            row["blend"] = None
+            images["blend"] = (1 - w) * frame + w * rec.anchors.images[k + 1] / 255.0
         events = accumulate(rec.events.time_slice(int(anchor_t[k]), t), rec.width, rec.height)
-        row["integrate"] = _psnr(integrate_events(frame, events, contrast), target)
+        images["integrate"] = integrate_events(frame, events, contrast)
+        moving = np.abs(target - still).max(-1) > MOVING
+        row["moving_px"] = int(moving.sum())
+        for name in (*chains, "hold_last", "blend", "integrate"):
+            img = images.get(name)
+            row[name] = None if img is None else _psnr(img, target)
+            row[f"{name}_moving"] = None if img is None or not moving.any() else \
+                _psnr(img[moving], target[moving])
         rows.append(row)
     return rows, {"pred": pred_rows}
 
@@ -196,6 +210,11 @@ def main(argv=None) -> None:
             results[f"psnr_{name}"] = float(np.mean([r[name] for r in rows]))
         blend = [r["blend"] for r in rows if r["blend"] is not None]
         results["psnr_blend"] = float(np.mean(blend)) if blend else None
+        for name in ("live", "no_corr", "hold_last", "blend", "integrate"):
+            # pooled over every moving pixel of every frame, as bench.traffic scores them
+            scored = [(r[f"{name}_moving"], r["moving_px"]) for r in rows if r[f"{name}_moving"] is not None]
+            mse = sum(10 ** (-p / 10) * n for p, n in scored) / max(1, sum(n for _, n in scored))
+            results[f"psnr_{name}_moving"] = float(-10 * np.log10(mse)) if scored else None
         results["live_minus_hold_last_worst_db"] = float(min(r["live"] - r["hold_last"] for r in rows))
         results["pred_psnr"] = float(np.mean([r["pred_psnr"] for r in extra["pred"]]))
         results["drift"] = rows
