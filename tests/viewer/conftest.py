@@ -8,13 +8,7 @@ from __future__ import annotations
 
 import pytest
 
-from tests.support.viewer import MAX_SIZE, VIEW_H, VIEW_W, chromium
-
-
-@pytest.fixture(scope="session")
-def browser():
-    with chromium() as browser:
-        yield browser
+from tests.support.viewer import MAX_SIZE, VIEW_H, VIEW_W
 
 
 @pytest.fixture
