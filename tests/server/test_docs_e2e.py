@@ -13,6 +13,7 @@ from edmcgs.server.app import create_app
 from edmcgs.server.settings import Settings
 from tests.support.server import ThreadServer
 from tests.support.stub import StubService
+from tests.support.viewer import chromium
 
 pytestmark = pytest.mark.slow
 
@@ -24,6 +25,12 @@ def served():
     app = create_app(Settings(token=TOKEN), service_factory=StubService)
     with ThreadServer(app) as server:
         yield server
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with chromium() as browser:
+        yield browser
 
 
 @pytest.fixture

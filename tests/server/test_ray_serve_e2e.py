@@ -81,23 +81,26 @@ def test_the_viewer_is_served_per_scene(cluster):
     assert 'href="scenes/beta/"' in httpx.get(cluster.url + "/", timeout=30).text
 
 
-def test_the_viewer_picks_a_scene_from_the_gateways_list(cluster, browser):
-    page = browser.new_page()
-    errors: list[str] = []
-    page.on("pageerror", lambda exc: errors.append(str(exc)))
-    page.goto(cluster.url + "/scenes/alpha/")
-    page.wait_for_function("!document.getElementById('scene-picker').hidden", timeout=30_000)
-    options = page.eval_on_selector_all("#scene-picker option", "os => os.map(o => o.value)")
-    assert options == ["alpha", "beta", "broken", "secret", "cam"]
-    assert page.eval_on_selector("#scene-picker", "p => p.value") == "alpha"
-    page.wait_for_function("window.edmcgsViewer.state.scene !== null", timeout=30_000)
-    alpha_start = page.evaluate("window.edmcgsViewer.state.scene.t_start_us")
-    page.select_option("#scene-picker", "beta")
-    page.wait_for_url("**/scenes/beta/", timeout=30_000)
-    page.wait_for_function("window.edmcgsViewer && window.edmcgsViewer.state.scene", timeout=30_000)
-    beta_start = page.evaluate("window.edmcgsViewer.state.scene.t_start_us")
-    assert page.eval_on_selector("#scene-picker", "p => p.value") == "beta"
-    page.close()
+def test_the_viewer_picks_a_scene_from_the_gateways_list(cluster):
+    from tests.support.viewer import chromium
+
+    with chromium() as browser:
+        page = browser.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.goto(cluster.url + "/scenes/alpha/")
+        page.wait_for_function("!document.getElementById('scene-picker').hidden", timeout=30_000)
+        options = page.eval_on_selector_all("#scene-picker option", "os => os.map(o => o.value)")
+        assert options == ["alpha", "beta", "broken", "secret", "cam"]
+        assert page.eval_on_selector("#scene-picker", "p => p.value") == "alpha"
+        page.wait_for_function("window.edmcgsViewer.state.scene !== null", timeout=30_000)
+        alpha_start = page.evaluate("window.edmcgsViewer.state.scene.t_start_us")
+        page.select_option("#scene-picker", "beta")
+        page.wait_for_url("**/scenes/beta/", timeout=30_000)
+        page.wait_for_function("window.edmcgsViewer && window.edmcgsViewer.state.scene", timeout=30_000)
+        beta_start = page.evaluate("window.edmcgsViewer.state.scene.t_start_us")
+        assert page.eval_on_selector("#scene-picker", "p => p.value") == "beta"
+        page.close()
     assert alpha_start < 1_700_000_000_000_000 <= beta_start, "the picker switched scenes"
     assert errors == []
 

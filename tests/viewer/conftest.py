@@ -8,7 +8,13 @@ from __future__ import annotations
 
 import pytest
 
-from tests.support.viewer import MAX_SIZE, VIEW_H, VIEW_W
+from tests.support.viewer import MAX_SIZE, VIEW_H, VIEW_W, chromium
+
+
+@pytest.fixture(scope="session")
+def browser():
+    with chromium() as browser:
+        yield browser
 
 
 @pytest.fixture
