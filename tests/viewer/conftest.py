@@ -11,8 +11,11 @@ import pytest
 from tests.support.viewer import MAX_SIZE, VIEW_H, VIEW_W, chromium
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def browser():
+    """One browser for this folder's tests, closed when they end: playwright's sync API keeps an event
+    loop running in the main thread, where a later test's asyncio.run would be refused, and a second
+    playwright is refused while this one lives."""
     with chromium() as browser:
         yield browser
 
