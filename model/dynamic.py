@@ -378,7 +378,7 @@ class EdMCGS(nn.Module):
                 # Imported here: the forward-only numba renderer is for serving.
                 from edmcgs.model.render.rasterize_fast import rasterize_fast
 
-                arrays = [t.detach().cpu().numpy() for t in _fields(state)]
+                arrays = [t.detach().cpu().numpy() for t in state.tensors()]
                 torch_threads = torch.get_num_threads()
                 try:
                     out = rasterize_fast(*arrays, w2c.astype(np.float32), intrinsics, background=bg,
@@ -424,14 +424,11 @@ def render_image(state: GaussianState, w2c: Tensor, intrinsics: Intrinsics, back
     """Differentiable render of ``state`` -> [H, W, C] (the training path); ``layer`` [H, W, C]: the
     background layer's view, composited under the splats instead of ``background``."""
     if layer is None:
-        return rasterize(*_fields(state), w2c, intrinsics, background=background).image
-    out = rasterize(*_fields(state), w2c, intrinsics, background=torch.zeros_like(background),
+        return rasterize(*state.tensors(), w2c, intrinsics, background=background).image
+    out = rasterize(*state.tensors(), w2c, intrinsics, background=torch.zeros_like(background),
                     return_alpha=True)
     return composite(out.image, out.alpha, layer)
 
-
-def _fields(state: GaussianState) -> tuple[Tensor, ...]:
-    return state.means, state.quats, state.scales, state.opacities, state.colors
 
 
 def _int_time(t_us, name: str) -> int:

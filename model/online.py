@@ -24,6 +24,8 @@ server) then lets a copy of g_phi learn from the correction, for the predictions
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -109,8 +111,6 @@ def finetune(model: EdMCGS, transition: torch.nn.Module, prev_motion: Motion, ev
     predictions learn from the corrections. Phi, the prior and the Gaussians stay frozen; ``transition``
     itself is untouched (renders may be reading it). Returns (copy, loss before, loss after: mean squared
     displacement error in g_phi's units), or None when the events give g_phi nothing to learn from."""
-    import copy
-
     codes = motion_codes(model, prev_motion[0], event_map, ev_c2w)
     if codes is None or steps <= 0:
         return None
@@ -246,8 +246,5 @@ def with_spawned(state: GaussianState, spawned: GaussianState | None) -> Gaussia
     if spawned is None:
         return state
     return GaussianState(*(torch.cat([a, b.to(a.dtype)]) for a, b in
-                           zip(_fields(state), _fields(spawned), strict=True)))
+                           zip(state.tensors(), spawned.tensors(), strict=True)))
 
-
-def _fields(state: GaussianState) -> tuple[Tensor, ...]:
-    return state.means, state.quats, state.scales, state.opacities, state.colors

@@ -30,9 +30,12 @@ class GaussianState:
     def __len__(self) -> int:
         return int(self.means.shape[0])
 
+    def tensors(self) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """(means, quats, scales, opacities, colors): the rasterizers' argument order."""
+        return self.means, self.quats, self.scales, self.opacities, self.colors
+
     def detach(self) -> GaussianState:
-        return GaussianState(*(t.detach() for t in (self.means, self.quats, self.scales, self.opacities,
-                                                     self.colors)))
+        return GaussianState(*(t.detach() for t in self.tensors()))
 
 
 PER_GAUSSIAN = ("means", "quats", "log_scales", "opacity_logits", "features")
