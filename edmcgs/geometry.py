@@ -103,11 +103,11 @@ def quat_normalize(q: Tensor, eps: float = 1e-12) -> Tensor:
     return torch.where(norm > eps, q / norm.clamp_min(eps), identity)
 
 
-def _rotmat_entries(w, x, y, z) -> list:
-    """The 9 entries (row-major) of the rotation of a unit quaternion, for numpy and torch alike."""
-    return [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+def rotmat_entries(w, x, y, z) -> tuple:
+    """The 9 entries (row-major) of the rotation of a unit quaternion, for numpy, torch and numba alike."""
+    return (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
             2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
 
 
 def _quat_to_rotmat_torch(q: Tensor) -> Tensor:
@@ -116,7 +116,7 @@ def _quat_to_rotmat_torch(q: Tensor) -> Tensor:
     q: Tensor  # [..., 4] (w, x, y, z), unit norm
     returns Tensor  # [..., 3, 3]
     """
-    return torch.stack(_rotmat_entries(*q.unbind(-1)), dim=-1).reshape(*q.shape[:-1], 3, 3)
+    return torch.stack(rotmat_entries(*q.unbind(-1)), dim=-1).reshape(*q.shape[:-1], 3, 3)
 
 
 def quat_to_rotmat(q):
@@ -138,7 +138,7 @@ def quat_to_rotmat(q):
     if (norm < 1e-12).any():
         raise PoseError("quaternion has zero norm; it describes no rotation")
     # numpy here: a pose lookup is a handful of quaternions, where torch's per-op overhead dominates
-    return np.stack(_rotmat_entries(*np.moveaxis(q / norm, -1, 0)), axis=-1).reshape(*q.shape[:-1], 3, 3)
+    return np.stack(rotmat_entries(*np.moveaxis(q / norm, -1, 0)), axis=-1).reshape(*q.shape[:-1], 3, 3)
 
 
 def rotmat_to_quat(R) -> np.ndarray:
@@ -337,6 +337,7 @@ class Trajectory:
         self.t_us = t
         self.c2w = poses
         self._quats = rotmat_to_quat(poses[:, :3, :3])
+        self._last: tuple[int, np.ndarray] | None = None  # a render asks for its instant's pose twice
 
     @property
     def start_us(self) -> int:
@@ -361,10 +362,18 @@ class Trajectory:
         t = np.asarray(t_us)
         if not np.issubdtype(t.dtype, np.integer):
             raise InvalidInputError(f"t_us must be integer microseconds, got dtype {t.dtype}")
+        if not scalar:
+            return self._at(t)
+        last = self._last
+        if last is None or last[0] != int(t):
+            last = self._last = (int(t), self._at(t)[0])
+        return last[1].copy()
+
+    def _at(self, t: np.ndarray) -> np.ndarray:
+        """``at`` for integer times, always [M, 4, 4]."""
         t = np.clip(t.astype(np.int64).reshape(-1), self.t_us[0], self.t_us[-1])
         if self.t_us.size == 1:
-            out = np.repeat(self.c2w[:1], t.size, axis=0)
-            return out[0] if scalar else out
+            return np.repeat(self.c2w[:1], t.size, axis=0)
         i = np.clip(np.searchsorted(self.t_us, t, side="right") - 1, 0, self.t_us.size - 2)
         t0, t1 = self.t_us[i], self.t_us[i + 1]
         # int64 differences first (exact), float64 only for the ratio: Unix µs do not fit float32.
@@ -374,7 +383,7 @@ class Trajectory:
         out[:, :3, :3] = quat_to_rotmat(q)
         out[:, :3, 3] = (1.0 - w)[:, None] * self.c2w[i, :3, 3] + w[:, None] * self.c2w[i + 1, :3, 3]
         out[:, 3, 3] = 1.0
-        return out[0] if scalar else out
+        return out
 
     def __len__(self) -> int:
         return int(self.t_us.size)

@@ -301,17 +301,19 @@ class EdMCGS(nn.Module):
             expected = (self.meta.event_height, self.meta.event_width)
             if tuple(emap.shape) != expected:
                 raise InvalidInputError(f"event_map must be {list(expected)}, got {list(emap.shape)}")
-            if not bool(torch.isfinite(emap).all()):
+            magnitude = float(emap.abs().sum(dtype=torch.float64))  # one pass: finite, and not all zero
+            if not math.isfinite(magnitude):
                 raise InvalidInputError("event_map contains NaN or Inf")
-            if not bool(torch.any(emap != 0)):
+            if magnitude == 0:
                 emap = None
         w2c = None
         if emap is not None and self.config.local_sampling:
             if ev_c2w is None:
                 if self.meta.trajectory is None:
                     raise InvalidInputError("ev_c2w is required: this checkpoint has no camera trajectory")
-                ev_c2w = self.meta.trajectory.at(t_us)
-            validate_pose(np.asarray(ev_c2w, dtype=np.float64))
+                ev_c2w = self.meta.trajectory.at(t_us)  # valid by construction
+            else:
+                validate_pose(np.asarray(ev_c2w, dtype=np.float64), name="ev_c2w")
             w2c = torch.as_tensor(world_to_camera(np.asarray(ev_c2w, dtype=np.float64)),
                                   dtype=torch.float32, device=device)
         window = self.window(t_us)

@@ -4,6 +4,7 @@ import torch
 from torch import Tensor, nn
 
 from edmcgs.model.motion.encoding import encoded_size, positional_encoding
+from edmcgs.model.motion.point_terms import PointTerms
 
 
 class DeformationField(nn.Module):
@@ -28,19 +29,42 @@ class DeformationField(nn.Module):
         for head in (self.translation, self.rotation):
             nn.init.zeros_(head.weight)
             nn.init.zeros_(head.bias)
+        self._points = PointTerms()
 
     def forward(self, x: Tensor, t: float | Tensor) -> tuple[Tensor, Tensor]:
         """x: Tensor  # [M, 3] control points in normalised scene coordinates (about [-1, 1]), no grad
         t: normalised time in [0, 1] (a Python float or a float64 scalar: it is encoded in float64)
         returns (translation [M, 3] in scene extents, rotation delta [M, 4] to add to the identity)
         """
-        # gamma(t) in float64, then cast: sin(2^k pi t) of a float32 t would lose microseconds of a long span.
-        t64 = torch.as_tensor(t, dtype=torch.float64, device=x.device).reshape(1, 1)
-        t_enc = positional_encoding(t64, self.time_freqs).to(x.dtype).expand(x.shape[0], -1)
-        inp = torch.cat([positional_encoding(x, self.pos_freqs), t_enc], -1)
-        h = inp
+        t_enc = self.encode_time(t, x)                                                  # [1, Dt]
+        # The layers that read the input [gamma(x), gamma(t)] split it by columns: the gamma(x) part (with
+        # the bias) is time-independent and kept between inference calls, the gamma(t) part is one row.
+        x_terms = self._points.get(self, x, self._x_terms)
+        dt = t_enc.shape[1]
+        h = None
         for i, layer in enumerate(self.layers):
-            if i == self.skip and i > 0:
-                h = torch.cat([h, inp], -1)
-            h = torch.relu(layer(h))
+            if i in x_terms:
+                w = layer.weight
+                pre = x_terms[i] + t_enc @ w[:, w.shape[1] - dt:].T
+                h = pre if h is None else torch.addmm(pre, h, w[:, :h.shape[1]].T)
+            else:
+                h = layer(h)
+            h = torch.relu(h)
         return self.translation(h), self.rotation(h)
+
+    def encode_time(self, t: float | Tensor, like: Tensor) -> Tensor:
+        """gamma(t) [1, Dt] in ``like``'s dtype and device, computed in float64 and then cast: sin(2^k pi t)
+        of a float32 t would lose microseconds of a long span."""
+        t64 = torch.as_tensor(t, dtype=torch.float64, device=like.device).reshape(1, 1)
+        return positional_encoding(t64, self.time_freqs).to(like.dtype)
+
+    def _x_terms(self, x: Tensor) -> dict[int, Tensor]:
+        """gamma(x) times the gamma(x) columns of each layer that reads the input, plus its bias, by
+        layer index: [M, width] each."""
+        enc = positional_encoding(x, self.pos_freqs)
+        terms = {}
+        for i in (0, self.skip) if self.skip > 0 else (0,):
+            w = self.layers[i].weight
+            start = 0 if i == 0 else w.shape[0]  # the skip layer reads [h, gamma(x), gamma(t)]
+            terms[i] = torch.addmm(self.layers[i].bias, enc, w[:, start:start + enc.shape[1]].T)
+        return terms

@@ -12,6 +12,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from edmcgs.model.motion.encoding import encoded_size, positional_encoding
+from edmcgs.model.motion.point_terms import PointTerms
 
 FEATURES = 32
 """Channels of Phi's output (the motion code's width)."""
@@ -59,8 +60,9 @@ class EventEncoder(nn.Module):
             x = F.avg_pool2d(x, self.pool, ceil_mode=True)
         h = self._act(self.conv1(x))
         h = self.conv2(h)
-        with torch.no_grad():
-            self.dead_fraction = float((h.amax(dim=(0, 2, 3)) <= 0).float().mean())
+        if torch.is_grad_enabled():  # a training statistic: inference skips its reduction and sync
+            with torch.no_grad():
+                self.dead_fraction = float((h.amax(dim=(0, 2, 3)) <= 0).float().mean())
         return self.conv3(self._act(h))
 
     def _act(self, x: Tensor) -> Tensor:
@@ -102,16 +104,22 @@ class EventTransition(nn.Module):
         self.out = nn.Linear(hidden, 3)
         nn.init.zeros_(self.out.weight)
         nn.init.zeros_(self.out.bias)
-
-    def _g(self, enc: Tensor, codes: Tensor) -> Tensor:
-        return self.out(torch.relu(self.hidden(torch.cat([enc, codes], -1))))
+        self._points = PointTerms()
 
     def forward(self, x: Tensor, codes: Tensor) -> Tensor:
         """x: Tensor      # [M, 3] canonical control points, normalised scene coordinates
         codes: Tensor  # [M, 32] motion codes
         returns Tensor # [M, 3] displacement in scene extents; exactly 0 where codes == 0
         """
-        enc = positional_encoding(x, self.pos_freqs)
-        delta = self._g(enc, codes) - self._g(enc, torch.zeros_like(codes))
+        x_term, g_zero = self._points.get(self, x, self._x_terms)
+        w = self.hidden.weight
+        g = self.out(torch.relu(torch.addmm(x_term, codes, w[:, w.shape[1] - codes.shape[1]:].T)))
         # Two GEMMs need not round identically row for row; the mask makes the zero exact.
-        return delta * (codes != 0).any(-1, keepdim=True)
+        return (g - g_zero) * (codes != 0).any(-1, keepdim=True)
+
+    def _x_terms(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """The hidden layer's gamma(x) part with its bias [M, hidden], and g(gamma(x), 0) [M, 3]: the
+        transition is g(gamma(x), m) - g(gamma(x), 0) and only m changes between calls."""
+        enc = positional_encoding(x, self.pos_freqs)
+        x_term = torch.addmm(self.hidden.bias, enc, self.hidden.weight[:, :enc.shape[1]].T)
+        return x_term, self.out(torch.relu(x_term))

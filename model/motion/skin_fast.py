@@ -12,16 +12,33 @@ import math
 import numba
 import numpy as np
 
+from edmcgs.geometry import rotmat_entries
+
+_rotmat = numba.njit(inline="always")(rotmat_entries)
+
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def blend(means, quats, bind, weights, affine, rotations, moving, out_means, out_quats):
+def blend(means, quats, bind, weights, control, rotations, translations, moving, out_means, out_quats):
     """Skin Gaussians ``moving[j]`` (all when ``moving`` is empty) into ``out_means``/``out_quats``.
 
     means: [N, 3], quats: [N, 4] unit (w, x, y, z) canonical; bind, weights: [Nm, K] (row j belongs to
-    Gaussian moving[j]); affine: [M, 12] row-major 3x4 maps (R | p + T - R p); rotations: [M, 4] unit.
+    Gaussian moving[j]); control: [M, 3] canonical control points p, rotations: [M, 4] unit,
+    translations: [M, 3] (each point's map x -> R (x - p) + p + T, as ``skinning.control_affine``).
     out_means, out_quats: [N, 3], [N, 4], already holding the canonical values of the others.
     Parallel over Gaussians (each writes only its own rows).
     """
+    m = control.shape[0]
+    affine = np.empty((m, 12))  # row-major 3x4 maps (R | p + T - R p), in float64
+    for c in range(m):
+        r = _rotmat(np.float64(rotations[c, 0]), np.float64(rotations[c, 1]), np.float64(rotations[c, 2]),
+                    np.float64(rotations[c, 3]))
+        p0, p1, p2 = np.float64(control[c, 0]), np.float64(control[c, 1]), np.float64(control[c, 2])
+        for row in range(3):
+            affine[c, 4 * row] = r[3 * row]
+            affine[c, 4 * row + 1] = r[3 * row + 1]
+            affine[c, 4 * row + 2] = r[3 * row + 2]
+            affine[c, 4 * row + 3] = (np.float64(control[c, row]) + np.float64(translations[c, row])
+                                      - (r[3 * row] * p0 + r[3 * row + 1] * p1 + r[3 * row + 2] * p2))
     nm, k = bind.shape
     for j in numba.prange(nm):
         i = np.int64(moving[j]) if moving.shape[0] > 0 else np.int64(j)

@@ -86,11 +86,9 @@ def skin(plan: SkinPlan, control: Tensor, rotations: Tensor, translations: Tenso
     rotations: Tensor     # [M, 4] unit quaternions r_k^t
     translations: Tensor  # [M, 3] T_k^t
     """
-    c = plan.canonical
-    affine = control_affine(control, rotations, translations)                        # [M, 12]
-    if c.means.device.type == "cpu":
-        return _skin_cpu(plan, affine, rotations)
-    return _skin_torch(plan, affine, rotations)
+    if plan.canonical.means.device.type == "cpu":
+        return _skin_cpu(plan, control, rotations, translations)
+    return _skin_torch(plan, control_affine(control, rotations, translations), rotations)
 
 
 def _skin_torch(plan: SkinPlan, affine: Tensor, rotations: Tensor) -> GaussianState:
@@ -107,15 +105,15 @@ def _skin_torch(plan: SkinPlan, affine: Tensor, rotations: Tensor) -> GaussianSt
     return GaussianState(moved, turned, c.scales, c.opacities, c.colors)
 
 
-def _skin_cpu(plan: SkinPlan, affine: Tensor, rotations: Tensor) -> GaussianState:
-    """The same blend as one numba loop (imported here: training never loads numba)."""
+def _skin_cpu(plan: SkinPlan, control: Tensor, rotations: Tensor, translations: Tensor) -> GaussianState:
+    """The same maps and blend in one numba kernel (imported here: training never loads numba)."""
     from edmcgs.model.motion.skin_fast import blend
     from edmcgs.model.render.jit import in_torch_threads
 
     c = plan.canonical
     means, quats = c.means.clone(), c.quats.clone()  # the frozen Gaussians keep these
     moving = plan.moving if plan.moving is not None else torch.zeros(0, dtype=torch.long)
+    maps = (control.detach(), rotations.contiguous(), translations.contiguous())
     in_torch_threads(blend, c.means.numpy(), c.quats.numpy(), plan.bind.numpy(), plan.weights.numpy(),
-                     affine.double().numpy(), rotations.double().numpy(), moving.numpy(), means.numpy(),
-                     quats.numpy())
+                     *(t.numpy() for t in maps), moving.numpy(), means.numpy(), quats.numpy())
     return GaussianState(means, quats, c.scales, c.opacities, c.colors)
