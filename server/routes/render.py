@@ -67,7 +67,9 @@ def parse_pose_param(pose: str | None):
     return parse_pose(protocol.parse_pose_text(pose), name="pose")
 
 
-def get_service(request: Request) -> Service:
+# The dependencies are ``async def`` though they never await: FastAPI runs a plain ``def`` dependency
+# on a worker thread, a thread hop per dependency per request for a few microseconds of work.
+async def get_service(request: Request) -> Service:
     """The running service (built by the app's lifespan)."""
     return request.app.state.service
 
@@ -78,16 +80,17 @@ ServiceDep = Annotated[Service, Depends(get_service)]
 MAX_T_S = MAX_T_US / 1e6 / 2
 
 
-def scene_time(service: ServiceDep,
-               t: Annotated[float | None, Query(description=T_DOC, ge=-MAX_T_S, le=MAX_T_S)] = None,
-               t_us: Annotated[int | None, Query(description=T_US_DOC, ge=-MAX_T_US, le=MAX_T_US)] = None,
-               ) -> int | None:
+async def scene_time(
+    service: ServiceDep,
+    t: Annotated[float | None, Query(description=T_DOC, ge=-MAX_T_S, le=MAX_T_S)] = None,
+    t_us: Annotated[int | None, Query(description=T_US_DOC, ge=-MAX_T_US, le=MAX_T_US)] = None,
+) -> int | None:
     """The query's time as scene µs (None: the head)."""
     return parse_time(service, t, t_us)
 
 
-def pose_query(pose: Annotated[str | None, Query(description=POSE_DOC,
-                                                max_length=protocol.MAX_POSE_TEXT)] = None):
+async def pose_query(pose: Annotated[str | None, Query(description=POSE_DOC,
+                                                      max_length=protocol.MAX_POSE_TEXT)] = None):
     """The query's pose, c2w float64 [4, 4], or None."""
     return parse_pose_param(pose)
 
