@@ -4,6 +4,8 @@
 
 Keys (targets, on the demo scene at 346x260, an idle 2-core CPU):
     render_p50_ms            GET /render, one client, the event branch included      <= 8
+                             (render_{state,raster,encode}_mean_ms: where the server's
+                             part of it goes, from its edmcgs_render_stage_seconds)
     render_rps_4_clients     four concurrent clients, each with its own pose          >= 200
     render_p99_ms_4_clients  the same, 99th percentile latency                        <= 150
     stream_fps               one websocket client, live mode asking for 60 fps        >= 60
@@ -37,11 +39,15 @@ from pathlib import Path
 import numpy as np
 
 from bench.results import table, write_json
-from tests.support.server import ServerProcess, build_scene
+from tests.support.server import ServerProcess, build_scene, metric_values
 
 TARGETS = {"render_p50_ms": ("<=", 8.0), "render_rps_4_clients": (">=", 200.0),
            "render_p99_ms_4_clients": ("<=", 150.0), "stream_fps": (">=", 60.0),
            "event_to_frame_ms": ("<=", 15.0)}
+
+
+STAGES = ("state", "raster", "encode")
+"""The server's render stages (``edmcgs_render_stage_seconds``): the one-client phase reports their means."""
 
 
 def _percentile(values, q: float) -> float:
@@ -79,6 +85,20 @@ def measure_single(client, scene: dict, seconds: float, size: tuple[int, int]) -
     return {"render_p50_ms": _percentile(latencies, 50), "render_p90_ms_1_client": _percentile(latencies, 90),
             "render_server_p50_ms": _percentile(server_ms, 50), "render_requests_1_client": len(latencies),
             "events_per_render_median": _percentile(events, 50)}
+
+
+def stage_means(before: dict[str, float], after: dict[str, float]) -> dict:
+    """Mean milliseconds per render of each stage the server times (``edmcgs_render_stage_seconds``)
+    between two scrapes: where the server-side render time goes."""
+    out = {}
+    for stage in STAGES:
+        key = f'{{stage="{stage}"}}'
+        n = after.get(f"edmcgs_render_stage_seconds_count{key}", 0) - before.get(
+            f"edmcgs_render_stage_seconds_count{key}", 0)
+        total = after.get(f"edmcgs_render_stage_seconds_sum{key}", 0) - before.get(
+            f"edmcgs_render_stage_seconds_sum{key}", 0)
+        out[f"render_{stage}_mean_ms"] = total * 1e3 / n if n else float("nan")
+    return out
 
 
 def measure_four(url: str, token: str | None, scene: dict, seconds: float, size: tuple[int, int],
@@ -185,9 +205,10 @@ def main(argv: list[str] | None = None) -> int:
                 scene = client.scene()
                 steps.update()
                 steps.set_postfix_str("one client")
-                cpu0 = server.cpu_s()
+                cpu0, stages0 = server.cpu_s(), metric_values(client.metrics())
                 results = measure_single(client, scene, args.seconds, args.size)
                 cpu1 = server.cpu_s()
+                results |= stage_means(stages0, metric_values(client.metrics()))
                 results["server_cpu_ms_per_render_1_client"] = \
                     (cpu1 - cpu0) * 1e3 / results["render_requests_1_client"]
                 steps.update()

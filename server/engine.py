@@ -10,7 +10,7 @@ Every method here blocks; the routes call them on the render pool's threads.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -39,6 +39,8 @@ class Rendered:
     events: int
     anchor: str = "checkpoint"
     """protocol.ANCHOR_KINDS: the checkpoint's anchor, or an online one predicted or corrected."""
+    stages: dict[str, float] = field(default_factory=dict)
+    """Seconds spent per stage: "state" (the events and the deformation, or a cache hit), "raster"."""
 
 
 class Engine:
@@ -244,11 +246,14 @@ class Engine:
     def render(self, t_us: int | None, pose: np.ndarray | None, width: int, height: int) -> Rendered:
         """Pixels of the scene at ``t_us`` (None: the head) from ``pose`` (None: the event camera's)."""
         instant = self.resolve(t_us)
+        t0 = time.perf_counter()
         state, n_events = self.state(instant)
+        t1 = time.perf_counter()
         c2w = self.default_pose(instant.t_us) if pose is None else pose
         intr = self.intrinsics(width, height)
-        image = self.model.render(state, c2w, intr, fast=self.fast, threads=self.raster_threads)
-        return Rendered(to_uint8(image), instant, n_events, self.anchor_kind(instant))
+        pixels = to_uint8(self.model.render(state, c2w, intr, fast=self.fast, threads=self.raster_threads))
+        stages = {"state": t1 - t0, "raster": time.perf_counter() - t1}
+        return Rendered(pixels, instant, n_events, self.anchor_kind(instant), stages)
 
     def warm_up(self) -> float:
         """Compile the fast paths (numba) with one render at the first anchor, off the request path.

@@ -25,6 +25,7 @@ from prometheus_client import (
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 
 LATENCY_BUCKETS_S = (0.005, 0.01, 0.015, 0.025, 0.05, 0.075, 0.1, 0.15, 0.25, 0.5, 1.0, 2.5, 5.0)
+STAGE_BUCKETS_S = (0.0005, 0.001, 0.002, 0.003, 0.005, 0.0075, 0.01, 0.015, 0.025, 0.05, 0.1, 0.5)
 CONTENT_TYPE = CONTENT_TYPE_PLAIN_0_0_4
 """The exposition's media type: the Prometheus text format 0.0.4 that ``generate_latest`` writes."""
 
@@ -70,6 +71,10 @@ class Metrics:
                                  "(seconds).", ("route",), buckets=LATENCY_BUCKETS_S, registry=registry)
         self.render = Histogram("edmcgs_render_seconds", "Render + encode time by path (seconds).",
                                 ("path",), buckets=LATENCY_BUCKETS_S, registry=registry)
+        self.render_stage = Histogram(
+            "edmcgs_render_stage_seconds", "Where a render's time goes (seconds): state (the window's events "
+            "and the deformation, or a cache hit), raster (the rasterizer and uint8), encode (PNG/JPEG/raw).",
+            ("stage",), buckets=STAGE_BUCKETS_S, registry=registry)
         self.frames_sent = Counter("edmcgs_stream_frames_sent_total", "Websocket frames sent.",
                                    registry=registry)
         self.frames_dropped = Counter("edmcgs_stream_frames_dropped_total",

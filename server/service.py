@@ -262,8 +262,11 @@ class Service:
         t0 = time.perf_counter()
         try:
             rendered = self.engine.render(t_us, pose, width, height)
+            t1 = time.perf_counter()
             data = encode(rendered.pixels, fmt, jpeg_quality=self.settings.jpeg_quality,
                           png_compress_level=self.settings.png_compress_level)
+            for stage, seconds in (*rendered.stages.items(), ("encode", time.perf_counter() - t1)):
+                self.metrics.render_stage.labels(stage).observe(seconds)
         except EdmcgsError:
             raise
         except Exception as exc:  # torch / numba / Pillow failures: a 500 with a message, not a crash

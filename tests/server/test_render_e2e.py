@@ -184,5 +184,14 @@ def test_healthz_and_metrics(client):
     assert values['edmcgs_http_request_duration_seconds_count{route="/render"}'] >= 1
     assert values['edmcgs_http_request_duration_seconds_bucket{le="+Inf",route="/render"}'] >= 1
     assert values['edmcgs_render_seconds_count{path="http"}'] >= 1
+    # the stages of every render: each observed once per render, together no longer than the render
+    stages = {s: values[f'edmcgs_render_stage_seconds_sum{{stage="{s}"}}']
+              for s in ("state", "raster", "encode")}
+    renders = values['edmcgs_render_stage_seconds_count{stage="raster"}']
+    assert renders >= 1 and all(values[f'edmcgs_render_stage_seconds_count{{stage="{s}"}}'] == renders
+                                for s in stages)
+    assert all(v > 0 for v in stages.values())
+    assert sum(stages.values()) <= values['edmcgs_render_seconds_sum{path="http"}'] + \
+        values.get('edmcgs_render_seconds_sum{path="stream"}', 0.0)
     assert "edmcgs_stream_frames_dropped_total" in values
     assert "# TYPE edmcgs_render_seconds histogram" in text
