@@ -58,6 +58,7 @@ class SceneReplica:
         self._service = None
         self.app = None
         self._token: str | None = None
+        self._probe_host = "localhost"
         self._pusher: asyncio.Task | None = None
         try:
             parsed = Settings(**settings)
@@ -73,6 +74,7 @@ class SceneReplica:
             return
         service = self._service
         self._token = parsed.token.get_secret_value() if parsed.token is not None else None
+        self._probe_host = probe_host(parsed.host_allowlist)
         self.app = create_app(parsed, service_factory=lambda _settings: service)
         # The app's lifespan starts the ingest thread and binds the service to this replica's loop.
         self._lifespan = self.app.router.lifespan_context(self.app)
@@ -159,7 +161,7 @@ class SceneReplica:
     async def probe(self, path: str) -> HttpResult:
         """GET ``path`` as the gateway itself (the scene's own token, whatever the client's): the
         health the gateway lists and the metrics the replica pushes."""
-        headers = [("host", "localhost")]
+        headers = [("host", self._probe_host)]
         if self._token is not None:
             headers.append(("authorization", f"Bearer {self._token}"))
         return await self.http("GET", path, "", headers)
@@ -207,3 +209,11 @@ async def _pull(mailbox, session_id: str, session: WebSocketSession) -> None:
         log.warning("stream %s: its mailbox is gone (%s); ending the session", session_id,
                     type(exc).__name__)
     session.disconnect()
+
+
+def probe_host(allowlist: list[str] | None) -> str:
+    """The Host the gateway's own requests to a replica carry: one the scene answers to, so that a
+    scene narrowing ``allowed_hosts`` still passes its probes (any name when it allows every one)."""
+    if allowlist is None or "*" in allowlist or not allowlist:
+        return "localhost"
+    return allowlist[0]

@@ -196,3 +196,18 @@ def test_the_application_scales_a_scene_between_its_bounds(files):
     assert fixed.num_replicas == 2 and fixed.autoscaling_config is None
     scaling = elastic.autoscaling_config
     assert (scaling.min_replicas, scaling.max_replicas, scaling.target_ongoing_requests) == (1, 3, 3)
+
+
+@pytest.mark.parametrize("allowlist", [None, ["*"], ["127.0.0.1", "localhost", "::1"], ["cams.example.org"],
+                                       ["cams.example.org", "localhost"]])
+def test_the_gateways_probe_carries_a_host_the_scene_answers_to(allowlist):
+    from edmcgs.server.middleware import AccessMiddleware
+    from edmcgs.server.ray_serve.scene import probe_host
+
+    app = AccessMiddleware(_app(), None, allowed_hosts=allowlist)
+    probe = asyncio.run(http_request(app, "GET", "/echo", "q=1", [("host", probe_host(allowlist))]))
+    assert probe.status == 200
+    if allowlist is not None and "*" not in allowlist and "localhost" not in allowlist:
+        # what the probe sent before: refused by a scene that narrows its names
+        refused = asyncio.run(http_request(app, "GET", "/echo", "q=1", [("host", "localhost")]))
+        assert refused.status == 421
