@@ -11,9 +11,9 @@ training time, render error against time per frame over the fast path's knobs, t
 slow for the test suite, what each checkpoint leaves out (measured against its full twin, with a grey
 variant of the first scene: one more training run), and the full model served past its span with online
 anchors (a recording of the first scene four times as long). Run it from the repository root: the render
-sweep uses the float64 reference renderer in bench/. ``--ray`` trains the grid's runs as Ray tasks side
-by side (``--threads`` CPUs each, the 'ray' extra; RAY_ADDRESS joins a cluster), into the same cache;
-the rest of the report then runs as without it.
+sweep uses the float64 reference renderer in bench/. ``--ray`` trains all the report's runs (the grid, the
+sparse rates, the lean section's) as Ray tasks side by side (``--threads`` CPUs each, the 'ray' extra;
+RAY_ADDRESS joins a cluster), into the same cache; the rest of the report then runs as without it.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import logging
 import os
 import sys
 import time
@@ -50,6 +51,8 @@ from bench.report.stability import (
 from bench.report.training import load_run_model, train_on_ray, train_run
 from edmcgs.model.eval.lpips import LPIPS, find_weights
 from edmcgs.pipeline import training_data
+
+log = logging.getLogger("bench.report")
 
 DAY_US = 86_400_000_000
 
@@ -94,7 +97,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=1, help="torch and numba threads (default 1)")
     p.add_argument("--device", default="cpu", help="torch device for training (default cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.add_argument("--ray", action="store_true", help="train the grid's runs as Ray tasks side by side")
+    p.add_argument("--ray", action="store_true",
+                   help="train every run of the report as Ray tasks side by side")
     p.add_argument("--ray-cpus", type=int, metavar="N", help="CPUs of the local Ray --ray starts")
     return p
 
@@ -120,12 +124,15 @@ def collect(s: ReportSettings, cache: Path, *, device: str, progress: bool,
 
     def run(scene: str, fps: float, variant: str, source: tuple | None = None) -> dict:
         result = train_run(**job(scene, fps, variant, source))
+        if ray is not None and not result["cached"]:  # planned_runs missed it: trained here, one at a time
+            log.warning("bench.report --ray: %s %g fps %s was not among the runs trained on Ray", scene, fps,
+                        variant)
         return {"scene": scene, "fps": fps, "variant": variant, **result}
 
     grid = [(scene, fps, v) for scene in s.scenes for fps in s.fps for v in s.variants]
-    if ray is not None:  # the grid's runs side by side, into the cache the loop below then reads
+    if ray is not None:  # every run side by side, into the cache the sections below then read
         threads, num_cpus = ray
-        train_on_ray([job(*cell) for cell in grid], threads=threads, num_cpus=num_cpus)
+        train_on_ray([job(*cell) for cell in planned_runs(s, recs)], threads=threads, num_cpus=num_cpus)
     runs = [run(*cell) for cell in tqdm(grid, desc="training runs", disable=not progress)]
     full = {r["fps"]: r for r in runs if r["scene"] == first and r["variant"] == "full"}
     fps = min(s.fps)
@@ -153,6 +160,25 @@ def collect(s: ReportSettings, cache: Path, *, device: str, progress: bool,
     return {"runs": runs, "baselines": baseline_rows(recs, runs), "knobs": knobs, "context": context,
             "stability": stability, "time_resolution": resolution, "lean": lean, "lean_context": lean_context,
             "online": online, "online_predictions": predictions, "online_context": online_context}
+
+
+def planned_runs(s: ReportSettings, recs: dict) -> list[tuple]:
+    """Every training run the report makes, as ``(scene, fps, variant[, (recording, cache key)])``: the
+    grid, the first scene's full run at the lowest rate (the render sweep, the online section), its sparse
+    rates, each scene's full run at that rate and the first's without events (the lean section) and its
+    grey variant. ``--ray`` trains them all side by side first; the sections then find them cached."""
+    first, fps = s.scenes[0], min(s.fps)
+    cells = [(scene, f, v) for scene in s.scenes for f in s.fps for v in s.variants]
+    cells += [(first, fps, "full"), *((first, f, "full") for f in s.sparse_fps)]
+    cells += [(scene, fps, "full") for scene in s.scenes]
+    if "no_events" in s.variants:
+        cells.append((first, fps, "no_events"))
+    rec, key = recs[first][fps]
+    cells.append((first, fps, "full", (grey_recording(rec), f"{key}_grey")))
+    unique = {}
+    for cell in cells:  # first mention wins; a source is told apart by its cache key
+        unique.setdefault((*cell[:3], cell[3][1] if len(cell) > 3 else None), cell)
+    return list(unique.values())
 
 
 def collect_lean(s: ReportSettings, recs: dict, run, cache: Path, fps: float, *,
