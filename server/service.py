@@ -382,6 +382,9 @@ class Service:
         counter("edmcgs_events_dropped_total", "Events dropped: ring overflow (oldest first), late "
                 "(behind the watermark), invalid (rejected by the source's validation), behind (a shared "
                 "source's batches this process fell too far behind to get).", dropped, "reason")
+        counter("edmcgs_source_reconnects_total", "Times the source came back after going away (a camera "
+                "unplugged and found again; a scene's shared source whose ingest replica was replaced).",
+                lambda: float(getattr(self.source, "reconnects", 0)))
         counter("edmcgs_events_expired_total", "Events aged out of the ring's retention (a looping replay "
                 "keeps two passes): older than any render can use, so not dropped.",
                 lambda: ring.stats().expired)

@@ -7,6 +7,14 @@ anchors and online anchors are the single-process ones. A replica that falls beh
 loses the batches that left it: it says so (a warning, ``missed_batches`` / ``missed_events``, the
 ``behind`` reason of ``edmcgs_events_dropped_total``) and goes on from the oldest batch still held.
 
+If the ingest replica dies, Serve starts another, which opens the source again with a ring of its own
+(a new ``epoch``). Each render replica's ``RemoteSource`` raises ``DeviceDisconnected`` when its pull
+fails, and its ingest thread reconnects as it does for a camera (``reconnect``: back-off until the new
+ingest answers, then on from its oldest batch); Serve's handle may also retry the pull on the new
+replica by itself, which the ring's new epoch tells. What the old one held and had not handed over is
+gone, and the replica logs and counts the reconnect; a replay played as live starts again from its beginning,
+and its events before the replica's watermark are the ring's counted ``late`` drops.
+
 ``live: true`` with a ``replay`` in the Ray config plays the recording as a live camera through the
 same path (a live scene tried without a camera): its batches carry no replay range, so each replica's
 clock starts at its first event, as for a camera.
@@ -18,10 +26,11 @@ import asyncio
 import logging
 import threading
 import time
+import uuid
 from collections import deque
 from dataclasses import replace
 
-from edmcgs.errors import SensorError
+from edmcgs.errors import DeviceDisconnected, SensorError
 from edmcgs.sensor.events import Events, EventStats
 from edmcgs.sensor.sources.base import SensorBatch, StreamInfo
 
@@ -33,6 +42,8 @@ PULL_WAIT_S = 1.0
 """Longest a pull waits for a new batch (the replica's ingest thread checks for stop between pulls)."""
 PULL_MAX = 64
 """Batches handed over per pull at most."""
+RECONNECT_S = 120.0
+"""How long a render replica waits for a replaced ingest replica before its source is reported failed."""
 
 
 class SharedRing:
@@ -41,6 +52,7 @@ class SharedRing:
 
     def __init__(self, loop: asyncio.AbstractEventLoop | None = None, capacity: int = RING_BATCHES):
         self.ring: deque[tuple[int, int, SensorBatch]] = deque(maxlen=capacity)  # (seq, events before)
+        self.epoch = uuid.uuid4().hex  # this ring's identity: a replaced ingest replica has another
         self.next_seq = 0
         self.events = 0
         self.ended = False
@@ -80,7 +92,7 @@ class SharedRing:
             if items or self.ended or self.error is not None or time.monotonic() >= deadline:
                 return {"batches": [b for _, _, b in items], "first_seq": start, "first_events": first_events,
                         "missed": 0 if after is None else start - (after + 1),
-                        "end": self.ended and not items, "error": self.error}
+                        "end": self.ended and not items, "error": self.error, "epoch": self.epoch}
             try:
                 await asyncio.wait_for(self._new.wait(), max(0.0, deadline - time.monotonic()))
             except TimeoutError:
@@ -148,6 +160,9 @@ class RemoteSource:
         self.missed_batches = 0
         self.missed_events = 0
         self.pending: deque[SensorBatch] = deque()
+        self.epoch: str | None = None
+        self.reconnects = 0  # reading went on after the ingest replica failed (a new one, or it again)
+        self._came_back = False
 
     @property
     def info(self) -> StreamInfo:
@@ -159,9 +174,25 @@ class RemoteSource:
 
     def read(self) -> SensorBatch | None:
         while not self.pending:
-            answer = self.handle.pull.remote(self.after, PULL_WAIT_S).result(timeout_s=PULL_WAIT_S + 30)
+            try:
+                answer = self.handle.pull.remote(self.after, PULL_WAIT_S).result(timeout_s=PULL_WAIT_S + 30)
+            except Exception as exc:  # Ray's: the ingest replica died or cannot be reached
+                raise DeviceDisconnected(f"scene {self.scene}: the shared source's ingest replica did not "
+                                         f"answer ({type(exc).__name__}: {exc})") from exc
             if answer["error"] is not None:
                 raise SensorError(f"the scene's shared source failed: {answer['error']}")
+            if self.epoch is not None and answer["epoch"] != self.epoch:
+                # a new ingest replica: its ring, and its numbers, start over
+                log.warning("scene %s: the shared source restarted (a new ingest replica); going on from "
+                            "its oldest batch", self.scene)
+                self.epoch, self.after, self.received_events = answer["epoch"], None, 0
+                self.reconnects += 1
+                self._came_back = False
+                continue
+            self.epoch = answer["epoch"]
+            if self._came_back:  # the same ingest replica answers again after a failed pull
+                self.reconnects += 1
+                self._came_back = False
             batches = answer["batches"]
             if answer["missed"] > 0:
                 missed_events = answer["first_events"] - self.received_events
@@ -178,6 +209,26 @@ class RemoteSource:
             else:
                 return SensorBatch(events=_no_events())  # nothing new yet: the ingest loop checks for stop
         return self.pending.popleft()
+
+    def reconnect(self, *, budget_s: float = RECONNECT_S, initial_delay_s: float = 0.2,
+                  max_delay_s: float = 5.0, should_stop=lambda: False) -> None:
+        """Wait, backing off, until the scene's ingest deployment answers again (Serve replaces a dead
+        replica); raise SensorError after ``budget_s``. ``Ingest`` calls this on DeviceDisconnected."""
+        deadline = time.monotonic() + budget_s
+        delay, last = float(initial_delay_s), None
+        while not should_stop() and time.monotonic() < deadline:
+            time.sleep(delay)
+            try:
+                self.handle.info.remote().result(timeout_s=max(1.0, min(30.0, deadline - time.monotonic())))
+            except Exception as exc:
+                last = exc
+                delay = min(max_delay_s, delay * 2)
+                continue
+            self._came_back = True  # counted once the next pull says whether it is a new replica
+            log.warning("scene %s: the shared source's ingest replica answers again", self.scene)
+            return
+        raise SensorError(f"scene {self.scene}: the shared source's ingest replica did not come back in "
+                          f"{budget_s:.0f} s: {last}")
 
     def close(self) -> None:
         self.pending.clear()

@@ -247,6 +247,40 @@ def test_a_live_scenes_replicas_share_its_one_source(cluster):
     assert behind and all(float(v) == 0 for v in behind), "no replica fell behind the shared ring"
 
 
+def test_a_live_scene_reconnects_when_its_ingest_replica_dies(cluster):
+    """Serve replaces the killed ingest replica; each render replica's source reconnects to the new one
+    (the same path as a camera unplugged and back), renders never fail, and the head moves on."""
+    def head() -> int:
+        r = httpx.get(cluster.url + "/scenes/cam/render", params={"format": "jpeg"}, timeout=60)
+        assert r.status_code == 200, r.text[:500]
+        return int(r.headers["x-edmcgs-t-us"])
+
+    victims = cluster.replica_actors("ingest-cam")
+    assert len(victims) == 1, victims
+    before = head()
+    cluster.kill_replica(victims[0])
+    deadline = time.monotonic() + 150
+    while cluster.running_replicas("ingest-cam") < 1 or cluster.replica_actors("ingest-cam") == victims:
+        assert time.monotonic() < deadline, "the ingest replica was not replaced"
+        head()  # the render replicas keep answering from what their rings hold
+        time.sleep(0.5)
+    reconnected: dict[str, float] = {}
+    while len(reconnected) < 2 or not all(v >= 1 for v in reconnected.values()):
+        assert time.monotonic() < deadline, f"the render replicas did not reconnect: {reconnected}"
+        text = httpx.get(cluster.url + "/scenes/cam/metrics", timeout=30).text
+        reconnected = {m[0]: float(m[1]) for m in re.findall(
+            r'^edmcgs_source_reconnects_total\{replica="([^"]+)"\} (\S+)$', text, re.M)}
+        time.sleep(0.5)
+    health = httpx.get(cluster.url + "/scenes/cam/healthz", timeout=30).json()
+    assert health["ready"] is True and health["source"] != "error", health
+    first = head()
+    deadline = time.monotonic() + 60
+    while head() <= first:  # the new ingest's events arrive: the live head moves on
+        assert time.monotonic() < deadline, "the live head did not move after the reconnect"
+        time.sleep(0.3)
+    assert first >= before
+
+
 def test_a_replica_killed_mid_load_costs_no_failed_request(cluster):
     url = cluster.url + "/scenes/beta/render"
     statuses: list[int] = []

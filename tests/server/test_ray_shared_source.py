@@ -89,3 +89,67 @@ def test_the_sources_failure_reaches_every_reader():
     shared.finish("SensorError: the camera went away")
     with pytest.raises(SensorError, match="the camera went away"):
         reader.read()
+
+
+class Replaceable:
+    """A handle whose ingest replica can die (every call fails) and be replaced by one with a new ring."""
+
+    def __init__(self, shared: SharedRing):
+        self.shared, self.dead_calls = shared, 0
+        self.info = Method(lambda: self._call(lambda: INFO))
+        self.pull = Method(lambda after, wait_s: self._call(
+            lambda: asyncio.run(self.shared.pull(after, 0.0))))
+
+    def _call(self, fn):
+        if self.dead_calls:
+            self.dead_calls -= 1
+            raise RuntimeError("ActorDiedError: the replica died")
+        return fn()
+
+
+def test_a_replaced_ingest_replica_is_reconnected_and_read_from_its_oldest_batch(caplog):
+    from edmcgs.errors import DeviceDisconnected
+    from edmcgs.sensor.buffer.ingest import Ingest
+    from edmcgs.sensor.buffer.ring import EventRingBuffer
+
+    first = SharedRing()
+    handle = Replaceable(first)
+    reader = RemoteSource(handle, "cam")
+    for i in range(3):
+        first.append(batch(100 * i))
+    assert [int(reader.read().events.t[0]) for _ in range(3)] == [0, 100, 200]
+    first.append(batch(300))  # held by the replica that dies: never handed over
+    handle.dead_calls = 3  # the pull, then two probes of the reconnect
+    with pytest.raises(DeviceDisconnected, match="ingest replica did not answer"):
+        reader.read()
+    handle.shared = second = SharedRing()
+    for i in range(4, 6):
+        second.append(batch(100 * i))
+    with caplog.at_level(logging.WARNING, "edmcgs.server.ray"):
+        reader.reconnect(initial_delay_s=0.0)
+        assert handle.dead_calls == 0
+        assert [int(reader.read().events.t[0]) for _ in range(2)] == [400, 500]
+    assert reader.reconnects == 1 and reader.missed_batches == 0  # a restart is not a ring's fall-behind
+    assert "the shared source restarted" in caplog.text
+
+    # the same through a replica's ingest thread: the disconnect is counted, nothing ends in an error
+    third = SharedRing()
+    handle.shared = third
+    ring = EventRingBuffer(1000)
+    ingest = Ingest(RemoteSource(handle, "cam"), ring)
+    handle.dead_calls = 1  # its first pull
+    for i in range(6, 9):
+        third.append(batch(100 * i))
+    third.finish()
+    ingest.run()
+    assert ingest.error is None and ingest.finished and ingest.disconnects == 1
+    assert ingest.source.reconnects == 1  # the same ring again: counted once
+    assert ring.stats().size == 9 and ring.stats().oldest_us == 600
+
+
+def test_an_ingest_replica_that_never_comes_back_is_a_source_failure():
+    handle = Replaceable(SharedRing())
+    reader = RemoteSource(handle, "cam")
+    handle.dead_calls = 10**6
+    with pytest.raises(SensorError, match="did not come back"):
+        reader.reconnect(budget_s=0.05, initial_delay_s=0.01)

@@ -95,6 +95,15 @@ class LocalServe:
         ray.kill(ray.get_actor(actor_name, namespace="serve"), no_restart=True)
 
     @staticmethod
+    def replica_actors(deployment: str, app: str = "edmcgs") -> list[str]:
+        """The actor names of a deployment's replicas (``SERVE_REPLICA::app#deployment#id``)."""
+        import ray
+
+        prefix = f"SERVE_REPLICA::{app}#{deployment}#"
+        return sorted(a["name"] for a in ray.util.list_named_actors(all_namespaces=True)
+                      if a["name"].startswith(prefix))
+
+    @staticmethod
     def running_replicas(deployment: str, app: str = "edmcgs") -> int:
         from ray import serve
 
