@@ -355,3 +355,35 @@ def test_a_stream_and_a_render_outlive_a_scenes_only_replica(cluster):
         while kinds.count("frame") < 5 and time.monotonic() < deadline:
             kinds.append(protocol.unpack(ws.recv(timeout=60))["type"])
         assert kinds.count("frame") >= 5 and "error" not in kinds and "subscribed" not in kinds
+
+
+def test_a_replaced_gateway_streams_and_gathers_metrics_again(cluster):
+    """After the last: the gateway's replica is killed; Serve's replacement makes its mailbox and metrics
+    board again, so a new websocket streams and a scene's metrics list every replica once more."""
+    from websockets.sync.client import connect
+
+    victims = cluster.replica_actors("gateway")
+    assert len(victims) == 1, victims
+    cluster.kill_replica(victims[0])
+    deadline = time.monotonic() + 120
+    while True:
+        assert time.monotonic() < deadline, "the gateway was not replaced"
+        try:
+            if httpx.get(cluster.url + "/scenes", timeout=10).status_code == 200 and \
+                    cluster.replica_actors("gateway") not in ([], victims):
+                break
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.5)
+    url = cluster.url.replace("http://", "ws://") + "/scenes/beta/stream"
+    with connect(url, open_timeout=30) as ws:
+        ws.send(protocol.pack({"mode": "sweep", "t0": 0.0, "t1": 0.5, "fps": 20, "speed": 1.0,
+                               "format": "raw"}))
+        kinds = [protocol.unpack(ws.recv(timeout=60))["type"] for _ in range(3)]
+        assert kinds == ["subscribed", "frame", "frame"], kinds
+    while True:
+        r = httpx.get(cluster.url + "/scenes/beta/metrics", timeout=30)
+        if 'edmcgs_gateway_replicas_reporting{scene="beta"} 2' in r.text:
+            break
+        assert time.monotonic() < deadline, r.text[-2000:]
+        time.sleep(0.5)
