@@ -29,6 +29,10 @@ def test_the_model_is_served_past_its_span_beside_the_baselines(tmp_path):
     end = short.anchors.t_us[-1]
     assert len(rows) == int((long.held_out.t_us > end).sum()) > 0
     assert len(predictions) == int((long.anchors.t_us > end).sum())
+    for p in predictions:  # each new frame scored against its prediction and against its correction
+        assert np.isfinite(p["pred_psnr"]) and np.isfinite(p["corrected_psnr"])
+    scores = {k: np.mean([p[k] for p in predictions]) for k in ("pred_psnr", "corrected_psnr")}
+    assert scores["corrected_psnr"] > scores["pred_psnr"], scores  # the fit moved toward its frame
     for row in rows:
         assert row["since_end_s"] > 0
         assert all(np.isfinite(row[k]) for k in ("live", "no_corr", "hold_last", "integrate"))
