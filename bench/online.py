@@ -12,6 +12,8 @@ past the span is scored (PSNR) for
 
     live       the service's render: newest corrected anchor before t + the events since it
     no_corr    the same chain, never corrected (the model's transition alone)
+    no_events  the ablation of the event branch past the span: the same fits, with no events (each
+               anchor predicted as the one before it; a render holds its anchor's state)
     hold_last  the newest anchor frame itself (no model)
     integrate  the events since it integrated onto that frame (no model; ``model/eval/baselines.py``)
     blend      the anchor frames either side blended linearly in time (no model, not causal: None past
@@ -40,7 +42,11 @@ import torch
 
 from bench.results import table, write_json
 
-TARGETS = {"anchors_per_s_173x130": (">=", 5.0)}
+TARGETS = {"anchors_per_s_173x130": (">=", 5.0),
+           # a live render no worse than hold-last at any time since training ended (per band)
+           "live_minus_hold_last_worst_band_db": (">=", 0.0)}
+BAND_S = 1.0
+"""Width of the time bands the drift is summarised in (``bands``)."""
 MOVING = 0.06
 """A pixel is moving in a frame where it differs from the span's anchors' median by more than this."""
 
@@ -79,9 +85,10 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
     start = rec.t_range_us[0]
     chains = {}
     pred_rows = []
-    for name, fit in (("live", True), ("no_corr", False)):
-        ring = EventRingBuffer(len(rec.events) + 1)
-        ring.push(rec.events, complete_until_us=rec.t_range_us[1] + 1)
+    for name, fit, events in (("live", True, rec.events), ("no_corr", False, rec.events),
+                              ("no_events", True, rec.events[:0])):
+        ring = EventRingBuffer(len(events) + 1)
+        ring.push(events, complete_until_us=rec.t_range_us[1] + 1)
         online = OnlineAnchors(model, ring, capacity=10**6, fit=False, fit_steps=steps, fit_scale=scale,
                                fit_lr=lr, finetune_steps=finetune_steps, finetune_lr=finetune_lr,
                                spawn=spawn, default_pose=pose)
@@ -94,7 +101,9 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
                            None if anchors.poses is None else anchors.poses[i:i + 1])
             online.on_frames(frame, engine.timeline.scene_of)
             a = online.anchors()[-1]
-            if fit:
+            if fit and name != "live":
+                online._fit(a, anchors.images[i])
+            elif fit:  # the live chain's fits are also scored
                 state = model_online.with_spawned(model_online.state_of(model, a.motion), a.spawned)
                 img = model.render(state, pose(t), meta.intrinsics)
                 pred = _psnr(img, anchors.images[i] / 255.0)
@@ -140,6 +149,20 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
                 _psnr(img[moving], target[moving])
         rows.append(row)
     return rows, {"pred": pred_rows}
+
+
+def bands(rows: list[dict], width_s: float = BAND_S) -> list[dict]:
+    """Mean PSNR of each render in successive ``width_s`` bands of time since training ended (the drift
+    curve, smoothed over the anchor cycle)."""
+    out = []
+    index = np.array([int(r["since_end_s"] // width_s) for r in rows])
+    for k in np.unique(index):
+        sel = [r for r, i in zip(rows, index, strict=True) if i == k]
+        band = {"from_s": float(k * width_s), "to_s": float((k + 1) * width_s), "frames": len(sel)}
+        for name in ("live", "no_corr", "no_events", "hold_last", "integrate"):
+            band[name] = float(np.mean([r[name] for r in sel]))
+        out.append(band)
+    return out
 
 
 def timing(checkpoint: Path, recording: Path, width: int, height: int, steps: int, scale: float, lr: float,
@@ -212,16 +235,19 @@ def main(argv=None) -> None:
     if not args.timing_only:
         rows, extra = drift(args.recording, args.checkpoint, args.steps, args.scale, args.lr,
                             args.finetune_steps, args.finetune_lr, args.spawn)
-        for name in ("live", "no_corr", "hold_last", "integrate"):
+        for name in ("live", "no_corr", "no_events", "hold_last", "integrate"):
             results[f"psnr_{name}"] = float(np.mean([r[name] for r in rows]))
         blend = [r["blend"] for r in rows if r["blend"] is not None]
         results["psnr_blend"] = float(np.mean(blend)) if blend else None
-        for name in ("live", "no_corr", "hold_last", "blend", "integrate"):
+        for name in ("live", "no_corr", "no_events", "hold_last", "blend", "integrate"):
             # pooled over every moving pixel of every frame, as bench.traffic scores them
             scored = [(r[f"{name}_moving"], r["moving_px"]) for r in rows if r[f"{name}_moving"] is not None]
             mse = sum(10 ** (-p / 10) * n for p, n in scored) / max(1, sum(n for _, n in scored))
             results[f"psnr_{name}_moving"] = float(-10 * np.log10(mse)) if scored else None
         results["live_minus_hold_last_worst_db"] = float(min(r["live"] - r["hold_last"] for r in rows))
+        results["bands"] = bands(rows)
+        results["live_minus_hold_last_worst_band_db"] = float(min(b["live"] - b["hold_last"]
+                                                                  for b in results["bands"]))
         results["pred_psnr"] = float(np.mean([r["pred_psnr"] for r in extra["pred"]]))
         results["corrected_psnr"] = float(np.mean([r["corrected_psnr"] for r in extra["pred"]]))
         results["drift"] = rows
@@ -239,6 +265,12 @@ def main(argv=None) -> None:
             online_drift(rows, extra["pred"], args.plot,
                          f"{args.steps} steps of {args.lr:g} at {args.scale:g}x size")
     print(table(results, TARGETS))
+    if "bands" in results:
+        names = ("live", "no_corr", "no_events", "hold_last", "integrate")
+        print(f"\nmean PSNR (dB) per {BAND_S:g} s since training ended:\n{'band (s)':<10}"
+              + "".join(f"{n:>11}" for n in names))
+        for b in results["bands"]:
+            print(f"{b['from_s']:g}-{b['to_s']:g}".ljust(10) + "".join(f"{b[n]:>11.2f}" for n in names))
     write_json(args.json, results)
 
 

@@ -31,7 +31,7 @@ from edmcgs.errors import EdmcgsError, InvalidInputError
 from edmcgs.sensor.files.recording import Recording, write_recording
 from edmcgs.sensor.frames import Frames
 from edmcgs.synth.esim import LUMA_WEIGHTS, AdaptiveSampling, SimulatorConfig, simulate_render
-from edmcgs.synth.scene import SCENES, SIZES, Scene, make_scene, render
+from edmcgs.synth.scene import CAMERAS, SCENES, SIZES, Scene, make_scene, render
 
 GENERATOR = "edmcgs.synth.build/1"
 SHUTTER = 0.5
@@ -64,6 +64,9 @@ class BuildConfig:
     events in it (down to 250 µs); at most 4 ms."""
     duration_s: float | None = None
     """Length of the sequence; None: the scene's own (2 s). The scenes are defined at any t."""
+    camera: str = "orbit"
+    """Past the scene's own duration its camera circles on ("orbit") or sweeps back over the same arc
+    ("sweep"); ``synth.scene.CAMERAS``. Within it both are the same."""
 
     def __post_init__(self) -> None:
         if self.scene not in SCENES:
@@ -77,6 +80,8 @@ class BuildConfig:
                 f"held_out_per_interval must be in 0..100, got {self.held_out_per_interval!r}")
         if self.duration_s is not None and not (math.isfinite(self.duration_s) and self.duration_s > 0):
             raise InvalidInputError(f"duration_s must be positive, got {self.duration_s!r}")
+        if self.camera not in CAMERAS:
+            raise InvalidInputError(f"camera {self.camera!r} is unknown; choose one of {', '.join(CAMERAS)}")
         if int(self.seed) != self.seed or self.seed < 0:
             raise InvalidInputError(f"seed must be a non-negative integer, got {self.seed!r}")
 
@@ -118,7 +123,7 @@ def _render_frames(scene: Scene, t_us: np.ndarray, exposure_us: int, bar: tqdm) 
 def build_recording(config: BuildConfig, *, progress: bool = True) -> Recording:
     """Render, simulate and assemble the recording described by ``config``."""
     started = time.perf_counter()
-    scene = make_scene(config.scene, config.size)
+    scene = make_scene(config.scene, config.size, config.camera)
     sim_config = SimulatorConfig(**(asdict(config.simulator) | {"seed": int(config.seed)}))
     intr = scene.intrinsics
     duration_s = scene.duration_s if config.duration_s is None else config.duration_s
@@ -148,6 +153,7 @@ def build_recording(config: BuildConfig, *, progress: bool = True) -> Recording:
         "fps": config.fps,
         "seed": int(config.seed),
         "duration_s": duration_s,
+        "camera": config.camera,
         "held_out_per_interval": config.held_out_per_interval,
         "gaussians": n_gaussians,
         "background": list(scene.background),
@@ -181,6 +187,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="small: 173x130, fewer Gaussians; full: 346x260 (default small)")
     p.add_argument("--duration", type=float, help="sequence length in seconds (default: the scene's, 2 s)")
     p.add_argument("--blur", action="store_true", help="motion-blur the anchor frames (0.5 shutter)")
+    p.add_argument("--camera", choices=CAMERAS, default="orbit",
+                   help="past the scene's own 2 s: orbit circles on (to views never seen in them), sweep "
+                        "pans back over the same arc (default orbit)")
     p.add_argument("--held-out", type=int, default=4,
                    help="ground-truth frames per anchor interval (default 4)")
     p.add_argument("--contrast-threshold", type=float, default=0.2, help="C (default 0.2)")
@@ -210,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
                                     noise_rate_hz=args.noise_hz)
         config = BuildConfig(scene=args.scene, fps=args.fps, size=args.size, seed=args.seed, blur=args.blur,
                              held_out_per_interval=args.held_out, simulator=simulator,
-                             duration_s=args.duration, sampling=AdaptiveSampling(
+                             duration_s=args.duration, camera=args.camera, sampling=AdaptiveSampling(
                                  dt_max_us=args.dt_max_us, dt_min_us=args.dt_min_us, max_delta=MAX_DELTA))
         out = args.output or Path(f"{args.scene}_{args.fps:g}fps_{args.size}.h5")
         save(build_recording(config, progress=not args.quiet), out, compress=args.compress)

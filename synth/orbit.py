@@ -35,7 +35,8 @@ class Orbit:
     speed from ``azimuth_start_deg`` (at t = 0) to ``azimuth_end_deg`` (at t = ``duration_s``).
 
     Azimuth 0 puts the camera on the -y side of the target (facing the figures' front), positive
-    azimuths towards +x. The arc extends analytically outside [0, duration_s].
+    azimuths towards +x. Outside [0, duration_s] the arc extends analytically (circling on), or with
+    ``sweep`` goes back and forth over the same arc (a pan that keeps to the views of [0, duration_s]).
     """
 
     target: tuple[float, float, float]
@@ -44,13 +45,16 @@ class Orbit:
     azimuth_start_deg: float
     azimuth_end_deg: float
     duration_s: float
+    sweep: bool = False
 
     def c2w(self, t_s: float) -> np.ndarray:
         """Camera-to-world float64 [4, 4] at scene time ``t_s`` (seconds)."""
         if not math.isfinite(t_s):
             raise InvalidInputError(f"t_s must be finite, got {t_s!r}")
-        az = math.radians(self.azimuth_start_deg
-                          + (self.azimuth_end_deg - self.azimuth_start_deg) * t_s / self.duration_s)
+        along = t_s / self.duration_s  # fraction of the arc
+        if self.sweep:
+            along = 1.0 - abs(along % 2.0 - 1.0)  # 0 -> 1 over [0, duration_s], then back, and so on
+        az = math.radians(self.azimuth_start_deg + (self.azimuth_end_deg - self.azimuth_start_deg) * along)
         el = math.radians(self.elevation_deg)
         direction = np.array([math.sin(az) * math.cos(el), -math.cos(az) * math.cos(el), math.sin(el)])
         target = np.asarray(self.target, dtype=np.float64)

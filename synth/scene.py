@@ -7,7 +7,7 @@ from __future__ import annotations
 import importlib
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
@@ -87,13 +87,22 @@ def _check_t(t_s) -> float:
     return t_s
 
 
-def make_scene(name: str, size: str = "small") -> ProceduralScene:
-    """Build scene ``name`` (one of ``SCENES``) at ``size`` ("small" or "full")."""
+CAMERAS = ("orbit", "sweep")
+"""How a scene's camera goes on past the scene's own duration (``Orbit``): circling on, or sweeping back
+over the same arc."""
+
+
+def make_scene(name: str, size: str = "small", camera: str = "orbit") -> ProceduralScene:
+    """Build scene ``name`` (one of ``SCENES``) at ``size`` ("small" or "full"), its camera one of
+    ``CAMERAS``."""
     if name not in SCENES:
         raise InvalidInputError(f"unknown scene {name!r}; choose one of {', '.join(SCENES)}")
     if size not in SIZES:
         raise InvalidInputError(f"unknown size {size!r}; choose one of {', '.join(SIZES)}")
-    return importlib.import_module(f"edmcgs.synth.{name}").make(SIZES[size])
+    if camera not in CAMERAS:
+        raise InvalidInputError(f"unknown camera {camera!r}; choose one of {', '.join(CAMERAS)}")
+    scene = importlib.import_module(f"edmcgs.synth.{name}").make(SIZES[size])
+    return replace(scene, orbit=replace(scene.orbit, sweep=camera == "sweep"))
 
 
 def render(scene: Scene, t_s: float, c2w: np.ndarray | None = None) -> np.ndarray:

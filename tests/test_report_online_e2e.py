@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from bench.online import BAND_S, bands
 from bench.report.data import build_config, cached_build
 from bench.report.online import SPANS, long_recording, online_rows, section
 from bench.report.settings import SMALL
@@ -35,7 +36,14 @@ def test_the_model_is_served_past_its_span_beside_the_baselines(tmp_path):
     assert scores["corrected_psnr"] > scores["pred_psnr"], scores  # the fit moved toward its frame
     for row in rows:
         assert row["since_end_s"] > 0
-        assert all(np.isfinite(row[k]) for k in ("live", "no_corr", "hold_last", "integrate"))
+        assert all(np.isfinite(row[k]) for k in ("live", "no_corr", "no_events", "hold_last", "integrate"))
+
+    # the event branch's ablation runs the same fits: an untrained model's event branch is scaled by 0
+    # (its warm-in), so without events it renders what the live chain renders
+    assert all(abs(r["live"] - r["no_events"]) < 1e-3 for r in rows)
+    summary = bands(rows)
+    assert sum(b["frames"] for b in summary) == len(rows)
+    assert [b["from_s"] for b in summary] == sorted({BAND_S * (r["since_end_s"] // BAND_S) for r in rows})
 
     text = "\n".join(section(rows, predictions, context | {"label": "jumpingjack 5 fps",
                                                             "prefix_diff": prefix_diff}))

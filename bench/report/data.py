@@ -35,7 +35,10 @@ def build_config(scene: str, fps: float, s: ReportSettings) -> BuildConfig:
 
 def config_key(cfg: BuildConfig) -> str:
     """A file name that changes whenever anything in ``cfg`` does."""
-    digest = hashlib.sha1(json.dumps(asdict(cfg), sort_keys=True, default=str).encode()).hexdigest()[:10]
+    fields = asdict(cfg)
+    if fields["camera"] == "orbit":  # the default of a later field: earlier keys stay valid
+        del fields["camera"]
+    digest = hashlib.sha1(json.dumps(fields, sort_keys=True, default=str).encode()).hexdigest()[:10]
     return f"{cfg.scene}_{cfg.fps:g}fps_{cfg.size}_{digest}"
 
 

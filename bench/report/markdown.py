@@ -16,7 +16,8 @@ FILES = {
     "render_knobs.csv": "the fast path's knob sweep: times, error against the float64 reference and truth",
     "stability.csv": "the stability cases measured by the report (the fast ones are in tests/)",
     "lean.csv": "what each checkpoint leaves out; deform, render, size and error against its full twin",
-    "online_drift.csv": "per held-out frame past the span: the live render, uncorrected, and the baselines",
+    "online_drift.csv": "per held-out frame past the span: the live render, uncorrected, without events, "
+                        "and the baselines",
     "ablation.png": "mean PSNR per variant and rate beside the paper's averages",
     "error_vs_time.png": "held-out PSNR / SSIM against training time, every variant",
     "render_knobs.png": "error against time per frame for each fast-path knob",

@@ -120,13 +120,14 @@ def ablation_bars(table: list[dict], path: Path) -> None:
 
 def online_drift(rows: list[dict], predictions: list[dict], path: Path, fit: str) -> None:
     """PSNR against time since training ended: the live render (corrected online anchors), the same chain
-    never corrected, the two causal baselines (hold the last anchor; integrate the events onto it), and
-    each new anchor frame against its prediction (bench.online)."""
+    never corrected, the same fits without events, the two causal baselines (hold the last anchor;
+    integrate the events onto it), and each new anchor frame against its prediction (bench.online)."""
     fig = Figure(figsize=(9, 3.6), layout="constrained")
     ax = fig.subplots()
     x = [r["since_end_s"] for r in rows]
     for key, label, colour in (("live", f"live render (corrected, {fit})", "#1b6ca8"),
                                ("no_corr", "no correction (events only)", "#d1495b"),
+                               ("no_events", "no events (corrections only)", "#7b4f9d"),
                                ("hold_last", "hold last anchor frame", "#888888"),
                                ("integrate", "events integrated onto the last anchor", "#66a182")):
         ax.plot(x, [r[key] for r in rows], marker="o", ms=2.5, lw=1, color=colour, label=label)

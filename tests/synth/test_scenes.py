@@ -90,6 +90,20 @@ def test_sizes_and_names():
         small.gaussians_at(float("nan"))
 
 
+def test_a_sweeping_camera_keeps_to_the_arc_of_the_scene_s_own_duration():
+    orbit, sweep = make_scene("jumpingjack", "small"), make_scene("jumpingjack", "small", "sweep")
+    d = orbit.duration_s
+    for t in np.linspace(0.0, d, 7):  # within the scene's duration both are the same camera
+        np.testing.assert_array_equal(sweep.camera_at(t), orbit.camera_at(t))
+    for t in (0.3, 0.9 * d):  # then it comes back over the same arc: at d + x where it was at d - x
+        np.testing.assert_allclose(sweep.camera_at(d + t), orbit.camera_at(d - t), atol=1e-12)
+        np.testing.assert_allclose(sweep.camera_at(2 * d + t), orbit.camera_at(t), atol=1e-12)
+    # the orbit circles on to views never seen within it
+    assert np.linalg.norm(orbit.camera_at(4 * d)[:3, 3] - orbit.camera_at(0)[:3, 3]) > 1.0
+    with pytest.raises(InvalidInputError, match="unknown camera"):
+        make_scene("kick", "small", "dolly")
+
+
 def test_look_at_is_opencv():
     c2w = look_at(eye=(0.0, -3.0, 1.0), target=(0.0, 0.0, 1.0))
     np.testing.assert_allclose(c2w[:3, 2], [0, 1, 0], atol=1e-12)  # z forward, towards the target
