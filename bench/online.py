@@ -12,7 +12,7 @@ past the span is scored (PSNR) for
 
     live       the service's render: newest corrected anchor before t + the events since it
     no_corr    the same chain, never corrected (the model's transition alone)
-    no_events  the ablation of the event branch past the span: the same fits, with no events (each
+    no_events  the ablation of the events past the span: the same fits with no transition (each
                anchor predicted as the one before it; a render holds its anchor's state)
     hold_last  the newest anchor frame itself (no model)
     integrate  the events since it integrated onto that frame (no model; ``model/eval/baselines.py``)
@@ -23,7 +23,8 @@ each also on the moving pixels alone (``NAME_moving``: where the frame differs f
 span's anchor frames by more than ``MOVING``, as bench.traffic scores them, pooled over the frames in
 the results; None where none moves);
 
-and each new anchor frame against its prediction before the correction (``pred``) and against the
+and each new anchor frame against its prediction before the correction (``pred``; ``transition``: what
+moved the anchors past the span after its fit, server/online.py) and against the
 corrected anchor itself (``corrected_psnr``: the floor of a live render's error right after that frame,
 where holding the frame itself is exact). Timing: one
 correction per anchor of the checkpoint's model at 173x130 and 346x260 (intrinsics scaled), anchors per
@@ -57,9 +58,9 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, finetune_steps: int = 0,
-          finetune_lr: float = 1e-4, spawn: int = 0) -> tuple[list[dict], dict]:
-    """recording: a path or a ``Recording``; finetune_*, spawn: the server's ``online_finetune_*`` and
-    ``online_spawn``; see the module docstring."""
+          finetune_lr: float = 1e-4, spawn: int = 0, transition: str = "select") -> tuple[list[dict], dict]:
+    """recording: a path or a ``Recording``; finetune_*, spawn, transition: the server's
+    ``online_finetune_*``, ``online_spawn`` and ``online_transition``; see the module docstring."""
     from edmcgs.geometry import Trajectory
     from edmcgs.model import online as model_online
     from edmcgs.model.checkpoint import load_checkpoint
@@ -85,13 +86,13 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
     start = rec.t_range_us[0]
     chains = {}
     pred_rows = []
-    for name, fit, events in (("live", True, rec.events), ("no_corr", False, rec.events),
-                              ("no_events", True, rec.events[:0])):
-        ring = EventRingBuffer(len(events) + 1)
-        ring.push(events, complete_until_us=rec.t_range_us[1] + 1)
+    for name, fit, moves in (("live", True, transition), ("no_corr", False, transition),
+                             ("no_events", True, "none")):
+        ring = EventRingBuffer(len(rec.events) + 1)
+        ring.push(rec.events, complete_until_us=rec.t_range_us[1] + 1)
         online = OnlineAnchors(model, ring, capacity=10**6, fit=False, fit_steps=steps, fit_scale=scale,
                                fit_lr=lr, finetune_steps=finetune_steps, finetune_lr=finetune_lr,
-                               spawn=spawn, default_pose=pose)
+                               spawn=spawn, transition=moves, default_pose=pose)
         engine = Engine(model, ring, None, cache_size=4, online=online)
         engine.timeline = Timeline(start, start)
         anchors = rec.anchors
@@ -115,6 +116,7 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
                 corrected = _psnr(model.render(state, pose(t), meta.intrinsics), anchors.images[i] / 255.0)
                 pred_rows.append({"t_us": t, "since_end_s": (t - end) / 1e6, "pred_psnr": pred,
                                   "corrected_psnr": corrected, "fit_s": fit_s,
+                                  "transition": online.transition_kind,
                                   "loss_before": online.last_loss[0], "loss_after": online.last_loss[1]})
         chains[name] = engine
     held = rec.held_out
@@ -203,6 +205,7 @@ def timing(checkpoint: Path, recording: Path, width: int, height: int, steps: in
 
 
 def main(argv=None) -> None:
+    from edmcgs.server.online import TRANSITIONS
     from edmcgs.server.settings import Settings
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -217,6 +220,8 @@ def main(argv=None) -> None:
     p.add_argument("--finetune-lr", type=float, default=fit["online_finetune_lr"].default)
     p.add_argument("--spawn", type=int, default=fit["online_spawn"].default,
                    help="Gaussians added per corrected anchor of a checkpoint drawn in anchor windows")
+    p.add_argument("--transition", choices=TRANSITIONS, default=fit["online_transition"].default,
+                   help="what moves online anchors past the span (the server's online_transition)")
     p.add_argument("--timing-only", action="store_true", help="only the CPU figures (no drift)")
     p.add_argument("--plot", type=Path, help="the drift plot (PNG)")
     p.add_argument("--json", type=Path)
@@ -225,7 +230,7 @@ def main(argv=None) -> None:
     torch.set_num_threads(1)
     results: dict = {"steps": args.steps, "scale": args.scale, "lr": args.lr,
                      "finetune_steps": args.finetune_steps, "finetune_lr": args.finetune_lr,
-                     "spawn": args.spawn}
+                     "spawn": args.spawn, "transition": args.transition}
     for w, h in ((173, 130), (346, 260)):
         t = timing(args.checkpoint, args.recording, w, h, args.steps, args.scale, args.lr)
         results[f"predict_ms_{w}x{h}"] = 1e3 * t["predict_s"]
@@ -234,7 +239,7 @@ def main(argv=None) -> None:
         results[f"gaussians_{w}x{h}"] = t["gaussians"]
     if not args.timing_only:
         rows, extra = drift(args.recording, args.checkpoint, args.steps, args.scale, args.lr,
-                            args.finetune_steps, args.finetune_lr, args.spawn)
+                            args.finetune_steps, args.finetune_lr, args.spawn, args.transition)
         for name in ("live", "no_corr", "no_events", "hold_last", "integrate"):
             results[f"psnr_{name}"] = float(np.mean([r[name] for r in rows]))
         blend = [r["blend"] for r in rows if r["blend"] is not None]
@@ -250,6 +255,8 @@ def main(argv=None) -> None:
                                                                   for b in results["bands"]))
         results["pred_psnr"] = float(np.mean([r["pred_psnr"] for r in extra["pred"]]))
         results["corrected_psnr"] = float(np.mean([r["corrected_psnr"] for r in extra["pred"]]))
+        chosen = [r["transition"] for r in extra["pred"]]
+        results["transition_chosen"] = {name: chosen.count(name) for name in dict.fromkeys(chosen)}
         results["drift"] = rows
         results["predictions"] = extra["pred"]
         if args.csv is not None:

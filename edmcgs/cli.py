@@ -12,6 +12,7 @@ COMMANDS = {
     "synth": ("edmcgs.synth.build", "build a synthetic dynamic scene with simulated events"),
     "train": ("edmcgs.train_cli", "train EdMCGS on a recording"),
     "eval": ("edmcgs.eval_cli", "evaluate a checkpoint on a recording's held-out frames"),
+    "distill": ("edmcgs.distill_cli", "learn the transition online anchors use past a checkpoint's span"),
     "export": ("edmcgs.clients.export", "export a time sweep of a running service as GIF or MP4"),
     "export-ply": ("edmcgs.export_ply_cli", "write the Gaussians at a time t as a 3DGS PLY file"),
 }

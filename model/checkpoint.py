@@ -1,21 +1,23 @@
 """EdMCGS checkpoints: one torch file of plain containers and tensors, loaded with ``weights_only=True``.
 
-Schema (version 2)::
+Schema (version 3)::
 
-    {"format": "edmcgs-checkpoint", "version": 2,
+    {"format": "edmcgs-checkpoint", "version": 3,
      "meta": {t_start_us, t_end_us, anchors_us [F] int64, intrinsics {fx, fy, cx, cy, width, height},
               event_width, event_height, trajectory {t_us [T] int64, c2w [T,4,4] float64} | None,
               channels, config {...}, has_event_branch,
               frozen [M] bool | None, freeze_threshold float, lean {...}},   # version 2
      "sizes": {num_gaussians, num_control_points},
-     "state_dict": {name: tensor},
+     "state_dict": {name: tensor},   # version 3: online_transition.* when distilled
      "train_state": {...} | None}   # optimizer and progress, only in checkpoints written mid-training
                                     # (a final one: in the sidecar NAME.train-state, model/train/resume.py)
 
 Version 2 adds what the scene leaves out (``edmcgs.model.motion.leanness``): the frozen control points
 (decided when a final checkpoint is written, ``train_state`` None) and ``lean``, the record of every
 decision; a static camera's trajectory is stored as one pose. Version 1 files load with nothing frozen
-and ``lean`` derived from the weights. A missing, truncated, foreign or newer file raises ``CheckpointError``.
+and ``lean`` derived from the weights. Version 3 adds the optional ``online_transition`` (the event
+transition online anchors use past the span, ``model/online_distill.py``); versions 1 and 2 have none. A
+missing, truncated, foreign or newer file raises ``CheckpointError``.
 Writes are atomic (a temporary file in the same folder, fsynced, then renamed over the target).
 """
 
@@ -37,11 +39,12 @@ from edmcgs.model.config import EdmcgsConfig
 from edmcgs.model.dynamic import EdMCGS, SceneMeta
 from edmcgs.model.motion.background import BackgroundLayer
 from edmcgs.model.motion.control_points import ControlPoints
+from edmcgs.model.motion.event_branch import EventTransition
 from edmcgs.model.motion.gaussians import Gaussians
 from edmcgs.model.motion.leanness import decisions, frozen_control_points
 
 FORMAT = "edmcgs-checkpoint"
-VERSION = 2
+VERSION = 3
 
 
 def save_checkpoint(model: EdMCGS, path: str | os.PathLike, *, train_state: dict | None = None,
@@ -328,6 +331,11 @@ def _build(payload: dict) -> EdMCGS:
     model = EdMCGS(meta, config, gaussians,
                    ControlPoints.empty(mcp, n, config.skin_k, config.graph_k, birth=config.anchor_windows),
                    torch.zeros(3), 1.0, layer)
+    if any(key.startswith("online_transition.") for key in state):
+        if not config.has_event_branch:
+            raise CheckpointError("the state_dict has an online_transition but the config no event branch")
+        model.online_transition = EventTransition(pos_freqs=config.event_pos_freqs,
+                                                  hidden=config.event_hidden)
     expected = model.state_dict()
     missing = sorted(set(expected) - set(state))
     unexpected = sorted(set(state) - set(expected))

@@ -104,6 +104,9 @@ class EdMCGS(nn.Module):
             self.transition = None
         self.bg_layer = bg_layer
         """The distant background layer (config.bg_layer), or None: the constant ``background``."""
+        self.online_transition: EventTransition | None = None
+        """The transition online anchors use past the span, distilled from this model's own motion
+        (``model/online_distill.py``); None: g_phi as trained."""
         self.register_buffer("center", center.float().reshape(3))
         self.register_buffer("extent", torch.tensor(float(extent)))
         self.register_buffer("event_scale", torch.tensor(1.0))

@@ -18,8 +18,10 @@ does there). A background layer is drawn behind them, in the fit as in the serve
 
 ``correct`` refines a predicted state against the frame: a per-control-point translation residual,
 optimised for a bounded number of Adam steps on the photometric loss through the differentiable
-rasterizer, with the canonical Gaussians and the networks frozen. ``finetune`` (off by default in the
-server) then lets a copy of g_phi learn from the correction, for the predictions past the span only.
+rasterizer, with the canonical Gaussians and the networks frozen. Which transition moves the anchors
+past the span (g_phi, the checkpoint's distilled one of ``model/online_distill.py``, or none) the server
+chooses by how well each predicted the recent frames (``prediction_losses``); ``finetune`` (off by
+default) lets a copy of it learn from the corrections.
 """
 
 from __future__ import annotations
@@ -104,6 +106,29 @@ def advance(model: EdMCGS, motion: Motion, event_map, ev_c2w,
     return trans + event_displacement(model, trans, event_map, ev_c2w, transition), rot
 
 
+@torch.no_grad()
+def prediction_losses(model: EdMCGS, motions: list[Motion], spawned: GaussianState | None, image: np.ndarray,
+                      c2w: np.ndarray, intrinsics: Intrinsics, *, scale: float = 1.0) -> list[float]:
+    """L1 of each control-point motion's render (forward only, at ``scale`` of the frame's size) against
+    ``image`` (uint8 [H, W, C]) seen from ``c2w``: how well each prediction explains a new frame."""
+    target, intr = fit_target(image, intrinsics, scale)
+    target = target.numpy()
+    return [float(np.abs(model.render(with_spawned(state_of(model, m), spawned), c2w, intr, threads=1)
+                         - target).mean()) for m in motions]
+
+
+def fit_target(image: np.ndarray, intrinsics: Intrinsics, scale: float) -> tuple[Tensor, Intrinsics]:
+    """(float32 [h, w, C] in [0, 1], the camera at that size): a uint8 frame area-downsampled to
+    ``scale`` of its size (at least 8 pixels a side)."""
+    target = torch.as_tensor(image, dtype=torch.float32) / 255.0
+    if scale == 1.0:
+        return target, intrinsics
+    w, h = max(8, round(intrinsics.width * scale)), max(8, round(intrinsics.height * scale))
+    target = torch.nn.functional.interpolate(target.permute(2, 0, 1)[None], size=(h, w),
+                                             mode="area")[0].permute(1, 2, 0)
+    return target, intrinsics.scaled(w, h)
+
+
 def finetune(model: EdMCGS, transition: torch.nn.Module, prev_motion: Motion, event_map, ev_c2w,
              target_trans: Tensor, *, steps: int, lr: float) -> tuple[torch.nn.Module, float, float] | None:
     """A copy of ``transition`` (g_phi) after ``steps`` Adam steps toward predicting ``target_trans`` (a
@@ -154,13 +179,7 @@ def correct(model: EdMCGS, motion: Motion, image: np.ndarray, c2w: np.ndarray, i
     at the last step, before its update: no extra render to score the result).
     """
     trans0, rot = motion
-    target = torch.as_tensor(image, dtype=torch.float32) / 255.0
-    intr = intrinsics
-    if scale != 1.0:
-        w, h = max(8, round(intr.width * scale)), max(8, round(intr.height * scale))
-        target = torch.nn.functional.interpolate(target.permute(2, 0, 1)[None], size=(h, w),
-                                                 mode="area")[0].permute(1, 2, 0)
-        intr = intr.scaled(w, h)
+    target, intr = fit_target(image, intrinsics, scale)
     w2c = torch.as_tensor(world_to_camera(np.asarray(c2w, np.float64)), dtype=torch.float32)
     layer = model.bg_layer
     bg = background_color(model.config, model.meta.channels)

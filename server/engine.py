@@ -210,7 +210,7 @@ class Engine:
                 c2w = self.default_pose(instant.t_us)
             except InvalidInputError:  # no trajectory and no frame poses: global sampling only
                 c2w = None
-            motion = model_online.advance(self.model, online.motion, emap, c2w, self.online.transition)
+            motion = self.online.advance(online.motion, emap, c2w)
             state = model_online.with_spawned(model_online.state_of(self.model, motion), online.spawned)
             return state, len(events)
         return self.model.deform(instant.t_us, emap), len(events)

@@ -1,12 +1,16 @@
 """Online anchors: the stream's APS frames past the checkpoint's span become anchors while it runs.
 
     ingest thread: frame at T past the span ──> refused (counted by reason) or
-                   predicted: the previous anchor's state + g_phi(events [prev, T))  ──> published
+                   predicted: the previous anchor's state + g(events [prev, T))  ──> published
+                   (g: the transition chosen past the span, below)
                    ──> one-slot fit queue (newest wins; the one it replaces counts as skipped)
-    fit thread:    a bounded number of steps against the frame (model/online.correct) ──> published
-                   as corrected; its residual carried on to the anchors predicted from it meanwhile;
-                   optionally (finetune_steps > 0) a copy of g_phi learns from the correction and
-                   replaces the one the next predictions and renders past the span use
+    fit thread:    every candidate transition (g_phi, the checkpoint's distilled one, none) predicts
+                   the frame from the anchor before it; the one with the lowest mean loss over the last
+                   EVIDENCE frames becomes g ("select"; or one fixed by ``transition``); then a bounded
+                   number of steps against the frame from this frame's best prediction
+                   (model/online.correct) ──> published as corrected; its residual carried on to the
+                   anchors predicted from it meanwhile; optionally (finetune_steps > 0) a copy of g learns
+                   from the correction and replaces it
 
 Anchors are keyed by stream time (a looping replay passes the same scene times again; each pass chains
 from the checkpoint's last anchor anew). The store is bounded (``capacity``) and drops anchors whose
@@ -20,13 +24,14 @@ import logging
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 
-from edmcgs.errors import WindowUnavailable
+from edmcgs.errors import InvalidInputError, WindowUnavailable
 from edmcgs.model import online as model_online
 from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.motion.gaussians import GaussianState
@@ -37,6 +42,11 @@ from edmcgs.sensor.frames import Frames
 log = logging.getLogger("edmcgs.server")
 
 REFUSED_REASONS = ("size", "channels", "timestamp")
+TRANSITIONS = ("select", "distilled", "g_phi", "none")
+"""What moves online anchors past the span: chosen among the others by the frames ("select"), the
+checkpoint's distilled transition (model/online_distill.py), g_phi as trained, or nothing."""
+EVIDENCE = 8
+"""Frames the transition is chosen by (the most recent)."""
 SKIPPED_REASONS = ("superseded", "events_gone")
 SWITCH_INTERVAL_S = 0.0005
 """The GIL switch interval while fitting (see ``start``)."""
@@ -66,15 +76,32 @@ class OnlineAnchors:
 
     def __init__(self, model: EdMCGS, ring: EventRingBuffer, *, capacity: int = 64, fit_steps: int = 5,
                  fit_scale: float = 1.0, fit_lr: float = 6e-3, finetune_steps: int = 0,
-                 finetune_lr: float = 1e-4, spawn: int = 0, fit: bool = True,
+                 finetune_lr: float = 1e-4, spawn: int = 0, fit: bool = True, transition: str = "select",
                  default_pose: Callable[[int], np.ndarray | None] | None = None):
         self.model, self.ring = model, ring
         self.capacity, self.fit_steps, self.fit_scale = int(capacity), int(fit_steps), float(fit_scale)
         self.fit_lr = float(fit_lr)
         self.finetune_steps, self.finetune_lr = int(finetune_steps), float(finetune_lr)
-        self.transition = model.transition
-        """g_phi of the predictions past the span: the model's, or a copy fine-tuned on the corrections
-        (``finetune_steps`` > 0), replaced whole after each fit (readers take the reference once)."""
+        # the candidates past the span, best first while there is no evidence (None: events move nothing)
+        self.candidates: dict[str, torch.nn.Module | None] = {"none": None}
+        if model.transition is not None:
+            self.candidates = {"g_phi": model.transition, "none": None}
+            if model.online_transition is not None:
+                self.candidates = {"distilled": model.online_transition, **self.candidates}
+        if transition not in TRANSITIONS:
+            raise InvalidInputError(f"transition must be one of {', '.join(TRANSITIONS)}, got {transition!r}")
+        if transition != "select" and transition not in self.candidates:
+            raise InvalidInputError(f"transition {transition!r}: the checkpoint has none "
+                                    + ("(edmcgs distill makes one)" if transition == "distilled"
+                                       else "(no event branch)"))
+        self.select = transition == "select" and len(self.candidates) > 1
+        self.transition_kind = next(iter(self.candidates)) if transition == "select" else transition
+        """The candidate moving the predictions and renders past the span now (/scene)."""
+        self.transition = self.candidates[self.transition_kind]
+        """Its module (None: none), or a copy fine-tuned on the corrections (``finetune_steps`` > 0);
+        replaced whole, before ``transition_version`` is bumped (readers take the reference once)."""
+        self.evidence: dict[str, deque[float]] = {n: deque(maxlen=EVIDENCE) for n in self.candidates}
+        """Per candidate, the L1 of its prediction of each recent frame."""
         self.transition_version = 0
         # Only a model drawn in anchor windows lacks Gaussians for what enters the view past its span.
         self.spawn_limit = int(spawn) if model_online.last_window(model) is not None else 0
@@ -148,6 +175,14 @@ class OnlineAnchors:
                 return a.stream_us if a.stream_us > ckpt else ckpt
         return ckpt
 
+    def advance(self, motion: model_online.Motion, event_map, ev_c2w) -> model_online.Motion:
+        """An online anchor's ``motion`` moved by the events since it (``event_map``), by the transition
+        chosen past the span (renders and predictions)."""
+        transition = self.transition
+        if transition is None:
+            return motion
+        return model_online.advance(self.model, motion, event_map, ev_c2w, transition)
+
     @property
     def queue_depth(self) -> int:
         return int(self._slot is not None) + int(self._fitting)
@@ -197,10 +232,8 @@ class OnlineAnchors:
             emap = (accumulate(events, model.meta.event_width, model.meta.event_height)
                     if len(events) else None)
             c2w = pose if pose is not None else self.default_pose(scene_t)  # the event camera at the frame
-            if prev is None:
-                motion = model_online.checkpoint_motion(model, scene_t, emap, c2w)
-            else:
-                motion = model_online.advance(model, prev.motion, emap, c2w, self.transition)
+            base = model_online.checkpoint_motion(model, scene_t) if prev is None else prev.motion
+            motion = self.advance(base, emap, c2w)
             anchor = OnlineAnchor(t, scene_t, motion, False, 0, pose, None if prev is None else prev.spawned)
             self._publish((*self._anchors, anchor))
             self.predicted += 1
@@ -246,8 +279,9 @@ class OnlineAnchors:
         if c2w is None:
             return
         t0 = time.perf_counter()
+        start = self._select(current, image, c2w) if self.select else current.motion
         (trans, _), before, after = model_online.correct(
-            self.model, current.motion, image, c2w, self.model.meta.intrinsics, steps=self.fit_steps,
+            self.model, start, image, c2w, self.model.meta.intrinsics, steps=self.fit_steps,
             lr=self.fit_lr, scale=self.fit_scale)
         spawned = current.spawned
         if self.spawn_limit:
@@ -276,9 +310,46 @@ class OnlineAnchors:
         if self.on_fit is not None:
             self.on_fit(seconds, before, after)
 
+    def _select(self, anchor: OnlineAnchor, image: np.ndarray, c2w: np.ndarray) -> model_online.Motion:
+        """Fit thread: every candidate predicts this frame from the anchor before it (as it stands now, most
+        likely corrected) by the events between them; each loss joins that candidate's evidence, and the
+        one with the lowest mean over the last EVIDENCE frames moves the anchors past the span from now on.
+        Returns this frame's best prediction, where its correction starts."""
+        model = self.model
+        since = self._since_previous(anchor)
+        if since is None or since[1] is None:
+            return anchor.motion  # no events: every candidate predicts the same
+        base, emap = since
+        names = list(self.candidates)
+        predictions = [base if g is None else model_online.advance(model, base, emap, c2w, g)
+                       for g in self.candidates.values()]
+        losses = model_online.prediction_losses(model, predictions, anchor.spawned, image, c2w,
+                                                model.meta.intrinsics, scale=self.fit_scale)
+        for name, loss in zip(names, losses, strict=True):
+            self.evidence[name].append(loss)
+        chosen = min(names, key=lambda n: float(np.mean(self.evidence[n])))
+        if chosen != self.transition_kind:
+            self.transition, self.transition_kind = self.candidates[chosen], chosen
+            self.transition_version += 1  # after the transition: see ``transition``
+        return predictions[int(np.argmin(losses))]
+
     def _finetune(self, anchor: OnlineAnchor, corrected: torch.Tensor, c2w: np.ndarray) -> None:
-        """Fit thread: let a copy of g_phi learn to predict the corrected anchor from the one before it by
-        the events between them, then publish the copy for the next predictions and renders."""
+        """Fit thread: let a copy of the transition learn to predict the corrected anchor from the one
+        before it by the events between them, then publish the copy (as that candidate) for the next
+        predictions and renders."""
+        since = self._since_previous(anchor)
+        if since is None or self.transition is None:
+            return
+        tuned = model_online.finetune(self.model, self.transition, since[0], since[1], c2w, corrected,
+                                      steps=self.finetune_steps, lr=self.finetune_lr)
+        if tuned is not None:
+            self.transition, self.last_finetune = tuned[0], tuned[1:]
+            self.candidates[self.transition_kind] = tuned[0]
+            self.transition_version += 1
+
+    def _since_previous(self, anchor: OnlineAnchor) -> tuple[model_online.Motion, np.ndarray | None] | None:
+        """(the motion of the anchor before ``anchor`` as it stands now, the event map between them; None
+        without events), or None when those events have left the ring."""
         model = self.model
         prev_stream = self.tau(anchor.stream_us - 1, anchor.t_us - 1)
         prev = self.get(prev_stream)
@@ -286,13 +357,9 @@ class OnlineAnchors:
         try:
             events = self.ring.slice(prev_stream, anchor.stream_us)
         except WindowUnavailable:
-            return
+            return None
         emap = accumulate(events, model.meta.event_width, model.meta.event_height) if len(events) else None
-        tuned = model_online.finetune(model, self.transition, base, emap, c2w, corrected,
-                                      steps=self.finetune_steps, lr=self.finetune_lr)
-        if tuned is not None:
-            self.transition, self.last_finetune = tuned[0], tuned[1:]
-            self.transition_version += 1
+        return base, emap
 
     def wait_idle(self, timeout: float = 30.0) -> bool:
         """Until the fit queue is empty and no fit runs (tests, benchmarks)."""

@@ -88,6 +88,17 @@ class Fit(_Body):
     """L1 photometric loss of the last correction, before and after its steps."""
 
 
+class Transition(_Body):
+    """What moves the online anchors past the span (server/online.py)."""
+
+    mode: str
+    """select (chosen by the frames), or the one fixed by EDMCGS_ONLINE_TRANSITION."""
+    current: str
+    """distilled (the checkpoint's online transition), g_phi, or none."""
+    evidence: dict[str, float | None]
+    """Per candidate, the mean L1 of its predictions of the recent frames (null: none yet)."""
+
+
 class Online(_Body):
     """Online anchors past the checkpoint's span (predicted by the event transition, then corrected)."""
 
@@ -103,6 +114,7 @@ class Online(_Body):
     """Stream frames refused as anchors, by reason."""
     queue_depth: int
     """Online anchors waiting for or in a correction."""
+    transition: Transition
     fit: Fit
 
 

@@ -131,7 +131,8 @@ class Service:
                                        fit_scale=settings.online_fit_scale, fit_lr=settings.online_fit_lr,
                                        finetune_steps=settings.online_finetune_steps,
                                        finetune_lr=settings.online_finetune_lr,
-                                       spawn=settings.online_spawn)
+                                       spawn=settings.online_spawn,
+                                       transition=settings.online_transition)
             engine = Engine(model, ring, None, cache_size=settings.deform_cache,
                             raster_threads=settings.raster_threads, online=online)
             if info.t_range_us is not None:
@@ -354,6 +355,10 @@ class Service:
             "predicted": online.predicted, "corrected": online.corrected, "expired": online.expired,
             "skipped": dict(online.skipped), "refused": dict(online.refused),
             "queue_depth": online.queue_depth,
+            "transition": {"mode": "select" if online.select else online.transition_kind,
+                           "current": online.transition_kind,
+                           "evidence": {name: float(np.mean(v)) if v else None
+                                        for name, v in online.evidence.items()}},
             "fit": {"steps": online.fit_steps if online.fit_enabled else 0, "scale": online.fit_scale,
                     "last_s": online.last_fit_s, "median_s": fits[len(fits) // 2] if fits else None,
                     "last_loss": None if online.last_loss is None else {

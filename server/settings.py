@@ -6,6 +6,7 @@ Built by the app factory (or the CLI), never at import time.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -94,6 +95,10 @@ class Settings(BaseSettings):
                     "thread (0: predictions only).")
     online_fit_lr: float = Field(6e-3, gt=0, le=1,
         description="Adam step size of that correction, as a fraction of the scene's extent.")
+    online_transition: Literal["select", "distilled", "g_phi", "none"] = Field("select",
+        description="What moves online anchors past the span: select (default): of g_phi, the "
+                    "checkpoint's distilled transition (edmcgs distill) and none, the one whose predictions "
+                    "of the recent frames were best; or that one, fixed.")
     online_finetune_steps: int = Field(0, ge=0, le=10_000,
         description="After each correction, Adam steps letting a copy of g_phi (the event transition) "
                     "learn from it, for the predictions past the span only (0: g_phi stays as trained).")

@@ -21,7 +21,7 @@ def test_a_final_checkpoint_records_frozen_points_and_one_static_pose(tmp_path):
     path = tmp_path / "scene.ckpt"
     save_checkpoint(model, path)
     payload = read_checkpoint(path)
-    assert payload["version"] == VERSION == 2
+    assert payload["version"] == VERSION == 3
     m = payload["meta"]
     assert m["trajectory"]["c2w"].shape == (1, 4, 4)  # the tiny scene's camera never moves
     assert m["lean"]["static_camera"]["value"] and m["lean"]["sh_degree"]["value"] == 0

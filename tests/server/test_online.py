@@ -303,7 +303,7 @@ def test_fine_tuning_g_phi_learns_from_corrections_and_touches_only_the_span_pas
     own = [p.detach().clone() for p in model.transition.parameters()]
     ring = EventRingBuffer(10**6)
     online = OnlineAnchors(model, ring, fit=False, fit_steps=3, fit_scale=0.5, finetune_steps=4,
-                           finetune_lr=1e-3)
+                           finetune_lr=1e-3, transition="g_phi")
     start = rec.t_range_us[0]
     tl = Timeline(start, start)
     engine = Engine(model, ring, None, cache_size=4, online=online)
@@ -327,6 +327,36 @@ def test_fine_tuning_g_phi_learns_from_corrections_and_touches_only_the_span_pas
     tuned = engine.render(later, None, 64, 48).pixels
     online.transition, online.transition_version = model.transition, 0
     assert not np.array_equal(engine.render(later, None, 64, 48).pixels, tuned)
+
+
+def test_the_transition_past_the_span_is_the_one_that_predicted_the_recent_frames_best(long_scene):
+    rec, model = long_scene
+    ring = EventRingBuffer(10**6)
+    online = OnlineAnchors(model, ring, fit=False, fit_steps=1, fit_scale=0.5)
+    assert online.select and online.transition_kind == "g_phi" and list(online.evidence) == ["g_phi", "none"]
+    start, end = rec.t_range_us[0], int(model.meta.t_end_us)
+    tl = Timeline(start, start)
+    # a scene that stops at the span's end while its events go on: every frame past it shows the state
+    # the checkpoint ends in, so standing still predicts each one best
+    until, horizon = end + 3 * STEP_US + 1, end + 4 * STEP_US
+    ring.push(rec.events.time_slice(start, horizon), complete_until_us=horizon)
+    sel = (rec.anchors.t_us > end) & (rec.anchors.t_us < until)
+    still = model_online.state_of(model, model_online.checkpoint_motion(model, end))
+    images = np.stack([np.round(model.render(still, pose, model.meta.intrinsics) * 255).astype(np.uint8)
+                       for pose in rec.anchors.poses[sel]])
+    online.on_frames(Frames(rec.anchors.t_us[sel], images, rec.anchors.poses[sel]), tl.scene_of)
+    for anchor, image in zip(online.anchors(), images, strict=True):
+        online._fit(anchor, image)
+    assert all(len(v) == 3 for v in online.evidence.values())
+    assert np.mean(online.evidence["none"]) < np.mean(online.evidence["g_phi"])
+    assert online.transition_kind == "none" and online.transition is None and online.transition_version == 1
+    # from now on a render past the span holds its anchor's state, whatever the events since
+    engine = Engine(model, ring, None, cache_size=4, online=online)
+    engine.timeline = tl
+    last = online.anchors()[-1]
+    assert len(ring.slice(last.stream_us, horizon - 1)) > 0
+    held = engine.render(last.stream_us, None, 64, 48).pixels
+    assert np.array_equal(engine.render(horizon - 1, None, 64, 48).pixels, held)
 
 
 def test_finetune_without_events_has_nothing_to_learn(long_scene):

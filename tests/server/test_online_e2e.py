@@ -8,6 +8,7 @@ from __future__ import annotations
 import time
 
 import httpx
+import numpy as np
 import pytest
 
 from edmcgs import protocol
@@ -73,6 +74,11 @@ def test_a_stream_five_times_the_span_renders_at_its_head_to_the_end(scene):
             online = client.scene()["online"]
             assert online["corrected"] >= 1 and online["fit"]["last_s"] > 0
             assert online["corrected"] + online["skipped"]["superseded"] == online["predicted"]
+            # what moves the anchors past the span, chosen by the frames the fits saw
+            moves = online["transition"]
+            assert moves["mode"] == "select" and moves["current"] in moves["evidence"]
+            assert set(moves["evidence"]) == {"g_phi", "none"}  # this checkpoint has no distilled one
+            assert all(v is None or np.isfinite(v) for v in moves["evidence"].values())
             values = metric_values(client.metrics())
             assert values['edmcgs_online_anchors_total{result="corrected"}'] == online["corrected"]
             assert values['edmcgs_online_anchors_skipped_total{reason="superseded"}'] == \
