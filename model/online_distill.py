@@ -62,6 +62,9 @@ def distill(model: EdMCGS, event_map: Callable[[int, int], np.ndarray], *, sampl
     """
     if model.transition is None:
         raise InvalidInputError("the checkpoint has no event branch: there is no transition to distill")
+    if float(model.event_scale) == 0.0:
+        raise InvalidInputError("the checkpoint's event branch is scaled by 0 (untrained): nothing moves "
+                                "by the events")
     if samples < 5 or steps < 1:
         raise InvalidInputError(f"samples must be >= 5 and steps >= 1, got {samples} and {steps}")
     meta = model.meta

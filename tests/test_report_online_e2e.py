@@ -26,7 +26,8 @@ def test_the_model_is_served_past_its_span_beside_the_baselines(tmp_path):
     cfg = preset("demo").replace(init_points=400, num_control_points=24, deform_width=16, deform_depth=2)
     save_checkpoint(new_model(training_data(short), cfg), tmp_path / "short.ckpt")
 
-    rows, predictions, context = online_rows(long, tmp_path / "short.ckpt")
+    rows, predictions, context = online_rows(long, tmp_path / "short.ckpt", short)
+    assert "scaled by 0" in context["distilled"]  # an untrained event branch has nothing to distill
     end = short.anchors.t_us[-1]
     assert len(rows) == int((long.held_out.t_us > end).sum()) > 0
     assert len(predictions) == int((long.anchors.t_us > end).sum())

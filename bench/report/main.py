@@ -155,7 +155,7 @@ def collect(s: ReportSettings, cache: Path, *, device: str, progress: bool,
     lean, lean_context = collect_lean(s, recs, run, cache, fps, progress=progress)
     base_fps = max(set(s.fps) | set(s.sparse_fps))  # the rate scene_recordings built the first scene at
     long, prefix_diff = long_recording(first, fps, base_fps, rec, s, cache / "recordings", progress=progress)
-    online, predictions, online_context = online_rows(long, cache / "runs" / full[fps]["checkpoint"])
+    online, predictions, online_context = online_rows(long, cache / "runs" / full[fps]["checkpoint"], rec)
     online_context |= {"label": f"{first} {fps:g} fps", "prefix_diff": prefix_diff}
     return {"runs": runs, "baselines": baseline_rows(recs, runs), "knobs": knobs, "context": context,
             "stability": stability, "time_resolution": resolution, "lean": lean, "lean_context": lean_context,

@@ -44,13 +44,34 @@ def long_recording(scene: str, fps: float, base_fps: float, short: Recording, s:
     return rec, float(diff)
 
 
-def online_rows(rec: Recording, checkpoint: Path) -> tuple[list[dict], list[dict], dict]:
-    """(drift rows, prediction rows, context) with the server's default fit."""
+def online_rows(rec: Recording, checkpoint: Path, training: Recording) -> tuple[list[dict], list[dict], dict]:
+    """(drift rows, prediction rows, context) with the server's defaults, the checkpoint given its online
+    transition first as ``edmcgs distill`` would from ``training`` (its recording; cached beside it as
+    NAME.online.ckpt), unless its event branch cannot have one."""
     from bench.online import drift
+    from edmcgs.errors import InvalidInputError
+    from edmcgs.model.checkpoint import load_checkpoint, save_checkpoint
+    from edmcgs.model.online_distill import distill
+    from edmcgs.pipeline import training_data
     from edmcgs.server.settings import Settings
 
     fit = {k: Settings.model_fields[f"online_fit_{k}"].default for k in ("steps", "scale", "lr")}
-    rows, extra = drift(rec, checkpoint, fit["steps"], fit["scale"], fit["lr"])
+    fit["distilled"] = "no event branch"
+    served = checkpoint.with_name(checkpoint.stem + ".online.ckpt")
+    if not served.exists():
+        model = load_checkpoint(checkpoint)
+        model.requires_grad_(False)
+        try:
+            model.online_transition = distill(model, training_data(training).event_map).transition
+            save_checkpoint(model, served, freeze_threshold=model.meta.freeze_threshold)
+        except InvalidInputError as exc:
+            fit["distilled"] = str(exc)
+    if served.exists():
+        checkpoint, fit["distilled"] = served, "yes"
+    transition = Settings.model_fields["online_transition"].default
+    rows, extra = drift(rec, checkpoint, fit["steps"], fit["scale"], fit["lr"], transition=transition)
+    chosen = [p["transition"] for p in extra["pred"]]
+    fit["transition"] = ", ".join(f"{name} at {chosen.count(name)}" for name in dict.fromkeys(chosen))
     return rows, extra["pred"], fit
 
 
@@ -68,7 +89,9 @@ def section(rows: list[dict], predictions: list[dict], context: dict) -> list[st
            "Past the span every new anchor frame is predicted by the event transition, then corrected with "
            f"the server's default fit ({context['steps']} Adam steps of {context['lr']:g} at "
            f"{context['scale']:g}x size) before "
-           f"the next; {len(rows)} held-out frames past the span, mean PSNR (dB):", "",
+           f"the next; the transition is chosen by the frames (distilled online transition: "
+           f"{context.get('distilled', 'no')}; chosen: {context.get('transition') or 'none yet'}); "
+           f"{len(rows)} held-out frames past the span, mean PSNR (dB):", "",
            "| | mean PSNR | first half | second half | frames >= hold-last |", "|---|---|---|---|---|"]
     half = len(rows) // 2
     hold = np.array([r["hold_last"] for r in rows])
