@@ -357,8 +357,9 @@ class Service:
             "queue_depth": online.queue_depth,
             "transition": {"mode": "select" if online.select else online.transition_kind,
                            "current": online.transition_kind,
-                           "evidence": {name: float(np.mean(v)) if v else None
-                                        for name, v in online.evidence.items()}},
+                           # a snapshot of each: the fit thread appends meanwhile
+                           "evidence": {name: float(np.mean(v)) if (v := list(losses)) else None
+                                        for name, losses in online.evidence.items()}},
             "fit": {"steps": online.fit_steps if online.fit_enabled else 0, "scale": online.fit_scale,
                     "last_s": online.last_fit_s, "median_s": fits[len(fits) // 2] if fits else None,
                     "last_loss": None if online.last_loss is None else {
