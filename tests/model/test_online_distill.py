@@ -16,7 +16,7 @@ from edmcgs.pipeline import open_recording, training_data
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.server.demo import files
 from edmcgs.server.online import OnlineAnchors
-from tests.support.models import build
+from tests.support.models import build, randomize_event_branch
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +75,10 @@ def test_distilling_needs_an_event_branch_and_the_checkpoint_s_events():
     model.transition = None
     with pytest.raises(InvalidInputError, match="no event branch"):
         distill(model, data.event_map)
-    model, data = build()
+    model, data = build()  # untrained: its event branch is scaled by 0
+    with pytest.raises(InvalidInputError, match="scaled by 0"):
+        distill(model, data.event_map)
+    randomize_event_branch(model)
     silent = lambda a, b: np.zeros((model.meta.event_height, model.meta.event_width), np.float32)  # noqa: E731
     with pytest.raises(InvalidInputError, match="the checkpoint's own recording"):
         distill(model, silent, samples=20, steps=1)
