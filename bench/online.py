@@ -205,7 +205,7 @@ def timing(checkpoint: Path, recording: Path, width: int, height: int, steps: in
 
 
 def main(argv=None) -> None:
-    from edmcgs.server.online import TRANSITIONS
+    from edmcgs.protocol import TRANSITIONS
     from edmcgs.server.settings import Settings
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

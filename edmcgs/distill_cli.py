@@ -3,7 +3,8 @@ past its span, learnt from its own motion over the span (``edmcgs.model.online_d
 
 RECORDING is the one the checkpoint was trained on (any format ``edmcgs train`` reads, with the same
 flags): its events over the span are the inputs. The written checkpoint is the input's with
-``online_transition`` added (or replaced); ``edmcgs-serve`` uses it past the span (EDMCGS_ONLINE_DISTILLED).
+``online_transition`` added (or replaced); ``edmcgs-serve`` offers it past the span
+(EDMCGS_ONLINE_TRANSITION).
 """
 
 from __future__ import annotations
@@ -48,8 +49,8 @@ def _run(args) -> int:
 
     import torch
 
-    from edmcgs.model.checkpoint import load_checkpoint, save_checkpoint
-    from edmcgs.model.online_distill import distill
+    from edmcgs.model.checkpoint import load_checkpoint
+    from edmcgs.model.online_distill import distill, save_with
     from edmcgs.pipeline import open_recording, training_data
 
     if args.threads < 1:
@@ -68,10 +69,7 @@ def _run(args) -> int:
     started = time.perf_counter()
     out = distill(model, data.event_map, samples=args.samples, steps=args.steps, seed=args.seed,
                   progress=not args.quiet)
-    model.online_transition = out.transition
-    # the frozen control points as the checkpoint decided them (the threshold it recorded)
-    save_checkpoint(model, args.output, freeze_threshold=meta.freeze_threshold if meta.frozen is not None
-                    else None)
+    save_with(model, out.transition, args.output)
     if not args.quiet:
         mse = out.held_out_mse
         print(f"wrote {args.output}: online transition distilled from {out.samples} times of the span in "

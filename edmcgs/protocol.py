@@ -386,6 +386,12 @@ ANCHOR_KINDS = ("checkpoint", "predicted", "corrected")
 checkpoint's, an online anchor's prediction (not corrected yet), or an online anchor fitted to its frame."""
 
 
+TRANSITIONS = ("select", "distilled", "g_phi", "none")
+"""What moves online anchors past the span (GET /scene's ``online.transition``): chosen among the others
+by how well each predicted the recent frames ("select"), the checkpoint's transition distilled from its
+own motion, g_phi as trained, or nothing."""
+
+
 TAU_SOURCE_KEYS = ("source", "t_min", "t_max", "t_us_min", "t_us_max")
 """Keys of one entry of GET /scene's ``tau_sources``."""
 

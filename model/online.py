@@ -7,9 +7,11 @@ clamped to the span's end (``SceneMeta.normalized_time`` clamps), so it contribu
 events carry the motion:
 
     checkpoint anchor L (the last):  T_L = f_theta(x, t_L)                     (as trained)
-    first online anchor A_1:         T_1 = f_theta(x, 1) + g_phi(x, I_E[L, A_1))   (= deform(A_1))
-    online anchor A_k, k > 1:        T_k = T_{k-1} + g_phi(x, I_E[A_{k-1}, A_k)),  R_k = R_{k-1}
-    a render at t in [A_k, A_k+1):   T(t) = T_k + g_phi(x, I_E[A_k, t))
+    first online anchor A_1:         T_1 = f_theta(x, 1) + g(x, I_E[L, A_1))   (g = g_phi: deform(A_1))
+    online anchor A_k, k > 1:        T_k = T_{k-1} + g(x, I_E[A_{k-1}, A_k)),  R_k = R_{k-1}
+    a render at t in [A_k, A_k+1):   T(t) = T_k + g(x, I_E[A_k, t))
+
+with g the transition the server chose past the span (see below).
 
 A checkpoint drawn in anchor windows (the ``real`` preset) draws, at each time, only the Gaussians of
 the window it falls in, moved relative to that window's anchor; past the span that is the last window, so
@@ -45,14 +47,12 @@ Motion = tuple[Tensor, Tensor]
 
 
 @torch.no_grad()
-def checkpoint_motion(model: EdMCGS, t_us: int, event_map: np.ndarray | None = None,
-                      ev_c2w: np.ndarray | None = None) -> Motion:
-    """The model's own motion at ``t_us`` from its checkpoint anchor (prior clamped past the span)."""
+def checkpoint_motion(model: EdMCGS, t_us: int) -> Motion:
+    """The model's own motion at ``t_us`` from its checkpoint anchor, without events (prior clamped past
+    the span); the first online anchor's state before its events move it."""
     window = last_window(model)
     since = None if window is None else model.meta.normalized_time(int(model.meta.anchors_us[window]))
     trans, rot, _ = model.control_motion(model.meta.normalized_time(int(t_us)), None, since=since)
-    if event_map is not None:
-        trans = trans + event_displacement(model, trans, event_map, ev_c2w)
     return trans, rot
 
 

@@ -137,3 +137,14 @@ def _state(model: EdMCGS, event_map: Callable[[int, int], np.ndarray], t_us: int
         w2c = torch.as_tensor(world_to_camera(meta.trajectory.at(t_us)), dtype=torch.float32)
     since = meta.normalized_time(tau) if model.gaussians.birth is not None else None
     return model.control_motion(meta.normalized_time(t_us), emap, w2c, since=since)[0]
+
+
+def save_with(model: EdMCGS, transition: EventTransition, path) -> None:
+    """Write ``model`` with ``transition`` as its online transition to ``path`` (atomically), its frozen
+    control points as the checkpoint decided them (the threshold it recorded; a version 1 checkpoint's
+    none: the default)."""
+    from edmcgs.model.checkpoint import save_checkpoint
+
+    meta = model.meta
+    model.online_transition = transition
+    save_checkpoint(model, path, freeze_threshold=meta.freeze_threshold if meta.frozen is not None else None)

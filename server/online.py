@@ -35,6 +35,7 @@ from edmcgs.errors import InvalidInputError, WindowUnavailable
 from edmcgs.model import online as model_online
 from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.motion.gaussians import GaussianState
+from edmcgs.protocol import TRANSITIONS
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.frames import Frames
@@ -42,9 +43,6 @@ from edmcgs.sensor.frames import Frames
 log = logging.getLogger("edmcgs.server")
 
 REFUSED_REASONS = ("size", "channels", "timestamp")
-TRANSITIONS = ("select", "distilled", "g_phi", "none")
-"""What moves online anchors past the span: chosen among the others by the frames ("select"), the
-checkpoint's distilled transition (model/online_distill.py), g_phi as trained, or nothing."""
 EVIDENCE = 8
 """Frames the transition is chosen by (the most recent)."""
 SKIPPED_REASONS = ("superseded", "events_gone")

@@ -11,6 +11,8 @@ from typing import Literal
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from edmcgs.protocol import TRANSITIONS
+
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 RING_BYTES_PER_EVENT = 13
 """t int64, x and y uint16, p int8: the ring's arrays (sensor/buffer/ring.py)."""
@@ -95,7 +97,7 @@ class Settings(BaseSettings):
                     "thread (0: predictions only).")
     online_fit_lr: float = Field(6e-3, gt=0, le=1,
         description="Adam step size of that correction, as a fraction of the scene's extent.")
-    online_transition: Literal["select", "distilled", "g_phi", "none"] = Field("select",
+    online_transition: Literal[TRANSITIONS] = Field("select",
         description="What moves online anchors past the span: select (default): of g_phi, the "
                     "checkpoint's distilled transition (edmcgs distill) and none, the one whose predictions "
                     "of the recent frames were best; or that one, fixed.")

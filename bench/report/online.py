@@ -50,8 +50,8 @@ def online_rows(rec: Recording, checkpoint: Path, training: Recording) -> tuple[
     NAME.online.ckpt), unless its event branch cannot have one."""
     from bench.online import drift
     from edmcgs.errors import InvalidInputError
-    from edmcgs.model.checkpoint import load_checkpoint, save_checkpoint
-    from edmcgs.model.online_distill import distill
+    from edmcgs.model.checkpoint import load_checkpoint
+    from edmcgs.model.online_distill import distill, save_with
     from edmcgs.pipeline import training_data
     from edmcgs.server.settings import Settings
 
@@ -62,8 +62,7 @@ def online_rows(rec: Recording, checkpoint: Path, training: Recording) -> tuple[
         model = load_checkpoint(checkpoint)
         model.requires_grad_(False)
         try:
-            model.online_transition = distill(model, training_data(training).event_map).transition
-            save_checkpoint(model, served, freeze_threshold=model.meta.freeze_threshold)
+            save_with(model, distill(model, training_data(training).event_map).transition, served)
         except InvalidInputError as exc:
             fit["distilled"] = str(exc)
     if served.exists():
