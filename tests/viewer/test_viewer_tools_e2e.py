@@ -33,6 +33,18 @@ def _paused(page, served):
                            "edmcgsViewer.state.tUs !== null", timeout=20_000)
 
 
+def _between_anchors(page) -> int:
+    """The paused still moved to halfway between two anchors (at an anchor the window is empty)."""
+    t_us = page.evaluate("""() => {
+        const s = edmcgsViewer.state.scene, a = s.anchors_us, slider = document.getElementById('slider');
+        slider.value = String(Math.round(((a[1] + a[2]) / 2 - s.t_start_us) / 1000));
+        slider.dispatchEvent(new Event('input'));
+        return s.t_start_us + Number(slider.value) * 1000;
+    }""")
+    page.wait_for_function(f"{IDLE} && edmcgsViewer.state.tUs === {t_us}", timeout=20_000)
+    return t_us
+
+
 def _event_map(served, t_us: int) -> np.ndarray:
     with Client(served.url, served.token) as client:
         emap, meta = client.events(t_us=t_us)
@@ -78,6 +90,7 @@ def test_events_layer_follows_the_live_stream(page, served):
 
 def test_events_layer_shows_the_windows_events_and_the_toggle_hides_them(page, served, tmp_path):
     _paused(page, served)
+    _between_anchors(page)
     render = _pixels(page, "#view")
     box = page.locator("#view").bounding_box()
 
