@@ -4,8 +4,10 @@ Three kernels: per-Gaussian preprocessing (EWA projection, SH colour, screen rec
 of ``projection`` and ``sh``, in float64, parallel over Gaussians), binning into 16x16 tiles in
 depth order, and per-tile front-to-back blending, parallel over tiles. Blending visits each splat's
 ``screen_rect`` (the pixels where its alpha can reach ``alpha_min``; this changes no pixel value)
-in runs of 8 or 16 pixels with a branch-free float32 body and ``simd_exp``, which LLVM turns
-into AVX2 code; a pixel that has stopped is marked by a negative transmittance.
+in runs of 8 or 16 pixels with a branch-free float32 body and ``simd_exp``'s 2^x (the conics come
+scaled by log2(e) and the opacity as log2 opacity in the exponent: no range reduction by ln 2 and no
+multiply per pixel), which LLVM turns into AVX2 code; a pixel that has stopped is marked by a negative
+transmittance.
 
 JIT cache: kernels are compiled with ``cache=True`` where numba finds a writable place (``jit``).
 """
@@ -23,18 +25,20 @@ from edmcgs.model.render.io import RenderOutput, as_float32_arrays, check_inputs
 from edmcgs.model.render.jit import njit_cached as _jit
 from edmcgs.model.render.projection import ALPHA_MAX, ALPHA_MIN, FRUSTUM_SLACK, LOWPASS, SIGMAS, T_MIN, TILE
 from edmcgs.model.render.sh import SH_C0, SH_C1, SH_C2, SH_C3
-from edmcgs.model.render.simd_exp import exp_nonpositive
+from edmcgs.model.render.simd_exp import exp2_nonpositive
 from edmcgs.model.render.tiles import bin_tiles, depth_order
 
 __all__ = ["RenderOutput", "rasterize_fast"]
+
+LOG2E = 1.4426950408889634
 
 
 @_jit(parallel=True, nogil=True)
 def _preprocess(means, quats, scales, opac, coeffs, use_sh, w2c, fx, fy, cx, cy, width, height, near,
                 alpha_min, splat, depth, rect, color):
-    """Per Gaussian, in float64: splat[i] = (mean x, mean y, -A/2, -B, -C/2, opacity) with
-    (A, B, C) the conic, depth[i] = camera z, rect[i] = pixel rectangle (x0, y0, x1, y1), all 0
-    when culled; color[i] = its colour."""
+    """Per Gaussian, in float64: splat[i] = (mean x, mean y, -A/2, -B, -C/2, log2 opacity) with (A, B, C)
+    the conic scaled by log2(e) (alpha = 2^(exponent + log2 opacity)), depth[i] = camera z,
+    rect[i] = pixel rectangle (x0, y0, x1, y1), all 0 when culled; color[i] = its colour."""
     n = means.shape[0]
     ncoef = coeffs.shape[1]
     nch = coeffs.shape[2]
@@ -51,6 +55,7 @@ def _preprocess(means, quats, scales, opac, coeffs, use_sh, w2c, fx, fy, cx, cy,
     lim_yn, lim_yp = cy / fy + slack_y, (height - cy) / fy + slack_y
     grid_x = (width + TILE - 1) // TILE
     grid_y = (height + TILE - 1) // TILE
+    log_alpha_min = math.log(alpha_min) if alpha_min > 0 else 0.0
     for i in numba.prange(n):
         rect[i, 0] = 0
         rect[i, 1] = 0
@@ -106,7 +111,8 @@ def _preprocess(means, quats, scales, opac, coeffs, use_sh, w2c, fx, fy, cx, cy,
         ty1 = min(max(np.floor((v + radius + TILE - 1) / TILE), 0.0), grid_y)
         # the ellipse (pixel - mean)^T conic (pixel - mean) <= tau holds every pixel whose alpha can
         # reach alpha_min; 0.1% + 1e-3 of slack in tau covers float32 rounding in the blending
-        tau = max(2.0 * math.log(o / alpha_min) * 1.001 + 1e-3, 0.0) if alpha_min > 0 else math.inf
+        log_o = math.log(o)
+        tau = max(2.0 * (log_o - log_alpha_min) * 1.001 + 1e-3, 0.0) if alpha_min > 0 else math.inf
         ex, ey = math.sqrt(tau * ca), math.sqrt(tau * cc)
         x0 = min(max(max(tx0 * TILE, np.ceil(u - ex)), 0.0), width)
         x1 = min(max(min(min(tx1 * TILE, width), np.floor(u + ex) + 1), 0.0), width)
@@ -116,8 +122,8 @@ def _preprocess(means, quats, scales, opac, coeffs, use_sh, w2c, fx, fy, cx, cy,
             continue
         rect[i, 0], rect[i, 1], rect[i, 2], rect[i, 3] = int(x0), int(y0), int(x1), int(y1)
         splat[i, 0], splat[i, 1] = u, v
-        splat[i, 2], splat[i, 3], splat[i, 4] = -0.5 * con_a, -con_b, -0.5 * con_c
-        splat[i, 5] = o
+        splat[i, 2], splat[i, 3], splat[i, 4] = -0.5 * LOG2E * con_a, -LOG2E * con_b, -0.5 * LOG2E * con_c
+        splat[i, 5] = LOG2E * log_o
         depth[i] = z
         if not use_sh:
             for ch in range(nch):
@@ -155,15 +161,15 @@ item it is on, not a fixed half of the image."""
 
 
 @_jit(fastmath={"contract"}, inline="always")
-def _blend_run(st, p0, dx0, ca, rowb, rowc, o, c0, c1, c2, z, alpha_min, t_min, want_depth, lanes):
+def _blend_run(st, p0, dx0, ca, rowb, rowc, c0, c1, c2, z, alpha_min, t_min, want_depth, lanes):
     """Blend one splat into the ``lanes`` pixels st[p0:p0 + lanes] of a tile row (8 or 16, a constant
-    at each call); dx0 = x - mean x of the first. Branch-free so that LLVM vectorises it; the
-    indices are unsigned to spare it the negative-index wraparound that would otherwise block
-    vectorisation."""
+    at each call); dx0 = x - mean x of the first; rowc holds log2 opacity. Branch-free so that LLVM
+    vectorises it; the indices are unsigned to spare it the negative-index wraparound that would
+    otherwise block vectorisation."""
     for j in range(lanes):
         p = p0 + np.uint64(j)
         dx = dx0 + np.float32(j)
-        alpha = min(o * exp_nonpositive(dx * (ca * dx + rowb) + rowc), np.float32(ALPHA_MAX))
+        alpha = min(exp2_nonpositive(dx * (ca * dx + rowb) + rowc), np.float32(ALPHA_MAX))
         t = st[p]
         t_next = t * (np.float32(1.0) - alpha)
         live = (alpha >= alpha_min) & (t > np.float32(0.0))
@@ -173,9 +179,49 @@ def _blend_run(st, p0, dx0, ca, rowb, rowc, o, c0, c1, c2, z, alpha_min, t_min, 
         st[np.uint64(TILE * TILE) + p] += w * c0
         st[np.uint64(2 * TILE * TILE) + p] += w * c1
         st[np.uint64(3 * TILE * TILE) + p] += w * c2
-        if want_depth:  # loop-invariant: LLVM unswitches it out of the vector body
+        if want_depth:  # a constant in each copy of ``_blend_tile``
             st[np.uint64(4 * TILE * TILE) + p] += w * z
         st[p] = t_next if take else (-t if stop else t)
+
+
+@_jit(fastmath={"contract"}, inline="always")
+def _blend_tile(st, first_k, last_k, ids, splat, depth, rect, color, ox, oy, tw, th, alpha_min, t_min,
+                want_depth):
+    """Blend the splats ids[first_k:last_k] (front to back) into the tile at (ox, oy), ``tw`` x ``th``
+    pixels, until every pixel has stopped."""
+    nch = color.shape[1]
+    for k in range(first_k, last_k):
+        g = ids[k]
+        x0 = max(rect[g, 0] - ox, 0)
+        x1 = min(rect[g, 2] - ox, tw)
+        y0 = max(rect[g, 1] - oy, 0)
+        y1 = min(rect[g, 3] - oy, th)
+        mx = np.float32(splat[g, 0] - ox)
+        my = np.float32(splat[g, 1] - oy)
+        ca, cb, cc = np.float32(splat[g, 2]), np.float32(splat[g, 3]), np.float32(splat[g, 4])
+        lo, z = np.float32(splat[g, 5]), np.float32(depth[g])
+        c0 = color[g, 0]
+        c1 = color[g, 1] if nch == 3 else np.float32(0.0)
+        c2 = color[g, 2] if nch == 3 else np.float32(0.0)
+        # one run per row covering [x0, x1): 8 pixels anywhere in the tile row when the span
+        # fits in them, else the whole row (pixels outside the span are skipped anyway)
+        if x1 - x0 <= 8:
+            first = min(x0, TILE - 8)
+            for ly in range(y0, y1):
+                dy = np.float32(ly) - my
+                _blend_run(st, np.uint64(ly * TILE + first), np.float32(first) - mx, ca, cb * dy,
+                           cc * dy * dy + lo, c0, c1, c2, z, alpha_min, t_min, want_depth, 8)
+        else:
+            for ly in range(y0, y1):
+                dy = np.float32(ly) - my
+                _blend_run(st, np.uint64(ly * TILE), -mx, ca, cb * dy, cc * dy * dy + lo, c0, c1, c2, z,
+                           alpha_min, t_min, want_depth, TILE)
+        if (k - first_k) % 16 == 15:  # every 16 splats: has every pixel stopped?
+            most = np.float32(-1.0)
+            for p in range(TILE * TILE):
+                most = max(most, st[p])
+            if most <= 0:
+                break
 
 
 @_jit(parallel=True, nogil=True, fastmath={"contract"})
@@ -194,38 +240,13 @@ def _blend(start, ids, splat, depth, rect, color, background, width, height, gri
             st[:] = 0.0
             for p in range(TILE * TILE):  # pixels outside the image start stopped
                 st[p] = 1.0 if (p % TILE < tw and p // TILE < th) else -1.0
-            for k in range(start[t], start[t + 1]):
-                g = ids[k]
-                x0 = max(rect[g, 0] - ox, 0)
-                x1 = min(rect[g, 2] - ox, tw)
-                y0 = max(rect[g, 1] - oy, 0)
-                y1 = min(rect[g, 3] - oy, th)
-                mx = np.float32(splat[g, 0] - ox)
-                my = np.float32(splat[g, 1] - oy)
-                ca, cb, cc = np.float32(splat[g, 2]), np.float32(splat[g, 3]), np.float32(splat[g, 4])
-                o, z = np.float32(splat[g, 5]), np.float32(depth[g])
-                c0 = color[g, 0]
-                c1 = color[g, 1] if nch == 3 else np.float32(0.0)
-                c2 = color[g, 2] if nch == 3 else np.float32(0.0)
-                # one run per row covering [x0, x1): 8 pixels anywhere in the tile row when the span
-                # fits in them, else the whole row (pixels outside the span are skipped anyway)
-                if x1 - x0 <= 8:
-                    first = min(x0, TILE - 8)
-                    for ly in range(y0, y1):
-                        dy = np.float32(ly) - my
-                        _blend_run(st, np.uint64(ly * TILE + first), np.float32(first) - mx, ca, cb * dy,
-                                   cc * dy * dy, o, c0, c1, c2, z, alpha_min, t_min, want_depth, 8)
-                else:
-                    for ly in range(y0, y1):
-                        dy = np.float32(ly) - my
-                        _blend_run(st, np.uint64(ly * TILE), -mx, ca, cb * dy, cc * dy * dy, o, c0, c1, c2, z,
-                                   alpha_min, t_min, want_depth, TILE)
-                if (k - start[t]) % 16 == 15:  # every 16 splats: has every pixel stopped?
-                    most = np.float32(-1.0)
-                    for p in range(TILE * TILE):
-                        most = max(most, st[p])
-                    if most <= 0:
-                        break
+            # want_depth as a constant in each copy: the other loses its depth sums altogether
+            if want_depth:
+                _blend_tile(st, start[t], start[t + 1], ids, splat, depth, rect, color, ox, oy, tw, th,
+                            alpha_min, t_min, True)
+            else:
+                _blend_tile(st, start[t], start[t + 1], ids, splat, depth, rect, color, ox, oy, tw, th,
+                            alpha_min, t_min, False)
             for ly in range(th):
                 for lx in range(tw):
                     p = ly * TILE + lx
