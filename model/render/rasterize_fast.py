@@ -171,17 +171,17 @@ def _blend_run(st, p0, dx0, ca, rowb, rowc, c0, c1, c2, z, alpha_min, t_min, wan
         dx = dx0 + np.float32(j)
         alpha = min(exp2_nonpositive(dx * (ca * dx + rowb) + rowc), np.float32(ALPHA_MAX))
         t = st[p]
-        t_next = t * (np.float32(1.0) - alpha)
+        w = alpha * t
+        t_next = t - w
         live = (alpha >= alpha_min) & (t > np.float32(0.0))
         take = live & (t_next >= t_min)
-        stop = live & (t_next < t_min)
-        w = alpha * t if take else np.float32(0.0)
+        w = w if take else np.float32(0.0)
         st[np.uint64(TILE * TILE) + p] += w * c0
         st[np.uint64(2 * TILE * TILE) + p] += w * c1
         st[np.uint64(3 * TILE * TILE) + p] += w * c2
         if want_depth:  # a constant in each copy of ``_blend_tile``
             st[np.uint64(4 * TILE * TILE) + p] += w * z
-        st[p] = t_next if take else (-t if stop else t)
+        st[p] = t_next if take else (-t if live else t)
 
 
 @_jit(fastmath={"contract"}, inline="always")

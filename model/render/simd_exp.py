@@ -85,9 +85,9 @@ def exp_nonpositive(x):
 @numba.njit(inline="always")
 def exp2_nonpositive(x):
     """2^x for float32 x <= 0 (rounding noise above 0 gives about 1 + x ln 2); clamped below at -126."""
-    shifted = max(x, np.float32(-126.0)) + _ROUND
+    x = max(x, np.float32(-126.0))
+    shifted = x + _ROUND
     r = x - (shifted - _ROUND)
-    r = max(r, np.float32(-0.5))  # x below the clamp: r stays in the polynomial's range
     p = _EXP2[5]
     p = p * r + _EXP2[4]
     p = p * r + _EXP2[3]
