@@ -43,7 +43,7 @@ from edmcgs.errors import InvalidInputError
 from edmcgs.model.render.jit import in_torch_threads, njit_cached
 from edmcgs.model.render.projection import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE
 from edmcgs.model.render.simd_exp import exp_nonpositive
-from edmcgs.model.render.tiles import bin_tiles, depth_order
+from edmcgs.model.render.tiles import all_stopped, bin_tiles, depth_order
 
 __all__ = ["composite_fast"]
 
@@ -136,10 +136,7 @@ def _forward(start, ids, attrs, feat, rect, width, height, grid_x, dt, alpha_min
                             st[np.uint64(4 * _PIX) + p] += w * f2
                             st[np.uint64(5 * _PIX) + p] += w * f3
                 if (k - start[t]) % 16 == 15:  # every 16 splats: has every pixel stopped?
-                    most = -one
-                    for p in range(_PIX):
-                        most = max(most, st[p])
-                    if most <= zero:
+                    if all_stopped(st):
                         break
             for ly in range(th):
                 for lx in range(tw):

@@ -26,7 +26,7 @@ from edmcgs.model.render.jit import njit_cached as _jit
 from edmcgs.model.render.projection import ALPHA_MAX, ALPHA_MIN, FRUSTUM_SLACK, LOWPASS, SIGMAS, T_MIN, TILE
 from edmcgs.model.render.sh import SH_C0, SH_C1, SH_C2, SH_C3
 from edmcgs.model.render.simd_exp import exp2_nonpositive
-from edmcgs.model.render.tiles import bin_tiles, depth_order
+from edmcgs.model.render.tiles import all_stopped, bin_tiles, depth_order
 
 __all__ = ["RenderOutput", "rasterize_fast"]
 
@@ -217,10 +217,7 @@ def _blend_tile(st, first_k, last_k, ids, splat, depth, rect, color, ox, oy, tw,
                 _blend_run(st, np.uint64(ly * TILE), -mx, ca, cb * dy, cc * dy * dy + lo, c0, c1, c2, z,
                            alpha_min, t_min, want_depth, TILE)
         if (k - first_k) % 16 == 15:  # every 16 splats: has every pixel stopped?
-            most = np.float32(-1.0)
-            for p in range(TILE * TILE):
-                most = max(most, st[p])
-            if most <= 0:
+            if all_stopped(st):
                 break
 
 

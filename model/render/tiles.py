@@ -1,8 +1,9 @@
-"""Depth order and tile lists: which splats touch which TILE x TILE tile, front to back (both numba
-rasterizers)."""
+"""Depth order and tile lists: which splats touch which TILE x TILE tile, front to back, and the
+early stop of a tile's blending (both numba rasterizers)."""
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from edmcgs.model.render.jit import njit_cached
@@ -59,3 +60,14 @@ def bin_tiles(rect, order, grid_x, grid_y):
                 ids[fill[t]] = g
                 fill[t] += 1
     return start, ids
+
+
+@numba.njit(inline="always")
+def all_stopped(st) -> bool:
+    """Whether every pixel of a tile has stopped: no transmittance st[:TILE * TILE] is positive (a
+    stopped pixel's is negative). Counted in integers, which LLVM vectorises; a float max would run
+    one lane at a time."""
+    live = 0
+    for p in range(TILE * TILE):
+        live += np.int32(st[p] > 0)
+    return live == 0
