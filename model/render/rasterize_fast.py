@@ -224,7 +224,8 @@ def _blend_tile(st, first_k, last_k, ids, splat, depth, rect, color, ox, oy, tw,
 @_jit(parallel=True, nogil=True, fastmath={"contract"})
 def _blend(start, ids, splat, depth, rect, color, background, width, height, grid_x, alpha_min, t_min,
            want_depth, image, alpha_out, depth_out):
-    """Front-to-back blending of every tile's list; writes image, alpha and (want_depth) expected depth."""
+    """Front-to-back blending of every tile's list; writes image, alpha and (want_depth) expected depth,
+    flat views of [H, W, C], [H, W] and [H, W]."""
     nch = color.shape[1]
     n_tiles = grid_x * ((height + TILE - 1) // TILE)
     for item in numba.prange(_WORK_ITEMS):
@@ -244,17 +245,22 @@ def _blend(start, ids, splat, depth, rect, color, background, width, height, gri
             else:
                 _blend_tile(st, start[t], start[t + 1], ids, splat, depth, rect, color, ox, oy, tw, th,
                             alpha_min, t_min, False)
+            # the tile into the flat outputs, unsigned indices (no wraparound code: a third of the time
+            # blending takes otherwise)
             for ly in range(th):
+                row = np.uint64((oy + ly) * width + ox)
                 for lx in range(tw):
-                    p = ly * TILE + lx
+                    p = np.uint64(ly * TILE + lx)
+                    q = row + np.uint64(lx)
                     trans = abs(st[p])
                     for ch in range(nch):
-                        image[oy + ly, ox + lx, ch] = st[(ch + 1) * TILE * TILE + p] + trans * background[ch]
+                        image[q * np.uint64(nch) + np.uint64(ch)] = (st[np.uint64((ch + 1) * TILE * TILE) + p]
+                                                                     + trans * background[ch])
                     a = np.float32(1.0) - trans
-                    alpha_out[oy + ly, ox + lx] = a
+                    alpha_out[q] = a
                     if want_depth:
-                        z = st[4 * TILE * TILE + p]
-                        depth_out[oy + ly, ox + lx] = z / a if a > 0 else np.float32(0.0)
+                        z = st[np.uint64(4 * TILE * TILE) + p]
+                        depth_out[q] = z / a if a > 0 else np.float32(0.0)
 
 
 def rasterize_fast(means, quats, scales, opacities, colors, w2c, intrinsics: Intrinsics, *, background=None,
@@ -305,7 +311,8 @@ def rasterize_fast(means, quats, scales, opacities, colors, w2c, intrinsics: Int
         previous = numba.set_parallel_chunksize(1)  # work items go to threads one at a time
         try:
             _blend(start, ids, splat, depth_key, rect, color, chk.background, width, height, grid_x,
-                   np.float32(alpha_min), np.float32(t_min), bool(return_depth), image, alpha, depth)
+                   np.float32(alpha_min), np.float32(t_min), bool(return_depth), image.reshape(-1),
+                   alpha.reshape(-1), depth.reshape(-1))
         finally:
             numba.set_parallel_chunksize(previous)
     finally:
