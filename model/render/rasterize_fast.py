@@ -154,6 +154,8 @@ def _preprocess(means, quats, scales, opac, coeffs, use_sh, w2c, fx, fy, cx, cy,
 
 _STATE = 5 * TILE * TILE
 """Per-tile state: transmittance (negative once the pixel stopped), 3 colour sums, depth sum."""
+_PLANE = np.uint64(TILE * TILE)
+"""One row of that state, as an unsigned index."""
 _WORK_ITEMS = 128
 """Tiles are dealt round-robin to this many parallel work items, handed to threads one at a time:
 busy image regions are shared, and a thread the OS preempts (a loaded machine) holds up only the
@@ -227,6 +229,9 @@ def _blend(start, ids, splat, depth, rect, color, background, width, height, gri
     """Front-to-back blending of every tile's list; writes image, alpha and (want_depth) expected depth,
     flat views of [H, W, C], [H, W] and [H, W]."""
     nch = color.shape[1]
+    bg0 = background[0]
+    bg1 = background[1] if nch == 3 else np.float32(0.0)
+    bg2 = background[2] if nch == 3 else np.float32(0.0)
     n_tiles = grid_x * ((height + TILE - 1) // TILE)
     for item in numba.prange(_WORK_ITEMS):
         st = np.empty(_STATE, np.float32)
@@ -235,9 +240,10 @@ def _blend(start, ids, splat, depth, rect, color, background, width, height, gri
             oy = (t // grid_x) * TILE
             tw = min(TILE, width - ox)
             th = min(TILE, height - oy)
-            st[:] = 0.0
-            for p in range(TILE * TILE):  # pixels outside the image start stopped
-                st[p] = 1.0 if (p % TILE < tw and p // TILE < th) else -1.0
+            for ly in range(TILE):  # pixels outside the image start stopped
+                for lx in range(TILE):
+                    st[ly * TILE + lx] = 1.0 if (lx < tw and ly < th) else -1.0
+            st[TILE * TILE:] = 0.0
             # want_depth as a constant in each copy: the other loses its depth sums altogether
             if want_depth:
                 _blend_tile(st, start[t], start[t + 1], ids, splat, depth, rect, color, ox, oy, tw, th,
@@ -245,21 +251,25 @@ def _blend(start, ids, splat, depth, rect, color, background, width, height, gri
             else:
                 _blend_tile(st, start[t], start[t + 1], ids, splat, depth, rect, color, ox, oy, tw, th,
                             alpha_min, t_min, False)
-            # the tile into the flat outputs, unsigned indices (no wraparound code: a third of the time
-            # blending takes otherwise)
+            # the tile into the flat outputs: unsigned indices (no negative-index wraparound code) and
+            # the channels spelt out (a loop over a runtime count would not unroll)
             for ly in range(th):
                 row = np.uint64((oy + ly) * width + ox)
                 for lx in range(tw):
                     p = np.uint64(ly * TILE + lx)
                     q = row + np.uint64(lx)
                     trans = abs(st[p])
-                    for ch in range(nch):
-                        image[q * np.uint64(nch) + np.uint64(ch)] = (st[np.uint64((ch + 1) * TILE * TILE) + p]
-                                                                     + trans * background[ch])
+                    if nch == 3:
+                        rgb = np.uint64(3) * q
+                        image[rgb] = st[_PLANE + p] + trans * bg0
+                        image[rgb + np.uint64(1)] = st[np.uint64(2) * _PLANE + p] + trans * bg1
+                        image[rgb + np.uint64(2)] = st[np.uint64(3) * _PLANE + p] + trans * bg2
+                    else:
+                        image[q] = st[_PLANE + p] + trans * bg0
                     a = np.float32(1.0) - trans
                     alpha_out[q] = a
                     if want_depth:
-                        z = st[np.uint64(4 * TILE * TILE) + p]
+                        z = st[np.uint64(4) * _PLANE + p]
                         depth_out[q] = z / a if a > 0 else np.float32(0.0)
 
 
