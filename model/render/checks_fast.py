@@ -26,16 +26,18 @@ def _nonfinite(values):
 
 @njit_cached(nogil=True)
 def _flags(means, quats, scales, opacities, colors):
-    """One flag per entry of PROBLEMS (a plain tuple: no Python object is read inside the kernel)."""
+    """One flag per entry of PROBLEMS (a plain tuple: no Python object is read inside the kernel).
+    Every count is an integer sum, which LLVM vectorises."""
+    flat = scales.reshape(-1)
     negative = 0
-    for v in scales.reshape(-1):
-        negative += v < 0
+    for i in range(flat.shape[0]):
+        negative += np.int32(flat[i] < 0)
     outside = 0
-    for v in opacities:
-        outside += (v < 0) | (v > 1)
+    for i in range(opacities.shape[0]):
+        outside += np.int32((opacities[i] < 0) | (opacities[i] > 1))
     zero = 0
     for i in range(quats.shape[0]):
-        zero += (quats[i, 0] == 0) & (quats[i, 1] == 0) & (quats[i, 2] == 0) & (quats[i, 3] == 0)
+        zero += np.int32((quats[i, 0] == 0) & (quats[i, 1] == 0) & (quats[i, 2] == 0) & (quats[i, 3] == 0))
     return (_nonfinite(means.reshape(-1)) > 0, _nonfinite(quats.reshape(-1)) > 0,
             _nonfinite(scales.reshape(-1)) > 0, _nonfinite(opacities) > 0, _nonfinite(colors.reshape(-1)) > 0,
             negative > 0, outside > 0, zero > 0)
