@@ -178,11 +178,11 @@ def _blend_run(st, p0, dx0, ca, rowb, rowc, c0, c1, c2, z, alpha_min, t_min, wan
         live = (alpha >= alpha_min) & (t > np.float32(0.0))
         take = live & (t_next >= t_min)
         w = w if take else np.float32(0.0)
-        st[np.uint64(TILE * TILE) + p] += w * c0
-        st[np.uint64(2 * TILE * TILE) + p] += w * c1
-        st[np.uint64(3 * TILE * TILE) + p] += w * c2
+        st[_PLANE + p] += w * c0
+        st[np.uint64(2) * _PLANE + p] += w * c1
+        st[np.uint64(3) * _PLANE + p] += w * c2
         if want_depth:  # a constant in each copy of ``_blend_tile``
-            st[np.uint64(4 * TILE * TILE) + p] += w * z
+            st[np.uint64(4) * _PLANE + p] += w * z
         st[p] = t_next if take else (-t if live else t)
 
 

@@ -84,8 +84,9 @@ def exp_nonpositive(x):
 
 @numba.njit(inline="always")
 def exp2_nonpositive(x):
-    """2^x for float32 x <= 0 (rounding noise above 0 gives about 1 + x ln 2); clamped below at -126."""
-    x = max(x, np.float32(-126.0))
+    """2^x for float32 x <= 0 (rounding noise above 0 gives about 1 + x ln 2); clamped below at -125, so
+    that no result is subnormal (a subnormal costs the CPU a microcode assist)."""
+    x = max(x, np.float32(-125.0))
     shifted = x + _ROUND
     r = x - (shifted - _ROUND)
     p = _EXP2[5]
