@@ -58,9 +58,11 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, finetune_steps: int = 0,
-          finetune_lr: float = 1e-4, spawn: int = 0, transition: str = "select") -> tuple[list[dict], dict]:
-    """recording: a path or a ``Recording``; finetune_*, spawn, transition: the server's
-    ``online_finetune_*``, ``online_spawn`` and ``online_transition``; see the module docstring."""
+          finetune_lr: float = 1e-4, spawn: int = 0, transition: str = "select",
+          colour_lr: float = 0.0) -> tuple[list[dict], dict]:
+    """recording: a path or a ``Recording``; finetune_*, spawn, transition, colour_lr: the server's
+    ``online_finetune_*``, ``online_spawn``, ``online_transition`` and ``online_colour_lr``; see the
+    module docstring."""
     from edmcgs.geometry import Trajectory
     from edmcgs.model import online as model_online
     from edmcgs.model.checkpoint import load_checkpoint
@@ -92,7 +94,7 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
         ring.push(rec.events, complete_until_us=rec.t_range_us[1] + 1)
         online = OnlineAnchors(model, ring, capacity=10**6, fit=False, fit_steps=steps, fit_scale=scale,
                                fit_lr=lr, finetune_steps=finetune_steps, finetune_lr=finetune_lr,
-                               spawn=spawn, transition=moves, default_pose=pose)
+                               spawn=spawn, colour_lr=colour_lr, transition=moves, default_pose=pose)
         engine = Engine(model, ring, None, cache_size=4, online=online)
         engine.timeline = Timeline(start, start)
         anchors = rec.anchors
@@ -105,14 +107,15 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
             if fit and name != "live":
                 online._fit(a, anchors.images[i])
             elif fit:  # the live chain's fits are also scored
-                state = model_online.with_spawned(model_online.state_of(model, a.motion), a.spawned)
+                state = model_online.with_spawned(model_online.state_of(model, a.motion, a.colors), a.spawned)
                 img = model.render(state, pose(t), meta.intrinsics)
                 pred = _psnr(img, anchors.images[i] / 255.0)
                 t0 = time.perf_counter()
                 online._fit(a, anchors.images[i])
                 fit_s = time.perf_counter() - t0
                 fitted = online.anchors()[-1]  # the corrected anchor, against the frame it was fitted to
-                state = model_online.with_spawned(model_online.state_of(model, fitted.motion), fitted.spawned)
+                state = model_online.with_spawned(model_online.state_of(model, fitted.motion, fitted.colors),
+                                                  fitted.spawned)
                 corrected = _psnr(model.render(state, pose(t), meta.intrinsics), anchors.images[i] / 255.0)
                 pred_rows.append({"t_us": t, "since_end_s": (t - end) / 1e6, "pred_psnr": pred,
                                   "corrected_psnr": corrected, "fit_s": fit_s,
@@ -168,7 +171,7 @@ def bands(rows: list[dict], width_s: float = BAND_S) -> list[dict]:
 
 
 def timing(checkpoint: Path, recording: Path, width: int, height: int, steps: int, scale: float, lr: float,
-           n: int = 6) -> dict:
+           colour_lr: float = 0.0, n: int = 6) -> dict:
     """Median predict and correct time per anchor of ``checkpoint``'s model, its anchors rendered and
     compared at width x height (intrinsics scaled, the frame resized to match)."""
     from edmcgs.model import online as model_online
@@ -180,7 +183,7 @@ def timing(checkpoint: Path, recording: Path, width: int, height: int, steps: in
     model.requires_grad_(False)
     meta = model.meta
     intr = meta.intrinsics.scaled(width, height)
-    motion = model_online.checkpoint_motion(model, int(meta.t_end_us))
+    motion, colors = model_online.checkpoint_motion(model, int(meta.t_end_us)), None
     poses = rec.anchors.poses if rec.anchors.poses is not None else None
     preds, fits = [], []
     for k in range(n + 1):
@@ -195,7 +198,8 @@ def timing(checkpoint: Path, recording: Path, width: int, height: int, steps: in
         t0 = time.perf_counter()
         motion = model_online.advance(model, motion, emap, c2w)
         t1 = time.perf_counter()
-        motion, _, _ = model_online.correct(model, motion, image, c2w, intr, steps=steps, lr=lr, scale=scale)
+        motion, colors, _, _ = model_online.correct(model, motion, image, c2w, intr, steps=steps, lr=lr,
+                                                    scale=scale, colors=colors, colour_lr=colour_lr)
         t2 = time.perf_counter()
         if k:  # the first warms up
             preds.append(t1 - t0)
@@ -220,6 +224,8 @@ def main(argv=None) -> None:
     p.add_argument("--finetune-lr", type=float, default=fit["online_finetune_lr"].default)
     p.add_argument("--spawn", type=int, default=fit["online_spawn"].default,
                    help="Gaussians added per corrected anchor of a checkpoint drawn in anchor windows")
+    p.add_argument("--colour-lr", type=float, default=fit["online_colour_lr"].default,
+                   help="step size of the colour offsets each correction learns (0: off)")
     p.add_argument("--transition", choices=TRANSITIONS, default=fit["online_transition"].default,
                    help="what moves online anchors past the span (the server's online_transition)")
     p.add_argument("--timing-only", action="store_true", help="only the CPU figures (no drift)")
@@ -230,16 +236,17 @@ def main(argv=None) -> None:
     torch.set_num_threads(1)
     results: dict = {"steps": args.steps, "scale": args.scale, "lr": args.lr,
                      "finetune_steps": args.finetune_steps, "finetune_lr": args.finetune_lr,
-                     "spawn": args.spawn, "transition": args.transition}
+                     "spawn": args.spawn, "colour_lr": args.colour_lr, "transition": args.transition}
     for w, h in ((173, 130), (346, 260)):
-        t = timing(args.checkpoint, args.recording, w, h, args.steps, args.scale, args.lr)
+        t = timing(args.checkpoint, args.recording, w, h, args.steps, args.scale, args.lr, args.colour_lr)
         results[f"predict_ms_{w}x{h}"] = 1e3 * t["predict_s"]
         results[f"correct_ms_{w}x{h}"] = 1e3 * t["correct_s"]
         results[f"anchors_per_s_{w}x{h}"] = 1.0 / (t["predict_s"] + t["correct_s"])
         results[f"gaussians_{w}x{h}"] = t["gaussians"]
     if not args.timing_only:
         rows, extra = drift(args.recording, args.checkpoint, args.steps, args.scale, args.lr,
-                            args.finetune_steps, args.finetune_lr, args.spawn, args.transition)
+                            args.finetune_steps, args.finetune_lr, args.spawn, args.transition,
+                            args.colour_lr)
         for name in ("live", "no_corr", "no_events", "hold_last", "integrate"):
             results[f"psnr_{name}"] = float(np.mean([r[name] for r in rows]))
         blend = [r["blend"] for r in rows if r["blend"] is not None]

@@ -20,7 +20,10 @@ does there). A background layer is drawn behind them, in the fit as in the serve
 
 ``correct`` refines a predicted state against the frame: a per-control-point translation residual,
 optimised for a bounded number of Adam steps on the photometric loss through the differentiable
-rasterizer, with the canonical Gaussians and the networks frozen. Which transition moves the anchors
+rasterizer, with the canonical Gaussians and the networks frozen; with ``colour_lr`` > 0, per-Gaussian
+colour offsets learnt in the same steps (online appearance: what the stream shows that the checkpoint
+never saw, its views past the training ones). The offsets carry from each anchor to the next and each
+correction refines them, so they accumulate what the frames showed. Which transition moves the anchors
 past the span (g_phi, the checkpoint's distilled one of ``model/online_distill.py``, or none) the server
 chooses by how well each predicted the recent frames (``prediction_losses``); ``finetune`` (off by
 default) lets a copy of it learn from the corrections.
@@ -108,12 +111,14 @@ def advance(model: EdMCGS, motion: Motion, event_map, ev_c2w,
 
 @torch.no_grad()
 def prediction_losses(model: EdMCGS, motions: list[Motion], spawned: GaussianState | None, image: np.ndarray,
-                      c2w: np.ndarray, intrinsics: Intrinsics, *, scale: float = 1.0) -> list[float]:
-    """L1 of each control-point motion's render (forward only, at ``scale`` of the frame's size) against
-    ``image`` (uint8 [H, W, C]) seen from ``c2w``: how well each prediction explains a new frame."""
+                      c2w: np.ndarray, intrinsics: Intrinsics, *, scale: float = 1.0,
+                      colors: Tensor | None = None) -> list[float]:
+    """L1 of each control-point motion's render (forward only, at ``scale`` of the frame's size, with the
+    colour offsets ``colors``) against ``image`` (uint8 [H, W, C]) seen from ``c2w``: how well each
+    prediction explains a new frame."""
     target, intr = fit_target(image, intrinsics, scale)
     target = target.numpy()
-    return [float(np.abs(model.render(with_spawned(state_of(model, m), spawned), c2w, intr, threads=1)
+    return [float(np.abs(model.render(with_spawned(state_of(model, m, colors), spawned), c2w, intr, threads=1)
                          - target).mean()) for m in motions]
 
 
@@ -157,26 +162,37 @@ def finetune(model: EdMCGS, transition: torch.nn.Module, prev_motion: Motion, ev
 
 
 @torch.no_grad()
-def state_of(model: EdMCGS, motion: Motion) -> GaussianState:
-    """The Gaussians of a control-point motion (every Gaussian skinned: past the span nothing is frozen)."""
+def state_of(model: EdMCGS, motion: Motion, colors: Tensor | None = None) -> GaussianState:
+    """The Gaussians of a control-point motion (every Gaussian skinned: past the span nothing is frozen),
+    with the colour offsets ``colors`` [N, C] learnt online (``correct``) when given."""
     trans, rot = motion
     state = skin(model.skin_plan(frozen=False), model.control.positions, rot, trans)
     visible = model.gaussians.visible_in(last_window(model))
-    if visible is not None:  # the other windows' Gaussians are not drawn
-        state = GaussianState(state.means, state.quats, state.scales,
-                              state.opacities * visible.to(state.opacities.device), state.colors)
-    return state
+    opacities = state.opacities if visible is None else state.opacities * visible.to(state.opacities.device)
+    return GaussianState(state.means, state.quats, state.scales, opacities,
+                         state.colors if colors is None else recolored(state.colors, colors))
+
+
+def recolored(colors: Tensor, offsets: Tensor) -> Tensor:
+    """Colours (RGB [N, C], or SH [N, K, C]: their base colour, the DC term) moved by ``offsets`` [N, C]."""
+    if colors.dim() == 3:
+        return torch.cat([colors[:, :1] + (offsets / SH_C0)[:, None], colors[:, 1:]], 1)
+    return colors + offsets
 
 
 def correct(model: EdMCGS, motion: Motion, image: np.ndarray, c2w: np.ndarray, intrinsics: Intrinsics, *,
-            steps: int, lr: float = 6e-3, scale: float = 1.0,
-            reg: float = 1e-2) -> tuple[Motion, float, float]:
-    """Fit a translation residual to ``image`` (uint8 [H, W, C]) seen from ``c2w``.
+            steps: int, lr: float = 6e-3, scale: float = 1.0, reg: float = 1e-2,
+            colors: Tensor | None = None,
+            colour_lr: float = 0.0) -> tuple[Motion, Tensor | None, float, float]:
+    """Fit a translation residual (and, with ``colour_lr`` > 0, colour offsets) to ``image`` (uint8
+    [H, W, C]) seen from ``c2w``.
 
     steps: Adam steps (0: no fit); lr: step size as a fraction of the scene's extent; scale: render and
     compare at this fraction of the frame's size (the target is area-downsampled); reg: weight of the
-    residual's squared norm (in extents). Returns (corrected motion, L1 loss at the first step, L1 loss
-    at the last step, before its update: no extra render to score the result).
+    residual's squared norm (in extents); colors: the colour offsets [N, C] the state carries (None:
+    none yet); colour_lr: their step size (0: they stay as given). Returns (corrected motion, colour
+    offsets, L1 loss at the first step, L1 loss at the last step, before its update: no extra render to
+    score the result).
     """
     trans0, rot = motion
     target, intr = fit_target(image, intrinsics, scale)
@@ -186,6 +202,12 @@ def correct(model: EdMCGS, motion: Motion, image: np.ndarray, c2w: np.ndarray, i
     extent = float(model.extent)
     delta = torch.zeros_like(trans0, requires_grad=True)
     opt = torch.optim.Adam([delta], lr=lr)
+    offsets, learn = colors, colour_lr > 0 and steps > 0
+    if learn:
+        n, c = model.gaussians.means.shape[0], model.meta.channels
+        offsets = (torch.zeros(n, c, device=trans0.device) if colors is None else colors.detach().clone())
+        offsets.requires_grad_(True)
+        opt.add_param_group({"params": [offsets], "lr": colour_lr})
     # Skinning is linear in the translations: sum_k w_ik (R_k (mu_i - p_k) + p_k + T_k + d_k) moves mean
     # i by sum_k w_ik d_k, and no rotation changes. Skin once, then each step adds the blended residual.
     with torch.no_grad():
@@ -196,7 +218,8 @@ def correct(model: EdMCGS, motion: Motion, image: np.ndarray, c2w: np.ndarray, i
     first = last = None
     for _ in range(steps):
         moved = base.means + (weights * delta[cp.bind]).sum(1) * extent
-        state = GaussianState(moved, base.quats, base.scales, base.opacities, base.colors)
+        state = GaussianState(moved, base.quats, base.scales, base.opacities,
+                              base.colors if offsets is None else recolored(base.colors, offsets))
         out = render_image(state, w2c, intr, bg, behind)
         loss = (out - target).abs().mean()
         value = float(loss.detach())
@@ -205,9 +228,11 @@ def correct(model: EdMCGS, motion: Motion, image: np.ndarray, c2w: np.ndarray, i
         opt.zero_grad(set_to_none=True)
         (loss + reg * delta.pow(2).sum(-1).mean()).backward()
         opt.step()
+    if learn:
+        offsets = offsets.detach()
     if first is None:
-        return (trans0, rot), float("nan"), float("nan")
-    return (trans0 + delta.detach() * extent, rot), first, last
+        return (trans0, rot), offsets, float("nan"), float("nan")
+    return (trans0 + delta.detach() * extent, rot), offsets, first, last
 
 
 @torch.no_grad()

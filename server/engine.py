@@ -211,7 +211,8 @@ class Engine:
             except InvalidInputError:  # no trajectory and no frame poses: global sampling only
                 c2w = None
             motion = self.online.advance(online.motion, emap, c2w)
-            state = model_online.with_spawned(model_online.state_of(self.model, motion), online.spawned)
+            state = model_online.with_spawned(model_online.state_of(self.model, motion, online.colors),
+                                              online.spawned)
             return state, len(events)
         return self.model.deform(instant.t_us, emap), len(events)
 

@@ -67,6 +67,9 @@ class OnlineAnchor:
     spawned: GaussianState | None = None
     """Gaussians added for what the frame showed that the carried-forward window lacked (``spawn``);
     a prediction inherits the anchor before it's."""
+    colors: torch.Tensor | None = None
+    """Per-Gaussian colour offsets [N, C] learnt online (``colour_lr``); a prediction inherits the anchor
+    before it's, and each correction refines them."""
 
 
 class OnlineAnchors:
@@ -74,11 +77,11 @@ class OnlineAnchors:
 
     def __init__(self, model: EdMCGS, ring: EventRingBuffer, *, capacity: int = 64, fit_steps: int = 5,
                  fit_scale: float = 1.0, fit_lr: float = 6e-3, finetune_steps: int = 0,
-                 finetune_lr: float = 1e-4, spawn: int = 0, fit: bool = True, transition: str = "select",
-                 default_pose: Callable[[int], np.ndarray | None] | None = None):
+                 finetune_lr: float = 1e-4, spawn: int = 0, colour_lr: float = 0.0, fit: bool = True,
+                 transition: str = "select", default_pose: Callable[[int], np.ndarray | None] | None = None):
         self.model, self.ring = model, ring
         self.capacity, self.fit_steps, self.fit_scale = int(capacity), int(fit_steps), float(fit_scale)
-        self.fit_lr = float(fit_lr)
+        self.fit_lr, self.colour_lr = float(fit_lr), float(colour_lr)
         self.finetune_steps, self.finetune_lr = int(finetune_steps), float(finetune_lr)
         # the candidates past the span, best first while there is no evidence (None: events move nothing)
         self.candidates: dict[str, torch.nn.Module | None] = {"none": None}
@@ -232,7 +235,8 @@ class OnlineAnchors:
             c2w = pose if pose is not None else self.default_pose(scene_t)  # the event camera at the frame
             base = model_online.checkpoint_motion(model, scene_t) if prev is None else prev.motion
             motion = self.advance(base, emap, c2w)
-            anchor = OnlineAnchor(t, scene_t, motion, False, 0, pose, None if prev is None else prev.spawned)
+            anchor = OnlineAnchor(t, scene_t, motion, False, 0, pose, None if prev is None else prev.spawned,
+                                  None if prev is None else prev.colors)
             self._publish((*self._anchors, anchor))
             self.predicted += 1
         if self.fit_enabled:
@@ -278,12 +282,12 @@ class OnlineAnchors:
             return
         t0 = time.perf_counter()
         start = self._select(current, image, c2w) if self.select else current.motion
-        (trans, _), before, after = model_online.correct(
+        (trans, _), colors, before, after = model_online.correct(
             self.model, start, image, c2w, self.model.meta.intrinsics, steps=self.fit_steps,
-            lr=self.fit_lr, scale=self.fit_scale)
+            lr=self.fit_lr, scale=self.fit_scale, colors=current.colors, colour_lr=self.colour_lr)
         spawned = current.spawned
         if self.spawn_limit:
-            state = model_online.state_of(self.model, (trans, current.motion[1]))
+            state = model_online.state_of(self.model, (trans, current.motion[1]), colors)
             spawned = model_online.spawn(self.model, state, image, c2w, self.model.meta.intrinsics,
                                          limit=self.spawn_limit)
         seconds = time.perf_counter() - t0
@@ -293,10 +297,11 @@ class OnlineAnchors:
             for a in self._anchors:
                 if a.stream_us == anchor.stream_us:
                     a = replace(a, motion=(a.motion[0] + delta, a.motion[1]), corrected=True,
-                                version=a.version + 1, spawned=spawned)
+                                version=a.version + 1, spawned=spawned, colors=colors)
                 elif a.stream_us > anchor.stream_us and not a.corrected:
                     # predicted from this anchor's prediction: carry the correction on
-                    a = replace(a, motion=(a.motion[0] + delta, a.motion[1]), version=a.version + 1)
+                    a = replace(a, motion=(a.motion[0] + delta, a.motion[1]), version=a.version + 1,
+                                colors=colors)
                 out.append(a)
             self._publish(tuple(out))
         self.corrected += 1
@@ -322,7 +327,8 @@ class OnlineAnchors:
         predictions = [base if g is None else model_online.advance(model, base, emap, c2w, g)
                        for g in self.candidates.values()]
         losses = model_online.prediction_losses(model, predictions, anchor.spawned, image, c2w,
-                                                model.meta.intrinsics, scale=self.fit_scale)
+                                                model.meta.intrinsics, scale=self.fit_scale,
+                                                colors=anchor.colors)
         for name, loss in zip(names, losses, strict=True):
             self.evidence[name].append(loss)
         chosen = min(names, key=lambda n: float(np.mean(self.evidence[n])))

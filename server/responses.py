@@ -82,6 +82,8 @@ class Fit(_Body):
     """Steps of each correction (0: corrections are off)."""
     scale: float
     """Resolution of the correction against the frame (1: full)."""
+    colour_lr: float
+    """Step size of the colour offsets each correction learns (online appearance; 0: off)."""
     last_s: float | None
     median_s: float | None
     last_loss: FitLoss | None

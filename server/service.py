@@ -131,7 +131,7 @@ class Service:
                                        fit_scale=settings.online_fit_scale, fit_lr=settings.online_fit_lr,
                                        finetune_steps=settings.online_finetune_steps,
                                        finetune_lr=settings.online_finetune_lr,
-                                       spawn=settings.online_spawn,
+                                       spawn=settings.online_spawn, colour_lr=settings.online_colour_lr,
                                        transition=settings.online_transition)
             engine = Engine(model, ring, None, cache_size=settings.deform_cache,
                             raster_threads=settings.raster_threads, online=online)
@@ -361,7 +361,8 @@ class Service:
                            "evidence": {name: float(np.mean(v)) if (v := list(losses)) else None
                                         for name, losses in online.evidence.items()}},
             "fit": {"steps": online.fit_steps if online.fit_enabled else 0, "scale": online.fit_scale,
-                    "last_s": online.last_fit_s, "median_s": fits[len(fits) // 2] if fits else None,
+                    "colour_lr": online.colour_lr, "last_s": online.last_fit_s,
+                    "median_s": fits[len(fits) // 2] if fits else None,
                     "last_loss": None if online.last_loss is None else {
                         "before": online.last_loss[0], "after": online.last_loss[1]}},
         }

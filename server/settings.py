@@ -110,6 +110,11 @@ class Settings(BaseSettings):
         "Gaussians added at each corrected online anchor where its frame differs from the render (what "
         "entered the view since the checkpoint's last window); 0 (default): none, as they ghost once what "
         "they show moves on (reports/online-traffic.md).")
+    online_colour_lr: float = Field(0.01, ge=0, le=1,
+        description="Step size of the per-Gaussian colour offsets each correction learns beside the motion "
+                    "(online appearance: what the frames show that the checkpoint never saw, such as views "
+                    "past the training ones); they carry from anchor to anchor. 0: the checkpoint's colours "
+                    "(reports/online.md).")
     online_fit_scale: float = Field(0.5, gt=0, le=1,
         description="Fraction of the frame's size the correction renders and compares at.")
     raster_threads: int | None = Field(None, gt=0, le=1024,

@@ -56,6 +56,7 @@ def online_rows(rec: Recording, checkpoint: Path, training: Recording) -> tuple[
     from edmcgs.server.settings import Settings
 
     fit = {k: Settings.model_fields[f"online_fit_{k}"].default for k in ("steps", "scale", "lr")}
+    fit["colour_lr"] = Settings.model_fields["online_colour_lr"].default
     fit["distilled"] = "no event branch"
     served = checkpoint.with_name(checkpoint.stem + ".online.ckpt")
     if not served.exists():
@@ -68,7 +69,8 @@ def online_rows(rec: Recording, checkpoint: Path, training: Recording) -> tuple[
     if served.exists():
         checkpoint, fit["distilled"] = served, "yes"
     transition = Settings.model_fields["online_transition"].default
-    rows, extra = drift(rec, checkpoint, fit["steps"], fit["scale"], fit["lr"], transition=transition)
+    rows, extra = drift(rec, checkpoint, fit["steps"], fit["scale"], fit["lr"], transition=transition,
+                        colour_lr=fit["colour_lr"])
     chosen = [p["transition"] for p in extra["pred"]]
     fit["transition"] = ", ".join(f"{name} at {chosen.count(name)}" for name in dict.fromkeys(chosen))
     return rows, extra["pred"], fit
@@ -87,7 +89,7 @@ def section(rows: list[dict], predictions: list[dict], context: dict) -> list[st
               f"; it differs from it by up to {context['prefix_diff']:g} of 255 in an anchor pixel") + "). "
            "Past the span every new anchor frame is predicted by the event transition, then corrected with "
            f"the server's default fit ({context['steps']} Adam steps of {context['lr']:g} at "
-           f"{context['scale']:g}x size) before "
+           f"{context['scale']:g}x size, colour offsets at {context.get('colour_lr', 0):g}) before "
            f"the next; the transition is chosen by the frames (distilled online transition: "
            f"{context.get('distilled', 'no')}; chosen: {context.get('transition') or 'none yet'}); "
            f"{len(rows)} held-out frames past the span, mean PSNR (dB):", "",

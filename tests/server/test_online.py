@@ -12,6 +12,7 @@ import torch
 
 from edmcgs.model import online as model_online
 from edmcgs.model.checkpoint import load_checkpoint
+from edmcgs.model.render.sh import SH_C0
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.events import Events
@@ -194,10 +195,10 @@ def test_online_anchors_of_a_windowed_checkpoint_carry_its_last_window_forward(w
     assert bool(drawn.any()) and bool((model.gaussians.birth[drawn] == last).all())
     # the fit composites the background layer behind the last window's Gaussians, and lowers the loss
     i = int(np.searchsorted(rec.anchors.t_us, t))
-    (trans, _), first, after = model_online.correct(model, model_online.checkpoint_motion(model, t),
+    (trans, _), colors, first, after = model_online.correct(model, model_online.checkpoint_motion(model, t),
                                                     rec.anchors.images[i], rec.anchors.poses[i],
                                                     model.meta.intrinsics, steps=6, lr=6e-3)
-    assert np.isfinite(first) and after < first and bool(torch.isfinite(trans).all())
+    assert np.isfinite(first) and after < first and bool(torch.isfinite(trans).all()) and colors is None
     moved = ~(model.gaussians.birth == last)
     fitted = model_online.state_of(model, (trans, model_online.checkpoint_motion(model, t)[1]))
     assert float(fitted.opacities[moved].abs().max()) == 0.0  # other windows stay undrawn
@@ -277,7 +278,7 @@ def test_a_correction_equals_refitting_through_the_full_skinning(long_scene):
     motion = model_online.checkpoint_motion(model, t)
     i = int(np.searchsorted(rec.anchors.t_us, t))
     image, c2w, intr = rec.anchors.images[i], rec.anchors.poses[i], model.meta.intrinsics
-    (got, _), first, last = model_online.correct(model, motion, image, c2w, intr, steps=4, lr=2e-3)
+    (got, _), _, first, last = model_online.correct(model, motion, image, c2w, intr, steps=4, lr=2e-3)
 
     trans0, rot = motion
     target = torch.as_tensor(image, dtype=torch.float32) / 255.0
@@ -375,3 +376,54 @@ def test_the_serve_flags_of_the_online_switches_are_checked(flag, capsys):
 
     assert main([flag, "-1"]) == 2
     assert flag.lstrip("-").replace("-", "_") in capsys.readouterr().err
+
+
+def test_colour_offsets_learn_what_the_frame_shows_and_stay_put_without_a_step_size(long_scene):
+    rec, model = long_scene
+    t = int(model.meta.t_end_us) + STEP_US
+    i = int(np.searchsorted(rec.anchors.t_us, t))
+    c2w, intr = rec.anchors.poses[i], model.meta.intrinsics
+    motion = model_online.checkpoint_motion(model, t)
+    rendered = np.round(model.render(model_online.state_of(model, motion), c2w, intr) * 255).astype(np.uint8)
+    frame = rendered.copy()
+    patch = (slice(12, 36), slice(16, 48))
+    frame[patch] = np.clip(frame[patch].astype(int) + np.array([60, -40, 30]), 0, 255)  # never seen
+    before = np.abs(rendered[patch].astype(float) - frame[patch]).mean()
+    motion2, colors, first, last = model_online.correct(model, motion, frame, c2w, intr, steps=12, lr=1e-3,
+                                                        colour_lr=0.05)
+    assert colors is not None and colors.shape == (len(model.gaussians), model.meta.channels)
+    assert bool(torch.isfinite(colors).all()) and last < first
+    after = model.render(model_online.state_of(model, motion2, colors), c2w, intr) * 255
+    assert np.abs(after[patch] - frame[patch]).mean() < 0.6 * before
+    # without a step size the offsets pass through unchanged (and none stay none)
+    _, same, _, _ = model_online.correct(model, motion, frame, c2w, intr, steps=3, colors=colors)
+    assert same is colors
+    assert model_online.correct(model, motion, frame, c2w, intr, steps=3)[1] is None
+    # SH colours take the offset on their base colour (the DC term)
+    sh = torch.zeros(len(colors), 4, colors.shape[1])
+    moved = model_online.recolored(sh, colors)
+    torch.testing.assert_close(moved[:, 0] * SH_C0, colors)
+    assert float(moved[:, 1:].abs().max()) == 0.0
+
+
+def test_corrections_learn_colours_that_carry_to_the_next_anchors(long_scene):
+    rec, model = long_scene
+    ring = EventRingBuffer(10**6)
+    online = OnlineAnchors(model, ring, fit=False, fit_steps=3, colour_lr=0.02)
+    tl = Timeline(rec.t_range_us[0], rec.t_range_us[0])
+    _feed(online, ring, rec, model.meta.t_end_us + STEP_US + 1, tl)
+    first = online.anchors()[0]
+    assert first.colors is None  # nothing learnt before the first correction
+    online._fit(first, rec.anchors.images[rec.anchors.t_us == first.t_us][0])
+    fitted = online.anchors()[0]
+    assert fitted.corrected and fitted.colors is not None and bool(fitted.colors.abs().sum() > 0)
+    end = model.meta.t_end_us
+    _feed(online, ring, rec, end + 2 * STEP_US + 1, tl, from_us=end + STEP_US + 1)
+    nxt = online.anchors()[1]
+    assert not nxt.corrected and nxt.colors is fitted.colors  # the prediction inherits them
+    # and the served render past that anchor draws them
+    engine = Engine(model, ring, None, cache_size=4, online=online)
+    engine.timeline = tl
+    instant = engine.resolve(nxt.t_us)
+    state, _ = engine.state(instant)
+    torch.testing.assert_close(state.colors, model_online.state_of(model, nxt.motion).colors + fitted.colors)

@@ -73,6 +73,7 @@ def test_a_stream_five_times_the_span_renders_at_its_head_to_the_end(scene):
                 time.sleep(0.2)
             online = client.scene()["online"]
             assert online["corrected"] >= 1 and online["fit"]["last_s"] > 0
+            assert online["fit"]["colour_lr"] == 0.01  # the corrections learn colours by default
             assert online["corrected"] + online["skipped"]["superseded"] == online["predicted"]
             # what moves the anchors past the span, chosen by the frames the fits saw
             moves = online["transition"]
