@@ -277,7 +277,8 @@ def main(argv=None) -> None:
 
             args.plot.parent.mkdir(parents=True, exist_ok=True)
             online_drift(rows, extra["pred"], args.plot,
-                         f"{args.steps} steps of {args.lr:g} at {args.scale:g}x size")
+                         f"{args.steps} steps of {args.lr:g} at {args.scale:g}x size, "
+                         f"colours at {args.colour_lr:g}")
     print(table(results, TARGETS))
     if "bands" in results:
         names = ("live", "no_corr", "no_events", "hold_last", "integrate")
