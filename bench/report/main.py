@@ -235,7 +235,7 @@ def write_outputs(out: Path, s: ReportSettings, r: dict, *, command: str, minute
         c = r["online_context"]
         online_drift(r["online"], r["online_predictions"], out / "online_drift.png",
                      f"{c['steps']} steps of {c['lr']:g} at {c['scale']:g}x size, "
-                     f"colours at {c.get('colour_lr', 0):g}")
+                     f"colours at {c['colour_lr']:g}")
     error_vs_time(runs, out / "error_vs_time.png", threads)
     render_knobs(r["knobs"], out / "render_knobs.png")
     machine = (f"{os.cpu_count()} CPUs ({threads} thread(s) used, load average {os.getloadavg()[0]:.1f} at "

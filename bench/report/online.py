@@ -89,7 +89,7 @@ def section(rows: list[dict], predictions: list[dict], context: dict) -> list[st
               f"; it differs from it by up to {context['prefix_diff']:g} of 255 in an anchor pixel") + "). "
            "Past the span every new anchor frame is predicted by the event transition, then corrected with "
            f"the server's default fit ({context['steps']} Adam steps of {context['lr']:g} at "
-           f"{context['scale']:g}x size, colour offsets at {context.get('colour_lr', 0):g}) before "
+           f"{context['scale']:g}x size, colour offsets at {context['colour_lr']:g}) before "
            f"the next; the transition is chosen by the frames (distilled online transition: "
            f"{context.get('distilled', 'no')}; chosen: {context.get('transition') or 'none yet'}); "
            f"{len(rows)} held-out frames past the span, mean PSNR (dB):", "",

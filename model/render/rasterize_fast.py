@@ -25,12 +25,10 @@ from edmcgs.model.render.io import RenderOutput, as_float32_arrays, check_inputs
 from edmcgs.model.render.jit import njit_cached as _jit
 from edmcgs.model.render.projection import ALPHA_MAX, ALPHA_MIN, FRUSTUM_SLACK, LOWPASS, SIGMAS, T_MIN, TILE
 from edmcgs.model.render.sh import SH_C0, SH_C1, SH_C2, SH_C3
-from edmcgs.model.render.simd_exp import exp2_nonpositive
+from edmcgs.model.render.simd_exp import LOG2E, exp2_nonpositive
 from edmcgs.model.render.tiles import all_stopped, bin_tiles, depth_order
 
 __all__ = ["RenderOutput", "rasterize_fast"]
-
-LOG2E = 1.4426950408889634
 
 
 @_jit(parallel=True, nogil=True)

@@ -61,7 +61,9 @@ def _pow2_rounded(typingctx, shifted):
 _ROUND = np.float32(1.5 * 2**23)  # x + _ROUND - _ROUND rounds x to an integer (|x| < 2^22)
 _EXP2 = tuple(np.float32(c) for c in (1.0, 0.693146977598858, 0.24022242085173176, 0.055507337436910255,
                                        0.00967151264891175, 0.001326472706531119))
-_LOG2E = np.float32(1.4426950408889634)
+LOG2E = 1.4426950408889634
+"""log2(e), float64 (the inference rasterizer scales its conics by it)."""
+_LOG2E = np.float32(LOG2E)
 _LN2_HI = np.float32(0.693359375)       # ln 2 split so that n * _LN2_HI is exact for |n| < 2^8
 _LN2_LO = np.float32(-2.12194440e-4)
 

@@ -33,7 +33,7 @@ def _paused(page, served):
                            "edmcgsViewer.state.tUs !== null", timeout=20_000)
 
 
-def _between_anchors(page) -> int:
+def _between_anchors(page) -> None:
     """The paused still moved to halfway between two anchors (at an anchor the window is empty)."""
     t_us = page.evaluate("""() => {
         const s = edmcgsViewer.state.scene, a = s.anchors_us, slider = document.getElementById('slider');
@@ -42,7 +42,6 @@ def _between_anchors(page) -> int:
         return s.t_start_us + Number(slider.value) * 1000;
     }""")
     page.wait_for_function(f"{IDLE} && edmcgsViewer.state.tUs === {t_us}", timeout=20_000)
-    return t_us
 
 
 def _event_map(served, t_us: int) -> np.ndarray:
