@@ -11,8 +11,9 @@ Keys (targets, on the demo scene at 346x260, an idle 2-core CPU):
     stream_fps               one websocket client, live mode asking for 60 fps        >= 60
     event_to_frame_ms        median, an event's arrival in the ring -> a live frame
                              that includes it, received by the client (the oldest
-                             event new to each frame: at 60 fps at least one frame
-                             period, 16.7 ms, plus the render)                        <= 15
+                             event new to each frame: it waits for the next frame's
+                             start, up to a period, 16.7 ms at 60 fps, then for the
+                             render)                                                  <= 15
 
 By default it serves the bundled demo scene and renders at ``--size`` 346x260. ``--built`` serves a
 scene the bench builds from the model API instead (an untrained EdMCGS initialised from synthetic anchor

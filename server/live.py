@@ -51,16 +51,16 @@ class Arrivals:
         with self._lock:
             self._items.append((int(complete_until_us), int(self._clock())))
 
-    def first_after(self, stream_us: int | None) -> int | None:
-        """Unix µs at which the first batch bringing events past ``stream_us`` arrived (None: unknown).
-
-        A live frame whose window ends beyond the previous frame's holds events from that batch on;
-        that batch has waited longest, so it measures the frame's event-to-frame latency.
+    def arrival_of(self, stream_us: int) -> int | None:
+        """Unix µs at which the batch holding stream time ``stream_us`` arrived: the first one complete
+        beyond it (None: not arrived yet; the oldest batch kept when it is forgotten). Given a live
+        frame's oldest new event, that batch has waited longest: it measures the frame's event-to-frame
+        latency.
         """
         with self._lock:
             found = None
             for until, unix_us in reversed(self._items):
-                if stream_us is not None and until <= stream_us:
+                if until <= stream_us:
                     break
                 found = unix_us
             return found

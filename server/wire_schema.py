@@ -26,7 +26,8 @@ _STREAM_FRAME_KEYS = {
                                "the frame rate; the newest frame wins)."},
     "arrived_unix_us": {"type": ["integer", "null"],
                         "description": "Live mode: Unix µs at which the oldest event new to this frame "
-                                       "reached the server's ring (absent in a sweep)."},
+                                       "reached the server's ring; null when no event is new to it "
+                                       "(absent in a sweep)."},
     "data": {"type": "string", "format": "binary", "contentMediaType": "application/octet-stream",
              "description": "The encoded image (jpeg, png), or for raw uint8 pixels "
                             "[height, width, channels] row-major (msgpack bin)."},

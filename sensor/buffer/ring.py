@@ -204,6 +204,15 @@ class EventRingBuffer:
             self._check_window(int(t0_us), int(t1_us))
             return self._search(int(t1_us)) - self._search(int(t0_us))
 
+    def first_time(self, t0_us: int, t1_us: int) -> int | None:
+        """Timestamp of the oldest retained event with t0_us <= t < t1_us (None: there is none)."""
+        with self._lock:
+            i = self._search(int(t0_us))
+            if i >= self._end:
+                return None
+            t = int(self._t[i % self.capacity])
+            return t if t < int(t1_us) else None
+
     @property
     def head_us(self) -> int | None:
         with self._lock:

@@ -208,9 +208,13 @@ class StreamSession:
             message = frame.meta.to_message(frame.data)
             if sub.mode == "live":
                 # Events new to this frame: those past the previous frame's window, or for the first
-                # frame its whole window (not every batch the ring still remembers).
+                # frame its whole window (not every batch the ring still remembers). The oldest of them
+                # dates the frame: the batch that brought it, not merely one reaching past ``since``
+                # (the previous frame's last batch does, by the microsecond its window left out).
                 since = window_start if last_window_end is None else last_window_end
-                message["arrived_unix_us"] = self.service.arrivals.first_after(since)
+                oldest = self.service.ring.first_time(since, window_end)
+                message["arrived_unix_us"] = None if oldest is None else \
+                    self.service.arrivals.arrival_of(oldest)
                 last_window_end = window_end
             self._push(message)
 

@@ -78,17 +78,33 @@ def test_accept_negotiation_and_pose_text():
         protocol.parse_pose_text("1,2,x,4,5,6,7")
 
 
-def test_arrivals_find_the_oldest_batch_new_to_a_frame():
+def test_arrivals_date_a_stream_time_by_the_batch_that_brought_it():
     from edmcgs.server.live import Arrivals
 
     clock = iter(range(1_000, 10_000, 1_000))  # Unix µs of each arrival
     arrivals = Arrivals(keep=3, clock=lambda: next(clock))
-    for until in (100, 200, 300, 400):
+    for until in (100, 200, 300, 400):  # batches [0, 100), [100, 200), ... complete up to ``until``
         arrivals.record(until)
-    assert arrivals.first_after(250) == 3_000 and arrivals.first_after(350) == 4_000
-    assert arrivals.first_after(400) is None  # nothing new since
+    assert arrivals.arrival_of(250) == arrivals.arrival_of(299) == 3_000
+    assert arrivals.arrival_of(300) == 4_000  # the batch [300, 400), not the one complete up to 300
+    assert arrivals.arrival_of(400) is None  # not arrived yet
     # Bounded: the batch complete until 100 is forgotten, the oldest kept one (200) answers instead.
-    assert arrivals.first_after(50) == arrivals.first_after(150) == arrivals.first_after(None) == 2_000
+    assert arrivals.arrival_of(50) == arrivals.arrival_of(150) == 2_000
+
+
+def test_ring_first_time_is_the_oldest_event_in_a_window():
+    from edmcgs.sensor.buffer.ring import EventRingBuffer
+    from edmcgs.sensor.events import Events
+
+    ring = EventRingBuffer(4)
+    assert ring.first_time(0, 100) is None
+    t = np.array([10, 20, 30, 40, 50, 60], np.int64)  # six into four: 10 and 20 are dropped
+    n = len(t)
+    ring.push(Events(t, np.zeros(n, np.uint16), np.zeros(n, np.uint16), np.ones(n, np.int8)),
+              complete_until_us=61)
+    assert ring.first_time(0, 100) == 30  # the oldest retained
+    assert ring.first_time(31, 100) == 40 and ring.first_time(40, 41) == 40
+    assert ring.first_time(41, 50) is None and ring.first_time(61, 100) is None
 
 
 def test_head_signal_wakes_waiters_from_another_thread():
