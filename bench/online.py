@@ -23,6 +23,11 @@ each also on the moving pixels alone (``NAME_moving``: where the frame differs f
 span's anchor frames by more than ``MOVING``, as bench.traffic scores them, pooled over the frames in
 the results; None where none moves);
 
+by 1 s band of time since training ended, each render's mean PSNR, and for the live render and
+hold-last the band's pooled PSNR (of its mean squared error) with the frames the live render scores at
+least as well as hold-last: a mean of dB lets the few frames where the scene is back where its anchor
+left it (hold-last near exact) outweigh the rest;
+
 and each new anchor frame against its prediction before the correction (``pred``; ``transition``: what
 moved the anchors past the span after its fit, server/online.py) and against the
 corrected anchor itself (``corrected_psnr``: the floor of a live render's error right after that frame,
@@ -156,9 +161,19 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
     return rows, {"pred": pred_rows}
 
 
+def pooled(scored: list[tuple[float, int]]) -> float | None:
+    """PSNR of the mean squared error of (PSNR, pixels) pairs: every pixel weighs the same, so a few
+    near-exact frames do not outweigh the rest as they do in a mean of dB. None for no pair."""
+    if not scored:
+        return None
+    mse = sum(10 ** (-p / 10) * n for p, n in scored) / sum(n for _, n in scored)
+    return float(-10 * np.log10(mse))
+
+
 def bands(rows: list[dict], width_s: float = BAND_S) -> list[dict]:
     """Mean PSNR of each render in successive ``width_s`` bands of time since training ended (the drift
-    curve, smoothed over the anchor cycle)."""
+    curve, smoothed over the anchor cycle); beside it, for the live render and hold-last, the band's
+    pooled PSNR (``pooled``) and how many of its frames the live render scores at least as well."""
     out = []
     index = np.array([int(r["since_end_s"] // width_s) for r in rows])
     for k in np.unique(index):
@@ -166,6 +181,9 @@ def bands(rows: list[dict], width_s: float = BAND_S) -> list[dict]:
         band = {"from_s": float(k * width_s), "to_s": float((k + 1) * width_s), "frames": len(sel)}
         for name in ("live", "no_corr", "no_events", "hold_last", "integrate"):
             band[name] = float(np.mean([r[name] for r in sel]))
+        for name in ("live", "hold_last"):
+            band[f"{name}_pooled"] = pooled([(r[name], 1) for r in sel])
+        band["live_wins"] = int(sum(r["live"] >= r["hold_last"] for r in sel))
         out.append(band)
     return out
 
@@ -253,13 +271,15 @@ def main(argv=None) -> None:
         results["psnr_blend"] = float(np.mean(blend)) if blend else None
         for name in ("live", "no_corr", "no_events", "hold_last", "blend", "integrate"):
             # pooled over every moving pixel of every frame, as bench.traffic scores them
-            scored = [(r[f"{name}_moving"], r["moving_px"]) for r in rows if r[f"{name}_moving"] is not None]
-            mse = sum(10 ** (-p / 10) * n for p, n in scored) / max(1, sum(n for _, n in scored))
-            results[f"psnr_{name}_moving"] = float(-10 * np.log10(mse)) if scored else None
+            results[f"psnr_{name}_moving"] = pooled([(r[f"{name}_moving"], r["moving_px"]) for r in rows
+                                                     if r[f"{name}_moving"] is not None])
         results["live_minus_hold_last_worst_db"] = float(min(r["live"] - r["hold_last"] for r in rows))
         results["bands"] = bands(rows)
         results["live_minus_hold_last_worst_band_db"] = float(min(b["live"] - b["hold_last"]
                                                                   for b in results["bands"]))
+        results["live_minus_hold_last_worst_band_pooled_db"] = float(min(
+            b["live_pooled"] - b["hold_last_pooled"] for b in results["bands"]))
+        results["frames_live_at_least_hold_last"] = sum(b["live_wins"] for b in results["bands"])
         results["pred_psnr"] = float(np.mean([r["pred_psnr"] for r in extra["pred"]]))
         results["corrected_psnr"] = float(np.mean([r["corrected_psnr"] for r in extra["pred"]]))
         chosen = [r["transition"] for r in extra["pred"]]
@@ -286,6 +306,11 @@ def main(argv=None) -> None:
               + "".join(f"{n:>11}" for n in names))
         for b in results["bands"]:
             print(f"{b['from_s']:g}-{b['to_s']:g}".ljust(10) + "".join(f"{b[n]:>11.2f}" for n in names))
+        print(f"\npooled PSNR (dB, of the band's mean squared error) and frames live >= hold-last:\n"
+              f"{'band (s)':<10}{'live':>11}{'hold_last':>11}{'live wins':>11}")
+        for b in results["bands"]:
+            print(f"{b['from_s']:g}-{b['to_s']:g}".ljust(10) + f"{b['live_pooled']:>11.2f}"
+                  f"{b['hold_last_pooled']:>11.2f}{b['live_wins']:>6} / {b['frames']}")
     write_json(args.json, results)
 
 
