@@ -48,9 +48,6 @@ from edmcgs.model.render.tiles import all_stopped, bin_tiles, depth_order
 __all__ = ["composite_fast"]
 
 _PIX = TILE * TILE
-_WORK_ITEMS = 128
-"""Tiles are dealt round-robin to this many parallel work items, handed to threads one at a time
-(as in ``rasterize_fast``): busy regions are shared and a preempted thread holds up one item only."""
 _MOMENTS = 7
 """Per (tile, splat) sums: dL/dpower times 1, dx, dy, dx^2, dx dy, dy^2, and dL/dalpha exp(power)."""
 
@@ -96,55 +93,55 @@ def _forward(start, ids, attrs, feat, rect, width, height, grid_x, dt, alpha_min
     State rows: transmittance (negative once the pixel stopped), count, then the 4 feature sums."""
     n_tiles = grid_x * ((height + TILE - 1) // TILE)
     one, zero = dt(1.0), dt(0.0)
-    for item in numba.prange(_WORK_ITEMS):
+    # one tile per work item, in raster order, handed out one at a time (as in ``rasterize_fast``)
+    for t in numba.prange(n_tiles):
         st = np.empty(6 * _PIX, attrs.dtype)
-        for t in range(item, n_tiles, _WORK_ITEMS):
-            ox = (t % grid_x) * TILE
-            oy = (t // grid_x) * TILE
-            tw = min(TILE, width - ox)
-            th = min(TILE, height - oy)
-            st[:] = zero
-            for p in range(_PIX):  # pixels outside the image start stopped
-                st[p] = one if (p % TILE < tw and p // TILE < th) else -one
-            for k in range(start[t], start[t + 1]):
-                g = ids[k]
-                first, x1, y0, y1 = _span(rect, g, ox, oy, tw, th)
-                mx, my = dt(attrs[g, 0] - ox), dt(attrs[g, 1] - oy)
-                ca, cb, cc = dt(-0.5) * attrs[g, 2], -attrs[g, 3], dt(-0.5) * attrs[g, 4]
-                o = attrs[g, 5]
-                f0, f1, f2, f3 = feat[g, 0], feat[g, 1], feat[g, 2], feat[g, 3]
-                seen = dt(k - start[t] + 1)
-                for ly in range(y0, y1):
-                    dy = dt(ly) - my
-                    rowb, rowc = cb * dy, cc * dy * dy
-                    for hx in range(first, x1, 8):
-                        p0 = np.uint64(ly * TILE + hx)
-                        dx0 = dt(hx) - mx
-                        for j in range(8):
-                            p = p0 + np.uint64(j)
-                            dx = dx0 + dt(j)
-                            alpha = min(o * _exp_le0(dx * (ca * dx + rowb) + rowc), alpha_max)
-                            tv = st[p]
-                            t_next = tv * (one - alpha)
-                            live = (alpha >= alpha_min) & (tv > zero)
-                            take = live & (t_next >= t_min)
-                            w = alpha * tv if take else zero
-                            st[p] = t_next if take else (-tv if live else tv)
-                            st[np.uint64(_PIX) + p] = seen if take else st[np.uint64(_PIX) + p]
-                            st[np.uint64(2 * _PIX) + p] += w * f0
-                            st[np.uint64(3 * _PIX) + p] += w * f1
-                            st[np.uint64(4 * _PIX) + p] += w * f2
-                            st[np.uint64(5 * _PIX) + p] += w * f3
-                if (k - start[t]) % 16 == 15:  # every 16 splats: has every pixel stopped?
-                    if all_stopped(st):
-                        break
-            for ly in range(th):
-                for lx in range(tw):
-                    p = ly * TILE + lx
-                    trans[oy + ly, ox + lx] = abs(st[p])
-                    count[oy + ly, ox + lx] = np.int32(st[_PIX + p])
-                    for ch in range(FEATURES):
-                        acc[oy + ly, ox + lx, ch] = st[(2 + ch) * _PIX + p]
+        ox = (t % grid_x) * TILE
+        oy = (t // grid_x) * TILE
+        tw = min(TILE, width - ox)
+        th = min(TILE, height - oy)
+        st[:] = zero
+        for p in range(_PIX):  # pixels outside the image start stopped
+            st[p] = one if (p % TILE < tw and p // TILE < th) else -one
+        for k in range(start[t], start[t + 1]):
+            g = ids[k]
+            first, x1, y0, y1 = _span(rect, g, ox, oy, tw, th)
+            mx, my = dt(attrs[g, 0] - ox), dt(attrs[g, 1] - oy)
+            ca, cb, cc = dt(-0.5) * attrs[g, 2], -attrs[g, 3], dt(-0.5) * attrs[g, 4]
+            o = attrs[g, 5]
+            f0, f1, f2, f3 = feat[g, 0], feat[g, 1], feat[g, 2], feat[g, 3]
+            seen = dt(k - start[t] + 1)
+            for ly in range(y0, y1):
+                dy = dt(ly) - my
+                rowb, rowc = cb * dy, cc * dy * dy
+                for hx in range(first, x1, 8):
+                    p0 = np.uint64(ly * TILE + hx)
+                    dx0 = dt(hx) - mx
+                    for j in range(8):
+                        p = p0 + np.uint64(j)
+                        dx = dx0 + dt(j)
+                        alpha = min(o * _exp_le0(dx * (ca * dx + rowb) + rowc), alpha_max)
+                        tv = st[p]
+                        t_next = tv * (one - alpha)
+                        live = (alpha >= alpha_min) & (tv > zero)
+                        take = live & (t_next >= t_min)
+                        w = alpha * tv if take else zero
+                        st[p] = t_next if take else (-tv if live else tv)
+                        st[np.uint64(_PIX) + p] = seen if take else st[np.uint64(_PIX) + p]
+                        st[np.uint64(2 * _PIX) + p] += w * f0
+                        st[np.uint64(3 * _PIX) + p] += w * f1
+                        st[np.uint64(4 * _PIX) + p] += w * f2
+                        st[np.uint64(5 * _PIX) + p] += w * f3
+            if (k - start[t]) % 16 == 15:  # every 16 splats: has every pixel stopped?
+                if all_stopped(st):
+                    break
+        for ly in range(th):
+            for lx in range(tw):
+                p = ly * TILE + lx
+                trans[oy + ly, ox + lx] = abs(st[p])
+                count[oy + ly, ox + lx] = np.int32(st[_PIX + p])
+                for ch in range(FEATURES):
+                    acc[oy + ly, ox + lx, ch] = st[(2 + ch) * _PIX + p]
 
 
 # reassoc: the per-splat sums over a run of 8 pixels become vector reductions
@@ -158,86 +155,85 @@ def _backward(start, ids, attrs, feat, rect, width, height, grid_x, dt, alpha_mi
     one, zero = dt(1.0), dt(0.0)
     nsum = _MOMENTS + FEATURES
     u = np.uint64
-    for item in numba.prange(_WORK_ITEMS):
+    for t in numba.prange(n_tiles):
         st = np.empty(_ROWS, attrs.dtype)
         sums = np.empty(nsum, np.float64)
-        for t in range(item, n_tiles, _WORK_ITEMS):
-            ox = (t % grid_x) * TILE
-            oy = (t // grid_x) * TILE
-            tw = min(TILE, width - ox)
-            th = min(TILE, height - oy)
-            st[:] = zero
-            st[:_CNT] = one
-            last = 0
-            for ly in range(th):
-                for lx in range(tw):
-                    p = ly * TILE + lx
-                    y, x = oy + ly, ox + lx
-                    st[_CNT + p] = count[y, x]
-                    last = max(last, count[y, x])
-                    s = g_trans[y, x] * trans[y, x]
-                    for ch in range(FEATURES):
-                        st[_G + ch * _PIX + p] = g_acc[y, x, ch]
-                        s += g_acc[y, x, ch] * acc[y, x, ch]
-                    st[_TOT + p] = s
-            for k in range(start[t] + last, start[t + 1]):  # entries no pixel of the tile took
-                out[k, :] = 0.0
-            for k in range(start[t], start[t] + last):
-                g = ids[k]
-                first, x1, y0, y1 = _span(rect, g, ox, oy, tw, th)
-                mx, my = dt(attrs[g, 0] - ox), dt(attrs[g, 1] - oy)
-                ca, cb, cc = dt(-0.5) * attrs[g, 2], -attrs[g, 3], dt(-0.5) * attrs[g, 4]
-                o = attrs[g, 5]
-                f0, f1, f2, f3 = feat[g, 0], feat[g, 1], feat[g, 2], feat[g, 3]
-                seen = dt(k - start[t])
-                a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = a9 = a10 = zero
-                for ly in range(y0, y1):
-                    dy = dt(ly) - my
-                    rowb, rowc = cb * dy, cc * dy * dy
-                    for hx in range(first, x1, 8):
-                        p0 = u(ly * TILE + hx)
-                        dx0 = dt(hx) - mx
-                        for j in range(8):
-                            p = p0 + u(j)
-                            dx = dx0 + dt(j)
-                            e = _exp_le0(dx * (ca * dx + rowb) + rowc)
-                            raw = o * e
-                            alpha = min(raw, alpha_max)
-                            take = (alpha >= alpha_min) & (seen < st[u(_CNT) + p])
-                            tv = st[p]
-                            g0, g1 = st[u(_G) + p], st[u(_G + _PIX) + p]
-                            g2, g3 = st[u(_G + 2 * _PIX) + p], st[u(_G + 3 * _PIX) + p]
-                            gf = g0 * f0 + g1 * f1 + g2 * f2 + g3 * f3
-                            w = alpha * tv if take else zero
-                            pre = st[u(_PRE) + p] + w * gf
-                            d_alpha = tv * gf - (st[u(_TOT) + p] - pre) / (one - alpha) if take else zero
-                            d_raw = d_alpha if raw < alpha_max else zero  # no gradient through the clamp
-                            d_pow = d_raw * alpha
-                            st[p] = tv * (one - alpha) if take else tv
-                            st[u(_PRE) + p] = pre
-                            a0 += d_pow
-                            a1 += d_pow * dx
-                            a2 += d_pow * dy
-                            a3 += d_pow * dx * dx
-                            a4 += d_pow * dx * dy
-                            a5 += d_pow * dy * dy
-                            a6 += d_raw * e
-                            a7 += w * g0
-                            a8 += w * g1
-                            a9 += w * g2
-                            a10 += w * g3
-                sums[0], sums[1], sums[2], sums[3], sums[4], sums[5] = a0, a1, a2, a3, a4, a5
-                sums[6], sums[7], sums[8], sums[9], sums[10] = a6, a7, a8, a9, a10
-                # power = -(A dx^2 + 2 B dx dy + C dy^2) / 2 with dx = pixel x - mean x
-                a, b, c = attrs[g, 2], attrs[g, 3], attrs[g, 4]
-                out[k, 0] = a * sums[1] + b * sums[2]
-                out[k, 1] = c * sums[2] + b * sums[1]
-                out[k, 2] = -0.5 * sums[3]
-                out[k, 3] = -sums[4]
-                out[k, 4] = -0.5 * sums[5]
-                out[k, 5] = sums[6]
+        ox = (t % grid_x) * TILE
+        oy = (t // grid_x) * TILE
+        tw = min(TILE, width - ox)
+        th = min(TILE, height - oy)
+        st[:] = zero
+        st[:_CNT] = one
+        last = 0
+        for ly in range(th):
+            for lx in range(tw):
+                p = ly * TILE + lx
+                y, x = oy + ly, ox + lx
+                st[_CNT + p] = count[y, x]
+                last = max(last, count[y, x])
+                s = g_trans[y, x] * trans[y, x]
                 for ch in range(FEATURES):
-                    out[k, 6 + ch] = sums[_MOMENTS + ch]
+                    st[_G + ch * _PIX + p] = g_acc[y, x, ch]
+                    s += g_acc[y, x, ch] * acc[y, x, ch]
+                st[_TOT + p] = s
+        for k in range(start[t] + last, start[t + 1]):  # entries no pixel of the tile took
+            out[k, :] = 0.0
+        for k in range(start[t], start[t] + last):
+            g = ids[k]
+            first, x1, y0, y1 = _span(rect, g, ox, oy, tw, th)
+            mx, my = dt(attrs[g, 0] - ox), dt(attrs[g, 1] - oy)
+            ca, cb, cc = dt(-0.5) * attrs[g, 2], -attrs[g, 3], dt(-0.5) * attrs[g, 4]
+            o = attrs[g, 5]
+            f0, f1, f2, f3 = feat[g, 0], feat[g, 1], feat[g, 2], feat[g, 3]
+            seen = dt(k - start[t])
+            a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = a9 = a10 = zero
+            for ly in range(y0, y1):
+                dy = dt(ly) - my
+                rowb, rowc = cb * dy, cc * dy * dy
+                for hx in range(first, x1, 8):
+                    p0 = u(ly * TILE + hx)
+                    dx0 = dt(hx) - mx
+                    for j in range(8):
+                        p = p0 + u(j)
+                        dx = dx0 + dt(j)
+                        e = _exp_le0(dx * (ca * dx + rowb) + rowc)
+                        raw = o * e
+                        alpha = min(raw, alpha_max)
+                        take = (alpha >= alpha_min) & (seen < st[u(_CNT) + p])
+                        tv = st[p]
+                        g0, g1 = st[u(_G) + p], st[u(_G + _PIX) + p]
+                        g2, g3 = st[u(_G + 2 * _PIX) + p], st[u(_G + 3 * _PIX) + p]
+                        gf = g0 * f0 + g1 * f1 + g2 * f2 + g3 * f3
+                        w = alpha * tv if take else zero
+                        pre = st[u(_PRE) + p] + w * gf
+                        d_alpha = tv * gf - (st[u(_TOT) + p] - pre) / (one - alpha) if take else zero
+                        d_raw = d_alpha if raw < alpha_max else zero  # no gradient through the clamp
+                        d_pow = d_raw * alpha
+                        st[p] = tv * (one - alpha) if take else tv
+                        st[u(_PRE) + p] = pre
+                        a0 += d_pow
+                        a1 += d_pow * dx
+                        a2 += d_pow * dy
+                        a3 += d_pow * dx * dx
+                        a4 += d_pow * dx * dy
+                        a5 += d_pow * dy * dy
+                        a6 += d_raw * e
+                        a7 += w * g0
+                        a8 += w * g1
+                        a9 += w * g2
+                        a10 += w * g3
+            sums[0], sums[1], sums[2], sums[3], sums[4], sums[5] = a0, a1, a2, a3, a4, a5
+            sums[6], sums[7], sums[8], sums[9], sums[10] = a6, a7, a8, a9, a10
+            # power = -(A dx^2 + 2 B dx dy + C dy^2) / 2 with dx = pixel x - mean x
+            a, b, c = attrs[g, 2], attrs[g, 3], attrs[g, 4]
+            out[k, 0] = a * sums[1] + b * sums[2]
+            out[k, 1] = c * sums[2] + b * sums[1]
+            out[k, 2] = -0.5 * sums[3]
+            out[k, 3] = -sums[4]
+            out[k, 4] = -0.5 * sums[5]
+            out[k, 5] = sums[6]
+            for ch in range(FEATURES):
+                out[k, 6 + ch] = sums[_MOMENTS + ch]
 
 
 @njit_cached(nogil=True)
