@@ -90,6 +90,17 @@ def test_on_the_near_plane_is_finite_either_way():
     assert out.image.min() >= 0 and out.image.max() <= 1 and out.alpha.max() <= 1 and out.depth.min() >= 0
 
 
+@pytest.mark.parametrize("alpha_min", [0.0, 1 / 255])
+def test_opacities_at_zero_and_at_the_floor(alpha_min):
+    # every Gaussian is projected before the cull: log 0 = -inf must neither draw nor leak a NaN
+    floor = 1 / 255
+    scene = with_values(random_scene(40, 40, 30, seed=57),
+                        opacities=(slice(0, 20), [0.0, floor, floor - 1e-7, floor + 1e-7] * 5))
+    out = fast(scene, background=BG, alpha_min=alpha_min)
+    assert all(np.isfinite(a).all() for a in (out.image, out.alpha, out.depth))
+    assert_matches(out, ref_render(scene, background=BG, alpha_min=alpha_min), 2e-5)
+
+
 @pytest.mark.parametrize("scale", [1e-8, 1e-3, 1.0, 1e3])
 def test_extreme_scales(scale):
     scene = with_values(random_scene(30, 40, 30, seed=53), scales=(slice(0, 10), scale))
@@ -212,7 +223,8 @@ def test_a_new_process_loads_the_kernels_from_the_jit_cache():
         "rf.rasterize_fast(np.zeros((1, 3)) + [0, 0, 2], [[1, 0, 0, 0]], np.full((1, 3), .1), [.5],"
         " np.zeros((1, 9, 3)), np.eye(4), Intrinsics(10., 10., 4., 4., 9, 9))\n"
         "print(json.dumps({k: [sum(f.stats.cache_hits.values()), sum(f.stats.cache_misses.values())]"
-        " for k, f in (('checks', checks_fast._flags), ('pre', rf._preprocess), ('order', rf.depth_order),"
+        " for k, f in (('checks', checks_fast._flags), ('project', rf._project), ('sh', rf._sh_colors),"
+        " ('order', rf.depth_order),"
         " ('bin', rf.bin_tiles), ('blend', rf._blend))}))\n"
     )
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_DISABLE_JIT"}
