@@ -371,16 +371,17 @@ class Trajectory:
 
     def _at(self, t: np.ndarray) -> np.ndarray:
         """``at`` for integer times, always [M, 4, 4]."""
-        t = np.clip(t.astype(np.int64).reshape(-1), self.t_us[0], self.t_us[-1])
+        # np.minimum / np.maximum: np.clip's dispatch costs more than the work on a few times
+        t = np.minimum(np.maximum(t.astype(np.int64).reshape(-1), self.t_us[0]), self.t_us[-1])
         if self.t_us.size == 1:
             return np.repeat(self.c2w[:1], t.size, axis=0)
-        i = np.clip(np.searchsorted(self.t_us, t, side="right") - 1, 0, self.t_us.size - 2)
+        i = np.minimum(np.maximum(np.searchsorted(self.t_us, t, side="right") - 1, 0), self.t_us.size - 2)
         t0, t1 = self.t_us[i], self.t_us[i + 1]
         # int64 differences first (exact), float64 only for the ratio: Unix µs do not fit float32.
         w = (t - t0).astype(np.float64) / (t1 - t0).astype(np.float64)
-        q = _slerp(self._quats[i], self._quats[i + 1], w)
+        q = _slerp(self._quats[i], self._quats[i + 1], w)  # unit: no checks needed to make a rotation
         out = np.zeros((t.size, 4, 4))
-        out[:, :3, :3] = quat_to_rotmat(q)
+        out[:, :3, :3] = np.stack(rotmat_entries(*q.T), axis=-1).reshape(-1, 3, 3)
         out[:, :3, 3] = (1.0 - w)[:, None] * self.c2w[i, :3, 3] + w[:, None] * self.c2w[i + 1, :3, 3]
         out[:, 3, 3] = 1.0
         return out
