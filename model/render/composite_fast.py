@@ -77,6 +77,15 @@ def _span(rect, g, ox, oy, tw, th):
     return first, x1, y0, y1
 
 
+@njit_cached(inline="always")
+def _splat(attrs, feat, g, ox, oy, dt):
+    """Splat g as both kernels read it: its mean in tile-local pixels, the exponent's coefficients
+    (power = ca dx^2 + cb dx dy + cc dy^2), its opacity and its 4 features."""
+    mx, my = dt(attrs[g, 0] - ox), dt(attrs[g, 1] - oy)
+    ca, cb, cc = dt(-0.5) * attrs[g, 2], -attrs[g, 3], dt(-0.5) * attrs[g, 4]
+    return mx, my, ca, cb, cc, attrs[g, 5], feat[g, 0], feat[g, 1], feat[g, 2], feat[g, 3]
+
+
 # Per-tile state: one array per work item, so that LLVM sees no aliasing between the pixel rows
 # the bodies read and write and vectorises them (separate arrays keep them scalar).
 _CNT, _TOT, _PRE, _G = _PIX, 2 * _PIX, 3 * _PIX, 4 * _PIX  # backward rows after T; _G: 4 of them
@@ -106,10 +115,7 @@ def _forward(start, ids, attrs, feat, rect, width, height, grid_x, dt, alpha_min
         for k in range(start[t], start[t + 1]):
             g = ids[k]
             first, x1, y0, y1 = _span(rect, g, ox, oy, tw, th)
-            mx, my = dt(attrs[g, 0] - ox), dt(attrs[g, 1] - oy)
-            ca, cb, cc = dt(-0.5) * attrs[g, 2], -attrs[g, 3], dt(-0.5) * attrs[g, 4]
-            o = attrs[g, 5]
-            f0, f1, f2, f3 = feat[g, 0], feat[g, 1], feat[g, 2], feat[g, 3]
+            mx, my, ca, cb, cc, o, f0, f1, f2, f3 = _splat(attrs, feat, g, ox, oy, dt)
             seen = dt(k - start[t] + 1)
             for ly in range(y0, y1):
                 dy = dt(ly) - my
@@ -181,10 +187,7 @@ def _backward(start, ids, attrs, feat, rect, width, height, grid_x, dt, alpha_mi
         for k in range(start[t], start[t] + last):
             g = ids[k]
             first, x1, y0, y1 = _span(rect, g, ox, oy, tw, th)
-            mx, my = dt(attrs[g, 0] - ox), dt(attrs[g, 1] - oy)
-            ca, cb, cc = dt(-0.5) * attrs[g, 2], -attrs[g, 3], dt(-0.5) * attrs[g, 4]
-            o = attrs[g, 5]
-            f0, f1, f2, f3 = feat[g, 0], feat[g, 1], feat[g, 2], feat[g, 3]
+            mx, my, ca, cb, cc, o, f0, f1, f2, f3 = _splat(attrs, feat, g, ox, oy, dt)
             seen = dt(k - start[t])
             a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = a9 = a10 = zero
             for ly in range(y0, y1):
