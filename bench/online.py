@@ -172,8 +172,10 @@ def pooled(scored: list[tuple[float, int]]) -> float | None:
 
 def bands(rows: list[dict], width_s: float = BAND_S) -> list[dict]:
     """Mean PSNR of each render in successive ``width_s`` bands of time since training ended (the drift
-    curve, smoothed over the anchor cycle); beside it, for the live render and hold-last, the band's
-    pooled PSNR (``pooled``) and how many of its frames the live render scores at least as well."""
+    curve, smoothed over the anchor cycle); beside it, for the live render and the two anchor baselines,
+    the band's pooled PSNR (``pooled``), and how many of its frames the live render scores at least as
+    well as hold-last. The blend of the anchors either side is over the frames that have one (None if
+    none: past the last anchor)."""
     out = []
     index = np.array([int(r["since_end_s"] // width_s) for r in rows])
     for k in np.unique(index):
@@ -181,8 +183,10 @@ def bands(rows: list[dict], width_s: float = BAND_S) -> list[dict]:
         band = {"from_s": float(k * width_s), "to_s": float((k + 1) * width_s), "frames": len(sel)}
         for name in ("live", "no_corr", "no_events", "hold_last", "integrate"):
             band[name] = float(np.mean([r[name] for r in sel]))
-        for name in ("live", "hold_last"):
-            band[f"{name}_pooled"] = pooled([(r[name], 1) for r in sel])
+        blend = [r["blend"] for r in sel if r.get("blend") is not None]
+        band["blend"] = float(np.mean(blend)) if blend else None
+        for name in ("live", "hold_last", "blend"):
+            band[f"{name}_pooled"] = pooled([(r[name], 1) for r in sel if r.get(name) is not None])
         band["live_wins"] = int(sum(r["live"] >= r["hold_last"] for r in sel))
         out.append(band)
     return out
@@ -301,16 +305,20 @@ def main(argv=None) -> None:
                          f"colours at {args.colour_lr:g}")
     print(table(results, TARGETS))
     if "bands" in results:
-        names = ("live", "no_corr", "no_events", "hold_last", "integrate")
+        def cells(b, names):
+            return "".join(f"{'-':>11}" if b[n] is None else f"{b[n]:>11.2f}" for n in names)
+
+        names = ("live", "no_corr", "no_events", "hold_last", "blend", "integrate")
         print(f"\nmean PSNR (dB) per {BAND_S:g} s since training ended:\n{'band (s)':<10}"
               + "".join(f"{n:>11}" for n in names))
         for b in results["bands"]:
-            print(f"{b['from_s']:g}-{b['to_s']:g}".ljust(10) + "".join(f"{b[n]:>11.2f}" for n in names))
+            print(f"{b['from_s']:g}-{b['to_s']:g}".ljust(10) + cells(b, names))
+        pooled_names = ("live_pooled", "hold_last_pooled", "blend_pooled")
         print(f"\npooled PSNR (dB, of the band's mean squared error) and frames live >= hold-last:\n"
-              f"{'band (s)':<10}{'live':>11}{'hold_last':>11}{'live wins':>11}")
+              f"{'band (s)':<10}{'live':>11}{'hold_last':>11}{'blend':>11}{'live wins':>11}")
         for b in results["bands"]:
-            print(f"{b['from_s']:g}-{b['to_s']:g}".ljust(10) + f"{b['live_pooled']:>11.2f}"
-                  f"{b['hold_last_pooled']:>11.2f}{b['live_wins']:>6} / {b['frames']}")
+            print(f"{b['from_s']:g}-{b['to_s']:g}".ljust(10) + cells(b, pooled_names)
+                  + f"{b['live_wins']:>6} / {b['frames']}")
     write_json(args.json, results)
 
 

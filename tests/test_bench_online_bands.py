@@ -27,6 +27,7 @@ def test_a_band_where_hold_last_is_near_exact_on_one_frame():
     rows = [row | {"since_end_s": 0.1 * (i + 1), "live": np.float64(24.0), "hold_last": np.float64(22.0)}
             for i in range(3)]
     rows.append(row | {"since_end_s": 0.5, "live": 24.0, "hold_last": 40.0})
+    rows = [r | {"blend": 23.0} for r in rows]  # the anchors either side, in the first band only
     rows.append(row | {"since_end_s": 1.5, "live": 23.0, "hold_last": 23.0})
     first, second = bands(rows)
     assert first["frames"] == 4 and first["live_wins"] == 3
@@ -34,5 +35,7 @@ def test_a_band_where_hold_last_is_near_exact_on_one_frame():
     assert first["live_pooled"] == pytest.approx(24.0)
     assert first["hold_last_pooled"] == pytest.approx(-10 * math.log10((3 * 10 ** -2.2 + 1e-4) / 4))
     assert first["live_pooled"] > first["hold_last_pooled"]  # pooled: won
+    assert first["blend"] == first["blend_pooled"] == pytest.approx(23.0)
+    assert second["blend"] is None and second["blend_pooled"] is None  # past the last anchor: no blend
     assert second["live_wins"] == 1 and (second["from_s"], second["to_s"]) == (1.0, 2.0)
     assert json.loads(json.dumps([first, second])) == [first, second]

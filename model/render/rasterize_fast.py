@@ -1,14 +1,13 @@
 """Fast CPU inference rasterizer (numba): the same math as ``rasterize``, numpy in and out.
 
 Three stages: per-Gaussian preprocessing (EWA projection and screen rectangle, the math of
-``projection``, in float64, parallel over Gaussians and branch-free so that it vectorises; SH colour,
-``sh``'s math, apart), binning into 16x16 tiles in depth order, and per-tile front-to-back blending,
-parallel over tiles. Blending visits each splat's
-``screen_rect`` (the pixels where its alpha can reach ``alpha_min``; this changes no pixel value)
-in runs of 8 or 16 pixels with a branch-free float32 body and ``simd_exp``'s 2^x (the conics come
-scaled by log2(e) and the opacity as log2 opacity in the exponent: no range reduction by ln 2 and no
-multiply per pixel), which LLVM turns into AVX2 code; a pixel that has stopped is marked by a negative
-transmittance.
+``projection``, in float64, parallel over Gaussians and branch-free so that it vectorises; SH colour
+apart, by the training path's ``project_fast._sh_one``), binning into 16x16 tiles in depth order, and
+per-tile front-to-back blending, parallel over tiles. Blending visits each splat's ``screen_rect``
+(the pixels where its alpha can reach ``alpha_min``; this changes no pixel value) in runs of 8 or 16
+pixels with a branch-free float32 body and ``simd_exp``'s 2^x (the conics come scaled by log2(e) and
+the opacity as log2 opacity in the exponent: no range reduction by ln 2 and no multiply per pixel),
+which LLVM turns into AVX2 code; a pixel that has stopped is marked by a negative transmittance.
 
 JIT cache: kernels are compiled with ``cache=True`` where numba finds a writable place (``jit``).
 """
@@ -24,8 +23,8 @@ from edmcgs.errors import InvalidInputError
 from edmcgs.geometry import Intrinsics
 from edmcgs.model.render.io import RenderOutput, as_float32_arrays, check_inputs
 from edmcgs.model.render.jit import njit_cached as _jit
+from edmcgs.model.render.project_fast import _sh_one
 from edmcgs.model.render.projection import ALPHA_MAX, ALPHA_MIN, FRUSTUM_SLACK, LOWPASS, SIGMAS, T_MIN, TILE
-from edmcgs.model.render.sh import SH_C0, SH_C1, SH_C2, SH_C3
 from edmcgs.model.render.simd_exp import LOG2E, exp2_nonpositive
 from edmcgs.model.render.tiles import all_stopped, bin_tiles, depth_order
 
@@ -124,42 +123,20 @@ def _project(mt, qt, st, opac, log_o, w2c, fx, fy, cx, cy, width, height, near, 
 
 
 @_jit(parallel=True, nogil=True)
-def _sh_colors(means, coeffs, w2c, rect, color):
-    """color[i] = the SH colour of Gaussian i seen from the camera, for those not culled."""
-    ncoef, nch = coeffs.shape[1], coeffs.shape[2]
-    r00, r01, r02 = w2c[0, 0], w2c[0, 1], w2c[0, 2]
-    r10, r11, r12 = w2c[1, 0], w2c[1, 1], w2c[1, 2]
-    r20, r21, r22 = w2c[2, 0], w2c[2, 1], w2c[2, 2]
-    t0, t1, t2 = w2c[0, 3], w2c[1, 3], w2c[2, 3]
-    cam_x = -(r00 * t0 + r10 * t1 + r20 * t2)
-    cam_y = -(r01 * t0 + r11 * t1 + r21 * t2)
-    cam_z = -(r02 * t0 + r12 * t1 + r22 * t2)
-    for i in numba.prange(means.shape[0]):
-        if rect[i, 2] <= rect[i, 0]:
-            continue
-        dx = np.float64(means[i, 0]) - cam_x
-        dy = np.float64(means[i, 1]) - cam_y
-        dz = np.float64(means[i, 2]) - cam_z
-        dn = 1.0 / max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
-        dx, dy, dz = dx * dn, dy * dn, dz * dn
-        xx, yy, zz, xy, yz, xz2 = dx * dx, dy * dy, dz * dz, dx * dy, dy * dz, dx * dz
-        for ch in range(nch):
-            acc = SH_C0 * coeffs[i, 0, ch]
-            if ncoef > 1:
-                acc += SH_C1 * (-dy * coeffs[i, 1, ch] + dz * coeffs[i, 2, ch] - dx * coeffs[i, 3, ch])
-            if ncoef > 4:
-                acc += (SH_C2[0] * xy * coeffs[i, 4, ch] + SH_C2[1] * yz * coeffs[i, 5, ch]
-                        + SH_C2[2] * (2 * zz - xx - yy) * coeffs[i, 6, ch] + SH_C2[3] * xz2 * coeffs[i, 7, ch]
-                        + SH_C2[4] * (xx - yy) * coeffs[i, 8, ch])
-            if ncoef > 9:
-                acc += (SH_C3[0] * dy * (3 * xx - yy) * coeffs[i, 9, ch]
-                        + SH_C3[1] * xy * dz * coeffs[i, 10, ch]
-                        + SH_C3[2] * dy * (4 * zz - xx - yy) * coeffs[i, 11, ch]
-                        + SH_C3[3] * dz * (2 * zz - 3 * xx - 3 * yy) * coeffs[i, 12, ch]
-                        + SH_C3[4] * dx * (4 * zz - xx - yy) * coeffs[i, 13, ch]
-                        + SH_C3[5] * dz * (xx - yy) * coeffs[i, 14, ch]
-                        + SH_C3[6] * dx * (xx - 3 * yy) * coeffs[i, 15, ch])
-            color[i, ch] = max(acc + 0.5, 0.0)
+def _sh_colors(coeffs, means, centre, rect, color):
+    """color[i] = the SH colour of Gaussian i seen from ``centre`` (the training path's ``_sh_one``), for
+    those not culled; in blocks, each with its own scratch."""
+    n = means.shape[0]
+    empty2, empty3 = np.zeros((0, 3), color.dtype), np.zeros((0, 1, 1), color.dtype)
+    for block in numba.prange((n + _SH_BLOCK - 1) // _SH_BLOCK):
+        basis, grad = np.empty(16), np.empty((16, 3))
+        for i in range(block * _SH_BLOCK, min(n, (block + 1) * _SH_BLOCK)):
+            if rect[i, 2] > rect[i, 0]:
+                _sh_one(i, coeffs, means, centre, empty2, color, empty3, empty2, False, basis, grad)
+
+
+_SH_BLOCK = 256
+"""Gaussians per work item of ``_sh_colors``."""
 
 
 _STATE = 5 * TILE * TILE
@@ -325,11 +302,12 @@ def rasterize_fast(means, quats, scales, opacities, colors, w2c, intrinsics: Int
         _project(*rows, chk.opacities, log_o, chk.w2c, intrinsics.fx, intrinsics.fy, intrinsics.cx,
                  intrinsics.cy, width, height, float(near), float(alpha_min), columns, rect_columns)
         # the blending reads a splat's numbers together: one row per splat
-        splat, rect, depth_key = np.ascontiguousarray(columns[:6].T), np.ascontiguousarray(rect_columns.T), \
-            columns[6]
+        splat, rect = np.ascontiguousarray(columns[:6].T), np.ascontiguousarray(rect_columns.T)
+        depth_key = columns[6]
         if chk.colors.ndim == 3:  # SH: the colour as seen from this camera
             color = np.zeros((n, chk.channels), np.float32)
-            _sh_colors(chk.means, chk.colors, chk.w2c, rect, color)
+            centre = np.ascontiguousarray(-(chk.w2c[:3, :3].T @ chk.w2c[:3, 3]), dtype=np.float64)
+            _sh_colors(chk.colors, chk.means, centre, rect, color)
         else:
             color = chk.colors
         order = depth_order(rect, depth_key.view(np.uint32))
