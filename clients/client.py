@@ -113,6 +113,7 @@ class Frame(protocol.FrameMeta):
     dropped: int
     data: bytes
     arrived_unix_us: int | None = None
+    head_arrived_unix_us: int | None = None
 
     def image(self) -> np.ndarray:
         """The pixels, uint8 [height, width, channels] (PNG / JPEG decoded with Pillow)."""

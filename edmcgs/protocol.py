@@ -112,6 +112,7 @@ FRAME_KEYS = (
     "events",  # events in the half-open window [tau(t), t)
     "render_ms",  # server time of the render and its encoding
     "arrived_unix_us",  # live mode: Unix µs at which the oldest event new to this frame reached the ring
+    "head_arrived_unix_us",  # live mode: Unix µs at which the batch that brought the frame's time arrived
     "width",
     "height",
     "channels",  # 1 (grey) or 3 (RGB)
@@ -577,8 +578,8 @@ class FrameMeta:
 
     def to_message(self, data: bytes, **stream: Any) -> dict:
         """A frame map (``FRAME_KEYS``): these fields and the image ``data``, plus the websocket's ``seq``,
-        ``dropped`` and ``arrived_unix_us`` when given in ``stream``."""
-        unknown = set(stream) - {"seq", "dropped", "arrived_unix_us"}
+        ``dropped``, ``arrived_unix_us`` and ``head_arrived_unix_us`` when given in ``stream``."""
+        unknown = set(stream) - {"seq", "dropped", "arrived_unix_us", "head_arrived_unix_us"}
         if unknown:
             raise ValueError(f"not a frame key: {sorted(unknown)}")
         return {"type": "frame", **asdict(self), "data": data, **stream}

@@ -17,6 +17,9 @@ from edmcgs import protocol
 REF_TEMPLATE = "#/components/schemas/{model}"
 
 # The keys a websocket frame adds to FrameMeta's (FRAME_KEYS lists them all).
+LIVE_ONLY = ("arrived_unix_us", "head_arrived_unix_us")
+"""Frame keys only a live stream's frames carry."""
+
 _STREAM_FRAME_KEYS = {
     "type": {"const": "frame", "type": "string"},
     "seq": {"type": "integer", "minimum": 0,
@@ -28,6 +31,11 @@ _STREAM_FRAME_KEYS = {
                         "description": "Live mode: Unix µs at which the oldest event new to this frame "
                                        "reached the server's ring; null when no event is new to it "
                                        "(absent in a sweep)."},
+    "head_arrived_unix_us": {"type": ["integer", "null"],
+                             "description": "Live mode: Unix µs at which the batch that brought the "
+                                            "frame's time t_us reached the server's ring: the receive "
+                                            "time minus it is the age of the newest information in the "
+                                            "frame (absent in a sweep)."},
     "data": {"type": "string", "format": "binary", "contentMediaType": "application/octet-stream",
              "description": "The encoded image (jpeg, png), or for raw uint8 pixels "
                             "[height, width, channels] row-major (msgpack bin)."},
@@ -79,10 +87,10 @@ def schemas(ref_template: str = REF_TEMPLATE) -> dict[str, dict]:
     frame = {
         "title": "Frame", "type": "object",
         "description": "One rendered frame (server -> client, msgpack). The msgpack body of "
-                       "GET /render?format=msgpack is the same map without seq, dropped and "
-                       "arrived_unix_us.",
+                       "GET /render?format=msgpack is the same map without seq, dropped, "
+                       "arrived_unix_us and head_arrived_unix_us.",
         "properties": {k: props[k] for k in protocol.FRAME_KEYS},
-        "required": [k for k in protocol.FRAME_KEYS if k != "arrived_unix_us"],
+        "required": [k for k in protocol.FRAME_KEYS if k not in LIVE_ONLY],
     }
     add("Frame", frame, defs)
 

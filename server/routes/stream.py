@@ -215,6 +215,8 @@ class StreamSession:
                 oldest = self.service.ring.first_time(since, window_end)
                 message["arrived_unix_us"] = None if oldest is None else \
                     self.service.arrivals.arrival_of(oldest)
+                # The frame shows the stream as of window_end: known since the batch that reached it.
+                message["head_arrived_unix_us"] = self.service.arrivals.arrival_of(window_end - 1)
                 last_window_end = window_end
             self._push(message)
 

@@ -33,7 +33,7 @@ def test_sweep_renders_every_step_then_ends(client, scene_files):
         anchor = int(rec.anchors.t_us[np.searchsorted(rec.anchors.t_us, f.t_us, side="right") - 1])
         assert f.anchor_us == anchor
         assert f.events == len(rec.events.time_slice(anchor, f.t_us))
-        assert f.arrived_unix_us is None  # a sweep is not the live head
+        assert f.arrived_unix_us is None and f.head_arrived_unix_us is None  # a sweep is not the live head
 
 
 def test_sweep_frames_equal_http_renders(client):
@@ -55,6 +55,8 @@ def test_live_follows_the_head(client):
     now_us = time.time_ns() // 1000
     for f in frames:
         assert f.arrived_unix_us is not None and 0 <= now_us - f.arrived_unix_us < 10_000_000
+        # the frame's time came with its newest batch: never before its oldest new event's
+        assert f.arrived_unix_us <= f.head_arrived_unix_us <= now_us
         assert f.anchor_us <= f.t_us
         assert f.image().shape == (HEIGHT, WIDTH, 3)
 
