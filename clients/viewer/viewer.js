@@ -258,6 +258,7 @@ const state = {
   sentAt: [],             // performance.now() of each subscription sent and not yet answered
   acked: null,            // {sentAt, framesLeft}: the one just answered, until the frame that times it
   eventLatencyMs: null,
+  frameAgeMs: null,
   viewDirty: false,       // a change of view waits for the next animation frame (one message per paint)
   rendering: false,       // a GET /render in flight
   renderAgain: false,     // ... and the inputs changed since it was sent
@@ -602,6 +603,9 @@ function shown(frame) {
     // Event to screen against the page's clock: exact on the server's machine, else as good as NTP.
     state.eventLatencyMs = Date.now() - frame.arrived_unix_us / 1000;
   }
+  if (frame.head_arrived_unix_us !== undefined && frame.head_arrived_unix_us !== null) {
+    state.frameAgeMs = Date.now() - frame.head_arrived_unix_us / 1000;
+  }
   state.tUs = frame.t_us;
   if (frame.t_us !== undefined && frame.t_us !== null) {
     $("time").textContent = `${secondsOf(frame.t_us).toFixed(3)} s`;
@@ -634,6 +638,7 @@ function updateReadouts() {
   const ms = (v) => (v === null ? "–" : `${v.toFixed(0)} ms`);
   $("latency").textContent = ms(state.latencyMs);
   $("event-latency").textContent = state.playing ? ms(state.eventLatencyMs) : "–";
+  $("frame-age").textContent = state.playing ? ms(state.frameAgeMs) : "–";
   const pose = currentPose();
   $("pose").textContent = pose ? `[${pose.map((v) => v.toFixed(3)).join(", ")}]` : "event camera";
 }

@@ -50,11 +50,12 @@ def test_viewer_streams_orbits_and_shows_the_scene(page, served, tmp_path):
     anchors = page.locator("#ticks span")
     assert anchors.count() == 9  # anchors every 0.25 s over 2 s, marked on the slider
 
-    # the readouts are live: fps > 0, both latencies measured, frames and time moving
+    # the readouts are live: fps > 0, the latencies and the frame age measured, frames and time moving
     page.wait_for_function("parseFloat(document.getElementById('fps').textContent) > 0", timeout=10_000)
     page.wait_for_function("/^\\d+ ms$/.test(document.getElementById('latency').textContent)", timeout=10_000)
-    page.wait_for_function("/^-?\\d+ ms$/.test(document.getElementById('event-latency').textContent)",
-                           timeout=10_000)
+    for readout in ("event-latency", "frame-age"):
+        page.wait_for_function(f"/^-?\\d+ ms$/.test(document.getElementById('{readout}').textContent)",
+                               timeout=10_000)
     frames, shown_t = page.evaluate(f"[{FRAMES}, document.getElementById('time').textContent]")
     page.wait_for_function(f"{FRAMES} >= {frames + 5} && document.getElementById('time').textContent "
                            f"!== {shown_t!r}", timeout=20_000)
