@@ -4,7 +4,8 @@
 
 ``edmcgs-serve --replay LONG --checkpoint SHORT`` at real time; a websocket in live mode at 10 fps;
 for each frame past the checkpoint's span, the latency is the client's receive time minus
-``arrived_unix_us`` (when the oldest event new to that frame reached the ring), with the fit thread
+``arrived_unix_us`` (when the oldest event new to that frame reached the ring), and its age the receive
+time minus ``head_arrived_unix_us`` (when the batch that brought its time did), with the fit thread
 correcting every anchor it can meanwhile.
 """
 
@@ -34,13 +35,14 @@ def main(argv=None) -> None:
         srv.wait_ready()
         with Client(srv.url, timeout=30) as client:
             end = client.scene()["t_end_us"]
-            lat, kinds = [], {}
+            lat, ages, kinds = [], [], {}
             with client.stream({"mode": "live", "fps": 10, "format": "jpeg"}) as stream:
                 deadline = time.monotonic() + 120
                 for frame in stream:
                     now = time.time_ns() // 1000
                     if frame.t_us > end and frame.arrived_unix_us is not None:
                         lat.append((now - frame.arrived_unix_us) / 1e3)
+                        ages.append((now - frame.head_arrived_unix_us) / 1e3)
                         kinds[frame.anchor] = kinds.get(frame.anchor, 0) + 1
                     if frame.t_us > end + args.seconds * 1e6 or time.monotonic() > deadline:
                         break
@@ -51,7 +53,8 @@ def main(argv=None) -> None:
         if problems:
             print("server log:", *problems[-10:], sep="\n  ")
     results = {"frames": len(lat), "latency_p50_ms": float(np.median(lat)),
-               "latency_p90_ms": float(np.percentile(lat, 90)), "anchor_kinds": kinds,
+               "latency_p90_ms": float(np.percentile(lat, 90)), "frame_age_p50_ms": float(np.median(ages)),
+               "frame_age_p90_ms": float(np.percentile(ages, 90)), "anchor_kinds": kinds,
                "online_predicted": online["predicted"], "online_corrected": online["corrected"],
                "online_skipped": online["skipped"]["superseded"], "fit_median_s": online["fit"]["median_s"],
                "fit_last_s": online["fit"]["last_s"], "queue_depth": online["queue_depth"]}
