@@ -101,7 +101,7 @@ ACCEPT_ALIASES = {"image/jpg": "jpeg", "application/x-msgpack": "msgpack",
 
 STREAM_MODES = ("live", "sweep")
 
-# Keys of a frame map (websocket "frame" message; the msgpack body of /render without seq/dropped).
+# Keys of a frame map (websocket "frame" message; the msgpack body of /render without STREAM_KEYS).
 FRAME_KEYS = (
     "type",  # "frame"
     "seq",  # frame number on this connection, from 0; a gap is a dropped frame
@@ -120,6 +120,10 @@ FRAME_KEYS = (
     "anchor",  # what the anchor is: "checkpoint" | "predicted" | "corrected" (ANCHOR_KINDS)
     "data",  # bytes: the encoded image, or for "raw" uint8 pixels [height, width, channels] row-major
 )
+LIVE_KEYS = ("arrived_unix_us", "head_arrived_unix_us")
+"""Frame keys only a live stream's frames carry."""
+STREAM_KEYS = ("seq", "dropped", *LIVE_KEYS)
+"""Frame keys a websocket adds to a render's (``FrameMeta.to_message``'s ``stream``)."""
 ERROR_KEYS = ("type", "error", "detail", "param", "valid_range")
 
 
@@ -577,9 +581,9 @@ class FrameMeta:
                    headers.get(HEADER_ANCHOR, "checkpoint"))
 
     def to_message(self, data: bytes, **stream: Any) -> dict:
-        """A frame map (``FRAME_KEYS``): these fields and the image ``data``, plus the websocket's ``seq``,
-        ``dropped``, ``arrived_unix_us`` and ``head_arrived_unix_us`` when given in ``stream``."""
-        unknown = set(stream) - {"seq", "dropped", "arrived_unix_us", "head_arrived_unix_us"}
+        """A frame map (``FRAME_KEYS``): these fields and the image ``data``, plus the websocket's
+        ``STREAM_KEYS`` when given in ``stream``."""
+        unknown = set(stream) - set(STREAM_KEYS)
         if unknown:
             raise ValueError(f"not a frame key: {sorted(unknown)}")
         return {"type": "frame", **asdict(self), "data": data, **stream}

@@ -17,9 +17,6 @@ from edmcgs import protocol
 REF_TEMPLATE = "#/components/schemas/{model}"
 
 # The keys a websocket frame adds to FrameMeta's (FRAME_KEYS lists them all).
-LIVE_ONLY = ("arrived_unix_us", "head_arrived_unix_us")
-"""Frame keys only a live stream's frames carry."""
-
 _STREAM_FRAME_KEYS = {
     "type": {"const": "frame", "type": "string"},
     "seq": {"type": "integer", "minimum": 0,
@@ -87,10 +84,10 @@ def schemas(ref_template: str = REF_TEMPLATE) -> dict[str, dict]:
     frame = {
         "title": "Frame", "type": "object",
         "description": "One rendered frame (server -> client, msgpack). The msgpack body of "
-                       "GET /render?format=msgpack is the same map without seq, dropped, "
-                       "arrived_unix_us and head_arrived_unix_us.",
+                       "GET /render?format=msgpack is the same map without "
+                       + ", ".join(protocol.STREAM_KEYS) + ".",
         "properties": {k: props[k] for k in protocol.FRAME_KEYS},
-        "required": [k for k in protocol.FRAME_KEYS if k not in LIVE_ONLY],
+        "required": [k for k in protocol.FRAME_KEYS if k not in protocol.LIVE_KEYS],
     }
     add("Frame", frame, defs)
 
