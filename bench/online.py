@@ -10,11 +10,16 @@ each anchor frame past the span), each online anchor predicted by the event tran
 "corrected" chain, fitted to its frame before the next (a fit that keeps up); then every held-out frame
 past the span is scored (PSNR) for
 
-    live       the service's render: newest corrected anchor before t + the events since it
-    no_corr    the same chain, never corrected (the model's transition alone)
+    live       the service's render of the event camera's view: newest corrected anchor before t + the
+               events since it, projected onto the bounds the anchor's frame and those events put on
+               each pixel (``project``: the server's ``online_project``; model/event_bounds.py)
+    live_model the same render before that projection: the model alone
+    no_corr    the live chain, never corrected (the model's transition alone), projected as ``live``
     no_events  the ablation of the events past the span: the same fits with no transition (each
-               anchor predicted as the one before it; a render holds its anchor's state)
+               anchor predicted as the one before it; a render holds its anchor's state), projected as
+               ``live`` (the events then bound the render only)
     hold_last  the newest anchor frame itself (no model)
+    hold_projected  that frame projected as ``live`` is: the projection with no model
     integrate  the events since it integrated onto that frame (no model; ``model/eval/baselines.py``)
     blend      the anchor frames either side blended linearly in time (no model, not causal: None past
                the last anchor)
@@ -55,6 +60,8 @@ BAND_S = 1.0
 """Width of the time bands the drift is summarised in (``bands``)."""
 MOVING = 0.06
 """A pixel is moving in a frame where it differs from the span's anchors' median by more than this."""
+RENDERS = ("live", "live_model", "no_corr", "no_events", "hold_last", "hold_projected", "integrate")
+"""What every held-out frame is scored for (``blend`` beside them where there is a next anchor)."""
 
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -64,14 +71,16 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, finetune_steps: int = 0,
           finetune_lr: float = 1e-4, spawn: int = 0, transition: str = "select",
-          colour_lr: float = 0.0) -> tuple[list[dict], dict]:
-    """recording: a path or a ``Recording``; finetune_*, spawn, transition, colour_lr: the server's
-    ``online_finetune_*``, ``online_spawn``, ``online_transition`` and ``online_colour_lr``; see the
-    module docstring."""
+          colour_lr: float = 0.0, project: bool = True) -> tuple[list[dict], dict]:
+    """recording: a path or a ``Recording``; finetune_*, spawn, transition, colour_lr, project: the
+    server's ``online_finetune_*``, ``online_spawn``, ``online_transition``, ``online_colour_lr`` and
+    ``online_project``; see the module docstring."""
     from edmcgs.geometry import Trajectory
     from edmcgs.model import online as model_online
     from edmcgs.model.checkpoint import load_checkpoint
-    from edmcgs.model.eval.baselines import DEFAULT_CONTRAST, integrate_events
+    from edmcgs.model.eval.baselines import DEFAULT_CONTRAST
+    from edmcgs.model.event_bounds import integrate
+    from edmcgs.model.event_bounds import project as project_events
     from edmcgs.sensor.buffer.ring import EventRingBuffer
     from edmcgs.sensor.event_map import accumulate
     from edmcgs.sensor.files.recording import Recording, read_recording
@@ -99,7 +108,8 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
         ring.push(rec.events, complete_until_us=rec.t_range_us[1] + 1)
         online = OnlineAnchors(model, ring, capacity=10**6, fit=False, fit_steps=steps, fit_scale=scale,
                                fit_lr=lr, finetune_steps=finetune_steps, finetune_lr=finetune_lr,
-                               spawn=spawn, colour_lr=colour_lr, transition=moves, default_pose=pose)
+                               spawn=spawn, colour_lr=colour_lr, transition=moves, project=project,
+                               default_pose=pose)
         engine = Engine(model, ring, None, cache_size=4, online=online)
         engine.timeline = Timeline(start, start)
         anchors = rec.anchors
@@ -139,8 +149,10 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
         c2w = held.poses[j] if held.poses is not None else pose(t)
         row = {"t_us": t, "since_end_s": (t - end) / 1e6}
         images = {}
-        for name, engine in chains.items():
-            images[name] = engine.render(t, c2w, meta.intrinsics.width, meta.intrinsics.height).pixels / 255.0
+        size = (meta.intrinsics.width, meta.intrinsics.height)
+        for name, engine in chains.items():  # the held-out frame's pose is the event camera's
+            images[name] = engine.render(t, c2w, *size, camera_view=True).pixels / 255.0
+        images["live_model"] = chains["live"].render(t, c2w, *size, camera_view=False).pixels / 255.0
         k = int(np.searchsorted(anchor_t, t, side="right")) - 1
         frame = rec.anchors.images[k] / 255.0
         images["hold_last"] = frame
@@ -149,10 +161,12 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
             w = (t - int(anchor_t[k])) / float(anchor_t[k + 1] - anchor_t[k])
             images["blend"] = (1 - w) * frame + w * rec.anchors.images[k + 1] / 255.0
         events = accumulate(rec.events.time_slice(int(anchor_t[k]), t), rec.width, rec.height)
-        images["integrate"] = integrate_events(frame, events, contrast)
+        images["integrate"] = integrate(frame, events, contrast)
+        images["hold_projected"] = frame if not project else project_events(
+            frame, frame, events, model.config.contrast_threshold, eps=model.config.log_eps)
         moving = np.abs(target - still).max(-1) > MOVING
         row["moving_px"] = int(moving.sum())
-        for name in (*chains, "hold_last", "blend", "integrate"):
+        for name in (*RENDERS, "blend"):
             img = images.get(name)
             row[name] = None if img is None else _psnr(img, target)
             row[f"{name}_moving"] = None if img is None or not moving.any() else \
@@ -181,7 +195,7 @@ def bands(rows: list[dict], width_s: float = BAND_S) -> list[dict]:
     for k in np.unique(index):
         sel = [r for r, i in zip(rows, index, strict=True) if i == k]
         band = {"from_s": float(k * width_s), "to_s": float((k + 1) * width_s), "frames": len(sel)}
-        for name in ("live", "no_corr", "no_events", "hold_last", "integrate"):
+        for name in RENDERS:
             band[name] = float(np.mean([r[name] for r in sel]))
         blend = [r["blend"] for r in sel if r.get("blend") is not None]
         band["blend"] = float(np.mean(blend)) if blend else None
@@ -250,6 +264,8 @@ def main(argv=None) -> None:
                    help="step size of the colour offsets each correction learns (0: off)")
     p.add_argument("--transition", choices=TRANSITIONS, default=fit["online_transition"].default,
                    help="what moves online anchors past the span (the server's online_transition)")
+    p.add_argument("--no-project", action="store_true",
+                   help="live renders are the model's alone (the server's online_project off)")
     p.add_argument("--timing-only", action="store_true", help="only the CPU figures (no drift)")
     p.add_argument("--plot", type=Path, help="the drift plot (PNG)")
     p.add_argument("--json", type=Path)
@@ -258,7 +274,8 @@ def main(argv=None) -> None:
     torch.set_num_threads(1)
     results: dict = {"steps": args.steps, "scale": args.scale, "lr": args.lr,
                      "finetune_steps": args.finetune_steps, "finetune_lr": args.finetune_lr,
-                     "spawn": args.spawn, "colour_lr": args.colour_lr, "transition": args.transition}
+                     "spawn": args.spawn, "colour_lr": args.colour_lr, "transition": args.transition,
+                     "project": not args.no_project}
     for w, h in ((173, 130), (346, 260)):
         t = timing(args.checkpoint, args.recording, w, h, args.steps, args.scale, args.lr, args.colour_lr)
         results[f"predict_ms_{w}x{h}"] = 1e3 * t["predict_s"]
@@ -268,12 +285,12 @@ def main(argv=None) -> None:
     if not args.timing_only:
         rows, extra = drift(args.recording, args.checkpoint, args.steps, args.scale, args.lr,
                             args.finetune_steps, args.finetune_lr, args.spawn, args.transition,
-                            args.colour_lr)
-        for name in ("live", "no_corr", "no_events", "hold_last", "integrate"):
+                            args.colour_lr, not args.no_project)
+        for name in RENDERS:
             results[f"psnr_{name}"] = float(np.mean([r[name] for r in rows]))
         blend = [r["blend"] for r in rows if r["blend"] is not None]
         results["psnr_blend"] = float(np.mean(blend)) if blend else None
-        for name in ("live", "no_corr", "no_events", "hold_last", "blend", "integrate"):
+        for name in (*RENDERS, "blend"):
             # pooled over every moving pixel of every frame, as bench.traffic scores them
             results[f"psnr_{name}_moving"] = pooled([(r[f"{name}_moving"], r["moving_px"]) for r in rows
                                                      if r[f"{name}_moving"] is not None])
@@ -305,14 +322,14 @@ def main(argv=None) -> None:
                          f"colours at {args.colour_lr:g}")
     print(table(results, TARGETS))
     if "bands" in results:
-        def cells(b, names):
-            return "".join(f"{'-':>11}" if b[n] is None else f"{b[n]:>11.2f}" for n in names)
+        def cells(b, names, w=11):
+            return "".join(f"{'-':>{w}}" if b[n] is None else f"{b[n]:>{w}.2f}" for n in names)
 
-        names = ("live", "no_corr", "no_events", "hold_last", "blend", "integrate")
+        names = (*RENDERS, "blend")
         print(f"\nmean PSNR (dB) per {BAND_S:g} s since training ended:\n{'band (s)':<10}"
-              + "".join(f"{n:>11}" for n in names))
+              + "".join(f"{n:>15}" for n in names))
         for b in results["bands"]:
-            print(f"{b['from_s']:g}-{b['to_s']:g}".ljust(10) + cells(b, names))
+            print(f"{b['from_s']:g}-{b['to_s']:g}".ljust(10) + cells(b, names, 15))
         pooled_names = ("live_pooled", "hold_last_pooled", "blend_pooled")
         print(f"\npooled PSNR (dB, of the band's mean squared error) and frames live >= hold-last:\n"
               f"{'band (s)':<10}{'live':>11}{'hold_last':>11}{'blend':>11}{'live wins':>11}")

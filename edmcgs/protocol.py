@@ -89,8 +89,9 @@ HEADER_WIDTH = "X-Edmcgs-Width"  # image width, px
 HEADER_HEIGHT = "X-Edmcgs-Height"  # image height, px
 HEADER_CHANNELS = "X-Edmcgs-Channels"  # 1 (grey) or 3 (RGB)
 HEADER_ANCHOR = "X-Edmcgs-Anchor"  # what the anchor is: checkpoint | predicted | corrected (ANCHOR_KINDS)
+HEADER_PROJECTED = "X-Edmcgs-Projected"  # true | false: projected onto the events since the anchor's frame
 HEADERS = (HEADER_T_US, HEADER_T, HEADER_ANCHOR_US, HEADER_EVENTS, HEADER_RENDER_MS, HEADER_WIDTH,
-           HEADER_HEIGHT, HEADER_CHANNELS, HEADER_ANCHOR)
+           HEADER_HEIGHT, HEADER_CHANNELS, HEADER_ANCHOR, HEADER_PROJECTED)
 
 RENDER_FORMATS = ("png", "jpeg", "msgpack")
 STREAM_FORMATS = ("jpeg", "png", "raw")
@@ -118,6 +119,7 @@ FRAME_KEYS = (
     "channels",  # 1 (grey) or 3 (RGB)
     "format",  # "jpeg" | "png" | "raw" (msgpack body of /render: "raw")
     "anchor",  # what the anchor is: "checkpoint" | "predicted" | "corrected" (ANCHOR_KINDS)
+    "projected",  # true: the event camera's view projected onto the events since the anchor's frame
     "data",  # bytes: the encoded image, or for "raw" uint8 pixels [height, width, channels] row-major
 )
 LIVE_KEYS = ("arrived_unix_us", "head_arrived_unix_us")
@@ -564,13 +566,18 @@ class FrameMeta:
     """The format asked for: png | jpeg | msgpack (HTTP), jpeg | png | raw (websocket)."""
     anchor: str
     """What the anchor is (``ANCHOR_KINDS``): the checkpoint's, or an online anchor predicted or corrected."""
+    projected: bool
+    """The event camera's own view from an online anchor, clipped into the bounds its frame and the events
+    since it put on each pixel (one contrast threshold either side of the frame moved by the events); the
+    model renders what they leave open. False: the model's render alone."""
 
     def headers(self) -> dict[str, str]:
         """The ``HEADERS`` of a GET /render response."""
         return {HEADER_T_US: str(self.t_us), HEADER_T: repr(self.t), HEADER_ANCHOR_US: str(self.anchor_us),
                 HEADER_EVENTS: str(self.events), HEADER_RENDER_MS: f"{self.render_ms:.3f}",
                 HEADER_WIDTH: str(self.width), HEADER_HEIGHT: str(self.height),
-                HEADER_CHANNELS: str(self.channels), HEADER_ANCHOR: self.anchor}
+                HEADER_CHANNELS: str(self.channels), HEADER_ANCHOR: self.anchor,
+                HEADER_PROJECTED: "true" if self.projected else "false"}
 
     @classmethod
     def from_headers(cls, headers, format: str) -> FrameMeta:
@@ -578,7 +585,7 @@ class FrameMeta:
         return cls(int(headers[HEADER_T_US]), float(headers[HEADER_T]), int(headers[HEADER_ANCHOR_US]),
                    int(headers[HEADER_EVENTS]), float(headers[HEADER_RENDER_MS]), int(headers[HEADER_WIDTH]),
                    int(headers[HEADER_HEIGHT]), int(headers[HEADER_CHANNELS]), format,
-                   headers.get(HEADER_ANCHOR, "checkpoint"))
+                   headers.get(HEADER_ANCHOR, "checkpoint"), headers.get(HEADER_PROJECTED, "false") == "true")
 
     def to_message(self, data: bytes, **stream: Any) -> dict:
         """A frame map (``FRAME_KEYS``): these fields and the image ``data``, plus the websocket's
@@ -594,7 +601,7 @@ class FrameMeta:
         return cls(int(message["t_us"]), float(message["t"]), int(message["anchor_us"]),
                    int(message["events"]), float(message["render_ms"]), int(message["width"]),
                    int(message["height"]), int(message["channels"]), format or message["format"],
-                   message.get("anchor", "checkpoint"))
+                   message.get("anchor", "checkpoint"), bool(message.get("projected", False)))
 
 
 # The OpenAPI and AsyncAPI documents are generated from these types (server/wire_schema.py, by pydantic):

@@ -17,6 +17,7 @@ import numpy as np
 from edmcgs import protocol
 from edmcgs.errors import InvalidInputError, WindowUnavailable
 from edmcgs.geometry import Intrinsics
+from edmcgs.model import event_bounds
 from edmcgs.model import online as model_online
 from edmcgs.model.dynamic import EdMCGS
 from edmcgs.protocol import TauSource
@@ -40,7 +41,10 @@ class Rendered:
     anchor: str = "checkpoint"
     """protocol.ANCHOR_KINDS: the checkpoint's anchor, or an online one predicted or corrected."""
     stages: dict[str, float] = field(default_factory=dict)
-    """Seconds spent per stage: "state" (the events and the deformation, or a cache hit), "raster"."""
+    """Seconds spent per stage: "state" (the events and the deformation, or a cache hit), "raster",
+    "project"."""
+    projected: bool = False
+    """Projected onto the events since the anchor's frame (``Engine._frame``)."""
 
 
 class Engine:
@@ -187,6 +191,10 @@ class Engine:
     # ------------------------------------------------------------------ deformation and render
     def state(self, instant: Instant) -> tuple[object, int]:
         """(GaussianState at the instant, events in its window), shared by all clients (cached)."""
+        return self._entry(instant)[:2]
+
+    def _entry(self, instant: Instant) -> tuple[object, int, np.ndarray | None]:
+        """``state``'s pair and the window's I_E where an online anchor's frame starts it (cached)."""
         online = self.online.get(instant.window[0]) if self.online is not None else None
         key = (instant.t_us, instant.anchor_us, instant.window,
                None if online is None else (online.version, self.online.transition_version))
@@ -197,13 +205,13 @@ class Engine:
         online = self.online.get(instant.window[0]) if self.online is not None else None
         return "checkpoint" if online is None else "corrected" if online.corrected else "predicted"
 
-    def _deform(self, instant: Instant, online=None) -> tuple[object, int]:
+    def _deform(self, instant: Instant, online=None) -> tuple[object, int, np.ndarray | None]:
         try:
             events = self.ring.slice(*instant.window)
         except WindowUnavailable as exc:
             self._unavailable(f"the events for t={self._fmt(instant.t_us)} are gone: {exc}")
         emap = None
-        if self.meta.has_event_branch and len(events):
+        if (self.meta.has_event_branch or online is not None) and len(events):
             emap = accumulate(events, self.meta.event_width, self.meta.event_height)
         if online is not None:  # from the online anchor's state, by the events since it (model/online.py)
             try:
@@ -213,8 +221,8 @@ class Engine:
             motion = self.online.advance(online.motion, emap, c2w)
             state = model_online.with_spawned(model_online.state_of(self.model, motion, online.colors),
                                               online.spawned)
-            return state, len(events)
-        return self.model.deform(instant.t_us, emap), len(events)
+            return state, len(events), emap
+        return self.model.deform(instant.t_us, emap), len(events), None
 
     def event_map(self, t_us: int | None) -> tuple[Instant, int, np.ndarray]:
         """(instant, events, I_E) of the window a render at ``t_us`` (None: the head) uses: the signed
@@ -244,17 +252,39 @@ class Engine:
             return native
         return native.scaled(width, height)
 
-    def render(self, t_us: int | None, pose: np.ndarray | None, width: int, height: int) -> Rendered:
-        """Pixels of the scene at ``t_us`` (None: the head) from ``pose`` (None: the event camera's)."""
+    def render(self, t_us: int | None, pose: np.ndarray | None, width: int, height: int, *,
+               camera_view: bool | None = None) -> Rendered:
+        """Pixels of the scene at ``t_us`` (None: the head) from ``pose`` (None: the event camera's).
+
+        camera_view: whether ``pose`` is the event camera's own at that time (default: when ``pose`` is
+        None). Its view from an online anchor whose frame the stream gave is projected onto the events
+        since that frame (``_frame``)."""
         instant = self.resolve(t_us)
         t0 = time.perf_counter()
-        state, n_events = self.state(instant)
+        state, n_events, emap = self._entry(instant)
         t1 = time.perf_counter()
         c2w = self.default_pose(instant.t_us) if pose is None else pose
         intr = self.intrinsics(width, height)
-        pixels = to_uint8(self.model.render(state, c2w, intr, fast=self.fast, threads=self.raster_threads))
+        image = self.model.render(state, c2w, intr, fast=self.fast, threads=self.raster_threads)
         stages = {"state": t1 - t0, "raster": time.perf_counter() - t1}
-        return Rendered(pixels, instant, n_events, self.anchor_kind(instant), stages)
+        frame = self._frame(instant) if (pose is None if camera_view is None else camera_view) else None
+        if frame is not None:
+            t2 = time.perf_counter()
+            shape = (self.meta.event_height, self.meta.event_width)
+            image = event_bounds.project(image, frame, np.zeros(shape, np.float32) if emap is None else emap,
+                                         self.model.config.contrast_threshold, eps=self.model.config.log_eps)
+            stages["project"] = time.perf_counter() - t2
+        return Rendered(to_uint8(image), instant, n_events, self.anchor_kind(instant), stages,
+                        frame is not None)
+
+    def _frame(self, instant: Instant) -> np.ndarray | None:
+        """The frame a render of the event camera's view at ``instant`` is projected onto the events
+        since (model/event_bounds.py; the model renders what they leave open): past the span, an online
+        anchor's own frame, with ``online.project`` on; else None."""
+        if self.online is None or not self.online.project:
+            return None
+        online = self.online.get(instant.window[0])
+        return None if online is None else online.frame
 
     def warm_up(self) -> float:
         """Compile the fast paths (numba) with one render at the first anchor, off the request path.

@@ -12,6 +12,9 @@
                    anchors predicted from it meanwhile; optionally (finetune_steps > 0) a copy of g learns
                    from the correction and replaces it
 
+    render:        the anchor's state moved by g(events since it); of the event camera's own view,
+                   projected onto the events since the anchor's frame (``project``; server/engine.py)
+
 Anchors are keyed by stream time (a looping replay passes the same scene times again; each pass chains
 from the checkpoint's last anchor anew). The store is bounded (``capacity``) and drops anchors whose
 events the ring no longer holds. Readers (renders) take the published tuple without a lock and never
@@ -70,6 +73,9 @@ class OnlineAnchor:
     colors: torch.Tensor | None = None
     """Per-Gaussian colour offsets [N, C] learnt online (``colour_lr``); a prediction inherits the anchor
     before it's, and each correction refines them."""
+    frame: np.ndarray | None = None
+    """The frame itself (uint8 [H, W, C], read-only): what renders of the event camera's view from this
+    anchor are projected onto with the events since it (``project``; server/engine.py)."""
 
 
 class OnlineAnchors:
@@ -78,7 +84,8 @@ class OnlineAnchors:
     def __init__(self, model: EdMCGS, ring: EventRingBuffer, *, capacity: int = 64, fit_steps: int = 5,
                  fit_scale: float = 1.0, fit_lr: float = 6e-3, finetune_steps: int = 0,
                  finetune_lr: float = 1e-4, spawn: int = 0, colour_lr: float = 0.0, fit: bool = True,
-                 transition: str = "select", default_pose: Callable[[int], np.ndarray | None] | None = None):
+                 transition: str = "select", project: bool = True,
+                 default_pose: Callable[[int], np.ndarray | None] | None = None):
         self.model, self.ring = model, ring
         self.capacity, self.fit_steps, self.fit_scale = int(capacity), int(fit_steps), float(fit_scale)
         self.fit_lr, self.colour_lr = float(fit_lr), float(colour_lr)
@@ -108,6 +115,8 @@ class OnlineAnchors:
         self.spawn_limit = int(spawn) if model_online.last_window(model) is not None else 0
         self.last_finetune: tuple[float, float] | None = None  # (loss before, after) of the last one
         self.fit_enabled = fit and fit_steps > 0
+        self.project = bool(project)
+        """Renders of the event camera's view are projected onto the events since their anchor's frame."""
         self.default_pose = default_pose or self._trajectory_pose
         meta = model.meta
         self.end_us = int(meta.t_end_us)
@@ -235,8 +244,10 @@ class OnlineAnchors:
             c2w = pose if pose is not None else self.default_pose(scene_t)  # the event camera at the frame
             base = model_online.checkpoint_motion(model, scene_t) if prev is None else prev.motion
             motion = self.advance(base, emap, c2w)
+            frame = image.copy()
+            frame.flags.writeable = False
             anchor = OnlineAnchor(t, scene_t, motion, False, 0, pose, None if prev is None else prev.spawned,
-                                  None if prev is None else prev.colors)
+                                  None if prev is None else prev.colors, frame)
             self._publish((*self._anchors, anchor))
             self.predicted += 1
         if self.fit_enabled:

@@ -132,7 +132,8 @@ class Service:
                                        finetune_steps=settings.online_finetune_steps,
                                        finetune_lr=settings.online_finetune_lr,
                                        spawn=settings.online_spawn, colour_lr=settings.online_colour_lr,
-                                       transition=settings.online_transition)
+                                       transition=settings.online_transition,
+                                       project=settings.online_project)
             engine = Engine(model, ring, None, cache_size=settings.deform_cache,
                             raster_threads=settings.raster_threads, online=online)
             if info.t_range_us is not None:
@@ -277,7 +278,7 @@ class Service:
         meta = protocol.FrameMeta(t_us=inst.t_us, t=self.engine.seconds_of(inst.t_us),
                                   anchor_us=inst.anchor_us, events=rendered.events, render_ms=round(ms, 3),
                                   width=width, height=height, channels=int(rendered.pixels.shape[2]),
-                                  format=fmt, anchor=rendered.anchor)
+                                  format=fmt, anchor=rendered.anchor, projected=rendered.projected)
         return RenderedFrame(meta, data, inst.window)
 
     def event_map(self, t_us: int | None, fmt: str) -> tuple[protocol.EventMapMeta, bytes]:

@@ -22,7 +22,7 @@ def test_pooled_psnr_weighs_every_pixel_alike():
 
 def test_a_band_where_hold_last_is_near_exact_on_one_frame():
     # live wins 3 frames of 4 by 2 dB; on the fourth the scene is back at its anchor: hold-last 40 dB
-    row = {"no_corr": 20.0, "no_events": 20.0, "integrate": 25.0}
+    row = {"live_model": 21.0, "no_corr": 20.0, "no_events": 20.0, "hold_projected": 24.5, "integrate": 25.0}
     # numpy scores, as bench.online's renders give them: the summary must still be plain JSON
     rows = [row | {"since_end_s": 0.1 * (i + 1), "live": np.float64(24.0), "hold_last": np.float64(22.0)}
             for i in range(3)]

@@ -22,9 +22,12 @@ from edmcgs.sensor.files.recording import Recording
 
 SPANS = 4
 """The long recording spans this many times the training recording."""
-COLUMNS = (("live", "live render (online anchors, corrected)"), ("no_corr", "the same, never corrected"),
-           ("no_events", "the same fits without events (the event branch's ablation)"),
+COLUMNS = (("live", "live render (online anchors, corrected, projected onto the events since the frame)"),
+           ("live_model", "the same before the projection (the model alone)"),
+           ("no_corr", "the live render never corrected"),
+           ("no_events", "the same fits without events moving the anchors (the event branch's ablation)"),
            ("hold_last", "hold the last anchor frame (no model)"),
+           ("hold_projected", "that frame projected onto the events (no model)"),
            ("integrate", "events integrated onto the last anchor (no model)"))
 
 

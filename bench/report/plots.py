@@ -119,19 +119,22 @@ def ablation_bars(table: list[dict], path: Path) -> None:
 
 
 def online_drift(rows: list[dict], predictions: list[dict], path: Path, fit: str) -> None:
-    """PSNR against time since training ended: the live render (corrected online anchors), the same chain
-    never corrected, the same fits without events, the two causal baselines (hold the last anchor;
-    integrate the events onto it), and each new anchor frame against its prediction (bench.online);
+    """PSNR against time since training ended: the live render (corrected online anchors, projected onto
+    the events since each frame) and before its projection, the chain never corrected, the same fits
+    without events, the causal baselines (hold the last anchor; it projected onto the events; the events
+    integrated onto it), and each new anchor frame against its prediction (bench.online);
     below, the same in 1 s bands (where "never worse than hold-last" is read)."""
     from bench.online import BAND_S, bands
 
     fig = Figure(figsize=(9, 6.4), layout="constrained")
     ax, low = fig.subplots(2, 1, height_ratios=(3, 2), sharex=True)
     x = [r["since_end_s"] for r in rows]
-    lines = (("live", f"live render (corrected, {fit})", "#1b6ca8"),
+    lines = (("live", f"live render (corrected, {fit}, projected onto the events)", "#1b6ca8"),
+             ("live_model", "the same before the projection (the model alone)", "#8ab6d6"),
              ("no_corr", "no correction (events only)", "#d1495b"),
-             ("no_events", "no events (corrections only)", "#7b4f9d"),
+             ("no_events", "no events moving the anchors (corrections only)", "#7b4f9d"),
              ("hold_last", "hold last anchor frame", "#888888"),
+             ("hold_projected", "that frame projected onto the events (no model)", "#c2a83e"),
              ("integrate", "events integrated onto the last anchor", "#66a182"))
     for key, label, colour in lines:
         ax.plot(x, [r[key] for r in rows], marker="o", ms=2.5, lw=1, color=colour, label=label)

@@ -6,7 +6,7 @@
 - **events integrated onto the last anchor**: the newest anchor frame moved forward by the events since
   it, pixel by pixel, with the sensor's own model: each event is a change of C in log intensity,
   log(I_t + eps) = log(I_tau + eps) + C E(p) (frame plus events, no model; C is the recording's contrast
-  threshold when known, else ``DEFAULT_CONTRAST``).
+  threshold when known, else ``DEFAULT_CONTRAST``; ``model/event_bounds.py``).
 
 A method that does not beat them has not worked, whatever its absolute number.
 """
@@ -17,6 +17,7 @@ import numpy as np
 
 from edmcgs.model.eval.evaluation import FrameScore
 from edmcgs.model.eval.metrics import psnr, ssim_score
+from edmcgs.model.event_bounds import integrate
 from edmcgs.model.train.data import TrainingData
 
 BASELINES = ("hold last anchor", "blend of neighbouring anchors", "events integrated onto the last anchor")
@@ -24,23 +25,6 @@ SHORT = dict(zip(BASELINES, ("hold_last", "blend", "integrate"), strict=True))
 """Column names of the baselines (CSV)."""
 DEFAULT_CONTRAST = 0.2
 """C assumed when the recording does not state it (a DAVIS346's usual bias setting)."""
-LOG_EPS = 1e-3
-"""The offset of the log intensity (as the simulator and the model's event loss use)."""
-MAX_LOG_CHANGE = 20.0
-"""Clamp of C E: beyond it a pixel is black or white anyway, and exp() stays finite."""
-
-
-def integrate_events(frame: np.ndarray, event_map: np.ndarray, contrast: float) -> np.ndarray:
-    """frame [H, W, C] float32 in [0, 1], event_map [He, W] signed polarity sum -> [H, W, C] in [0, 1]
-    (events at another resolution: each pixel takes its nearest event pixel)."""
-    h, w = frame.shape[:2]
-    if event_map.shape != (h, w):
-        rows = (np.arange(h) * event_map.shape[0]) // h
-        cols = (np.arange(w) * event_map.shape[1]) // w
-        event_map = event_map[rows[:, None], cols[None, :]]
-    gain = np.exp(np.clip(contrast * event_map.astype(np.float64), -MAX_LOG_CHANGE, MAX_LOG_CHANGE))
-    moved = (frame.astype(np.float64) + LOG_EPS) * gain[..., None] - LOG_EPS
-    return np.clip(moved, 0.0, 1.0).astype(np.float32)
 
 
 def baseline_image(data: TrainingData, t_us: int, name: str) -> tuple[np.ndarray, int]:
@@ -54,7 +38,7 @@ def baseline_image(data: TrainingData, t_us: int, name: str) -> tuple[np.ndarray
         image = (1.0 - w) * image + w * (data.anchor_images[k + 1].astype(np.float32) / 255.0)
     elif name == BASELINES[2] and data.event_map is not None and t_us > times[k]:
         contrast = DEFAULT_CONTRAST if data.contrast_threshold is None else data.contrast_threshold
-        image = integrate_events(image, data.event_map(int(times[k]), int(t_us)), contrast)
+        image = integrate(image, data.event_map(int(times[k]), int(t_us)), contrast)
     elif name not in BASELINES:
         raise ValueError(f"unknown baseline {name!r}; one of {BASELINES}")
     return image, int(times[k])

@@ -131,7 +131,7 @@ def test_the_asyncapi_document_follows_the_protocol(client):
     assert sub["properties"]["format"]["enum"] == list(protocol.STREAM_FORMATS)
     assert sub["properties"]["mode"]["enum"] == list(protocol.STREAM_MODES)
     frame = schemas["Frame"]
-    meta = protocol.FrameMeta(1, 0.0, 1, 0, 1.0, 8, 8, 3, "jpeg", "checkpoint")
+    meta = protocol.FrameMeta(1, 0.0, 1, 0, 1.0, 8, 8, 3, "jpeg", "checkpoint", False)
     sent = meta.to_message(b"x", seq=0, dropped=0, arrived_unix_us=1, head_arrived_unix_us=2)
     assert list(frame["properties"]) == list(protocol.FRAME_KEYS) and set(sent) == set(frame["properties"])
     assert set(schemas["ErrorBody"]["properties"]) == set(protocol.ERROR_KEYS)

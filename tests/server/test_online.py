@@ -12,6 +12,7 @@ import torch
 
 from edmcgs.model import online as model_online
 from edmcgs.model.checkpoint import load_checkpoint
+from edmcgs.model.event_bounds import integrate
 from edmcgs.model.render.sh import SH_C0
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.event_map import accumulate
@@ -163,6 +164,44 @@ def test_the_engine_renders_past_the_span_up_to_the_head(long_scene):
     assert out.instant.anchor_us == online.anchors()[-1].t_us and out.events > 0
     before = engine.render(model.meta.t_end_us + 10_000, None, 64, 48)
     assert before.anchor == "checkpoint" and before.instant.anchor_us == int(model.meta.anchors_us[-1])
+
+
+def test_the_event_cameras_view_past_the_span_is_projected_onto_the_events_since_its_frame(long_scene):
+    rec, model = long_scene
+    ring = EventRingBuffer(10**6)
+    online = OnlineAnchors(model, ring, fit=False)
+    engine = Engine(model, ring, None, cache_size=4, online=online)
+    start = rec.t_range_us[0]
+    engine.timeline = tl = Timeline(start, start)
+    head = model.meta.t_end_us + 5 * STEP_US + 20_000
+    _feed(online, ring, rec, head + 1, tl)
+    anchor = online.anchors()[-1]
+    assert anchor.frame is not None and not anchor.frame.flags.writeable
+    out = engine.render(None, None, 64, 48)
+    assert out.projected and out.anchor == "predicted" and "project" in out.stages
+    # every pixel lies within one threshold of the frame moved by the events since it (uint8 rounding)
+    emap = accumulate(ring.slice(anchor.stream_us, head), 64, 48)
+    c, eps = model.config.contrast_threshold, model.config.log_eps
+    frame = anchor.frame / 255.0
+    lo = integrate(frame, emap, c, shift=-c, eps=eps)
+    hi = integrate(frame, emap, c, shift=c, eps=eps)
+    pixels = out.pixels / 255.0
+    assert (pixels >= lo - 0.5 / 255 - 1e-6).all() and (pixels <= hi + 0.5 / 255 + 1e-6).all()
+    # the model's render alone overruns them somewhere, and is what the projection clipped
+    model_alone = engine.render(None, None, 64, 48, camera_view=False)
+    assert not model_alone.projected and not np.array_equal(model_alone.pixels, out.pixels)
+    clipped = np.clip(model_alone.pixels / 255.0, lo, hi)
+    assert np.abs(clipped - pixels).max() <= 1.0 / 255 + 1e-6
+    # a pose given is another view (not projected), unless the caller says it is the event camera's
+    pose = engine.default_pose(out.instant.t_us)
+    assert np.array_equal(engine.render(None, pose, 64, 48).pixels, model_alone.pixels)
+    assert engine.render(None, pose, 64, 48, camera_view=True).projected
+    # at another size the bounds are taken at each pixel's nearest frame and event pixel
+    assert engine.render(None, None, 32, 24).projected
+    # within the span (the checkpoint's anchors: no frame held), and with online_project off: the model
+    assert not engine.render(model.meta.t_end_us - 10_000, None, 64, 48).projected
+    online.project = False
+    assert np.array_equal(engine.render(None, None, 64, 48).pixels, model_alone.pixels)
 
 
 REAL = {"anchor_windows": True, "bg_layer": True, "dynamic_threshold": 0.06}  # the real preset's switches
@@ -333,7 +372,8 @@ def test_fine_tuning_g_phi_learns_from_corrections_and_touches_only_the_span_pas
 def test_the_transition_past_the_span_is_the_one_that_predicted_the_recent_frames_best(long_scene):
     rec, model = long_scene
     ring = EventRingBuffer(10**6)
-    online = OnlineAnchors(model, ring, fit=False, fit_steps=1, fit_scale=0.5)
+    # the model's render alone (no projection onto the events): what the transition moves
+    online = OnlineAnchors(model, ring, fit=False, fit_steps=1, fit_scale=0.5, project=False)
     assert online.select and online.transition_kind == "g_phi" and list(online.evidence) == ["g_phi", "none"]
     start, end = rec.t_range_us[0], int(model.meta.t_end_us)
     tl = Timeline(start, start)

@@ -40,9 +40,11 @@ def test_a_stream_five_times_the_span_renders_at_its_head_to_the_end(scene):
             heads, kinds = [], set()
             deadline = time.monotonic() + 60
             while True:
-                _, meta = client.render(format="msgpack")  # the head
+                _, meta = client.render(format="msgpack")  # the head, the event camera's view
                 heads.append(meta.t_us)
                 kinds.add(meta.anchor)
+                # past the span it is projected onto the events since its anchor's frame
+                assert meta.projected == (meta.anchor != "checkpoint")
                 if meta.t_us >= last - 1:
                     break
                 assert time.monotonic() < deadline, f"the head stopped at {meta.t_us - t0} µs"
@@ -65,7 +67,11 @@ def test_a_stream_five_times_the_span_renders_at_its_head_to_the_end(scene):
             assert meta.anchor_us == last and meta.anchor in ("predicted", "corrected")
             assert pixels.shape == (HEIGHT, WIDTH, 3)
             _, meta = client.render(t_us=times[3] + 20_000, format="msgpack")
-            assert meta.anchor_us == times[3] and meta.events > 0
+            assert meta.anchor_us == times[3] and meta.events > 0 and meta.projected
+            _, meta = client.render(t_us=times[3] + 20_000, format="png")  # the header says it too
+            assert meta.projected
+            _, meta = client.render(t_us=times[3] + 20_000, pose=np.eye(4), format="png")  # another view
+            assert not meta.projected
 
             # fitting: every anchor is corrected, skipped (superseded) or still queued; all counted
             deadline = time.monotonic() + 60
