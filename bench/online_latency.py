@@ -6,7 +6,8 @@
 for each frame past the checkpoint's span, the latency is the client's receive time minus
 ``arrived_unix_us`` (when the oldest event new to that frame reached the ring), and its age the receive
 time minus ``head_arrived_unix_us`` (when the batch that brought its time did), with the fit thread
-correcting every anchor it can meanwhile.
+correcting every anchor it can meanwhile; and the server's mean time per render stage (GET /metrics'
+``edmcgs_render_stage_seconds``: the projection onto the events is the ``project`` stage).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.results import table, write_json
-from tests.support.server import ServerProcess
+from tests.support.server import ServerProcess, metric_values
 
 
 def main(argv=None) -> None:
@@ -35,7 +36,7 @@ def main(argv=None) -> None:
         srv.wait_ready()
         with Client(srv.url, timeout=30) as client:
             end = client.scene()["t_end_us"]
-            lat, ages, kinds = [], [], {}
+            lat, ages, kinds, projected = [], [], {}, 0
             with client.stream({"mode": "live", "fps": 10, "format": "jpeg"}) as stream:
                 deadline = time.monotonic() + 120
                 for frame in stream:
@@ -44,9 +45,11 @@ def main(argv=None) -> None:
                         lat.append((now - frame.arrived_unix_us) / 1e3)
                         ages.append((now - frame.head_arrived_unix_us) / 1e3)
                         kinds[frame.anchor] = kinds.get(frame.anchor, 0) + 1
+                        projected += bool(frame.projected)
                     if frame.t_us > end + args.seconds * 1e6 or time.monotonic() > deadline:
                         break
             online = client.scene()["online"]
+            values = metric_values(client.metrics())
     finally:
         srv.stop()
         problems = [line for line in srv.log().splitlines() if "Error" in line or "failed" in line]
@@ -57,7 +60,12 @@ def main(argv=None) -> None:
                "frame_age_p90_ms": float(np.percentile(ages, 90)), "anchor_kinds": kinds,
                "online_predicted": online["predicted"], "online_corrected": online["corrected"],
                "online_skipped": online["skipped"]["superseded"], "fit_median_s": online["fit"]["median_s"],
-               "fit_last_s": online["fit"]["last_s"], "queue_depth": online["queue_depth"]}
+               "fit_last_s": online["fit"]["last_s"], "queue_depth": online["queue_depth"],
+               "frames_projected": projected}
+    for stage in ("state", "raster", "project", "encode"):  # the mean over every render of the run
+        key = f'edmcgs_render_stage_seconds_{{}}{{{{stage="{stage}"}}}}'
+        count = values.get(key.format("count"), 0)
+        results[f"{stage}_mean_ms"] = 1e3 * values[key.format("sum")] / count if count else None
     print(table(results, {}))
     print("anchor kinds of the frames:", kinds)
     write_json(args.json, results)

@@ -612,7 +612,7 @@ function shown(frame) {
     if (state.playing) moveSlider(frame.t_us);
   }
   if (frame.anchor_us !== undefined && frame.anchor_us !== null) {
-    $("anchor").textContent = `${secondsOf(frame.anchor_us).toFixed(3)} s`;
+    $("anchor").textContent = `${secondsOf(frame.anchor_us).toFixed(3)} s${anchorNote(frame)}`;
     const anchors = state.scene.anchors_us || [];
     if (!anchors.includes(frame.anchor_us)) {  // a live source took a new anchor frame
       anchors.push(frame.anchor_us);
@@ -626,6 +626,13 @@ function shown(frame) {
   if (frame.dropped !== undefined) $("dropped").textContent = String(frame.dropped);
   $("frames").textContent = String(state.frames);
   clearError();
+}
+
+// Past the span the anchor is an online one (predicted, or corrected against its frame), and the event
+// camera's view is projected onto the events since that frame; within it, nothing to add.
+function anchorNote(frame) {
+  if (!frame.anchor || frame.anchor === "checkpoint") return "";
+  return ` (${frame.anchor}${frame.projected ? ", events-bounded" : ""})`;
 }
 
 // Readouts are refreshed on a timer so that fps falls to 0 when frames stop coming.
@@ -757,6 +764,8 @@ async function renderStill() {
         anchor_us: header("X-Edmcgs-Anchor-Us") === null ? null : Number(header("X-Edmcgs-Anchor-Us")),
         events: Number(header("X-Edmcgs-Events")),
         render_ms: Number(header("X-Edmcgs-Render-Ms")),
+        anchor: header("X-Edmcgs-Anchor"),
+        projected: header("X-Edmcgs-Projected") === "true",
       };
       frame.requestedAt = sent;
       await drawFrame(frame);
@@ -924,7 +933,7 @@ async function start() {
 // The pure parts, for a console or a test page.
 window.edmcgsViewer = {
   state, unpack, poseAt, Orbit, quatFromRot, rotFromQuat, currentPose, renderSize, nearestTrainingView,
-  FAR_ANGLE_DEG, FAR_DISTANCE, MAX_FIT_SCALE,
+  anchorNote, FAR_ANGLE_DEG, FAR_DISTANCE, MAX_FIT_SCALE,
 };
 
 // index.html inserts this script from <head>: wait for the page's elements.

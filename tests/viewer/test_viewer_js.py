@@ -285,3 +285,11 @@ def test_fit_asks_for_the_canvas_size_on_screen_within_the_limits(viewer):
     assert viewer.evaluate(size, [intr, big, "off"])[0] == [4 * 173, 4 * 130]  # MAX_FIT_SCALE
     viewer.select_option("#scale", "0.5")
     assert viewer.evaluate(size, [intr, big, "off"])[0] == [86, 65]
+
+
+def test_the_anchor_readout_says_what_an_online_anchor_is_and_whether_the_view_is_events_bounded(viewer):
+    note = "(f) => window.edmcgsViewer.anchorNote(f)"
+    assert viewer.evaluate(note, {"anchor": "checkpoint", "projected": False}) == ""
+    assert viewer.evaluate(note, {}) == ""  # a server that does not say
+    assert viewer.evaluate(note, {"anchor": "predicted", "projected": False}) == " (predicted)"
+    assert viewer.evaluate(note, {"anchor": "corrected", "projected": True}) == " (corrected, events-bounded)"
