@@ -81,7 +81,7 @@ class OnlineAnchor:
 class OnlineAnchors:
     """The online anchor store, its predictor (called by the ingest thread) and its fit worker."""
 
-    def __init__(self, model: EdMCGS, ring: EventRingBuffer, *, capacity: int = 64, fit_steps: int = 5,
+    def __init__(self, model: EdMCGS, ring: EventRingBuffer, *, capacity: int = 64, fit_steps: int = 4,
                  fit_scale: float = 1.0, fit_lr: float = 6e-3, finetune_steps: int = 0,
                  finetune_lr: float = 1e-4, spawn: int = 0, colour_lr: float = 0.0, fit: bool = True,
                  transition: str = "select", project: bool = True,

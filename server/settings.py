@@ -92,7 +92,7 @@ class Settings(BaseSettings):
     online_anchors: int = Field(64, gt=0, le=100_000,
         description="Online anchors kept past the checkpoint's span (the stream's frames, predicted and "
                     "corrected); older ones also expire with their events.")
-    online_fit_steps: int = Field(5, ge=0, le=10_000,
+    online_fit_steps: int = Field(4, ge=0, le=10_000,
         description="Optimisation steps correcting each online anchor against its frame, in a background "
                     "thread (0: predictions only).")
     online_fit_lr: float = Field(6e-3, gt=0, le=1,
