@@ -116,6 +116,8 @@ class Online(_Body):
     """Stream frames refused as anchors, by reason."""
     queue_depth: int
     """Online anchors waiting for or in a correction."""
+    project: bool
+    """Renders of the event camera's view are projected onto the events since their anchor's frame."""
     transition: Transition
     fit: Fit
 

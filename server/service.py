@@ -356,6 +356,7 @@ class Service:
             "predicted": online.predicted, "corrected": online.corrected, "expired": online.expired,
             "skipped": dict(online.skipped), "refused": dict(online.refused),
             "queue_depth": online.queue_depth,
+            "project": online.project,
             "transition": {"mode": "select" if online.select else online.transition_kind,
                            "current": online.transition_kind,
                            # a snapshot of each: the fit thread appends meanwhile

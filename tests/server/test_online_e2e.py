@@ -60,7 +60,7 @@ def test_a_stream_five_times_the_span_renders_at_its_head_to_the_end(scene):
             times = [a["t_us"] for a in online["anchors"]]
             assert times == sorted(times) and times[0] == end + 50_000 and times[-1] == last
             assert len(times) == online["predicted"] == 40
-            assert online["refused"] == {"size": 0, "channels": 0, "timestamp": 0}
+            assert online["refused"] == {"size": 0, "channels": 0, "timestamp": 0} and online["project"]
             assert online["span"]["t_us_min"] == times[0] and online["span"]["t_us_max"] == last
             # the newest anchor's window: renders after the end of the training span use it
             pixels, meta = client.render(t_us=last, format="msgpack")
