@@ -148,8 +148,8 @@ def test_a_fit_that_falls_behind_skips_and_counts_and_corrections_publish(long_s
     assert after <= before
 
 
-def test_the_engine_renders_past_the_span_up_to_the_head(long_scene):
-    rec, model = long_scene
+def _engine_past_the_span(rec, model) -> tuple[Engine, OnlineAnchors, EventRingBuffer, int]:
+    """An engine with predicted online anchors (no fits) fed up to a head five frames past the span."""
     ring = EventRingBuffer(10**6)
     online = OnlineAnchors(model, ring, fit=False)
     engine = Engine(model, ring, None, cache_size=4, online=online)
@@ -157,6 +157,13 @@ def test_the_engine_renders_past_the_span_up_to_the_head(long_scene):
     engine.timeline = tl = Timeline(start, start)
     head = model.meta.t_end_us + 5 * STEP_US + 20_000
     _feed(online, ring, rec, head + 1, tl)
+    return engine, online, ring, head
+
+
+def test_the_engine_renders_past_the_span_up_to_the_head(long_scene):
+    rec, model = long_scene
+    engine, online, _, head = _engine_past_the_span(rec, model)
+    start = rec.t_range_us[0]
     assert engine.renderable() == [(start, head)]
     assert [s for s, *_ in engine.tau_rule.ranges(head)] == ["checkpoint", "online"]
     out = engine.render(None, None, 64, 48)
@@ -167,14 +174,8 @@ def test_the_engine_renders_past_the_span_up_to_the_head(long_scene):
 
 
 def test_the_event_cameras_view_past_the_span_is_projected_onto_the_events_since_its_frame(long_scene):
-    rec, model = long_scene
-    ring = EventRingBuffer(10**6)
-    online = OnlineAnchors(model, ring, fit=False)
-    engine = Engine(model, ring, None, cache_size=4, online=online)
-    start = rec.t_range_us[0]
-    engine.timeline = tl = Timeline(start, start)
-    head = model.meta.t_end_us + 5 * STEP_US + 20_000
-    _feed(online, ring, rec, head + 1, tl)
+    engine, online, ring, head = _engine_past_the_span(*long_scene)
+    model = long_scene[1]
     anchor = online.anchors()[-1]
     assert anchor.frame is not None and not anchor.frame.flags.writeable
     out = engine.render(None, None, 64, 48)
