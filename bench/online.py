@@ -113,11 +113,15 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
         engine = Engine(model, ring, None, cache_size=4, online=online)
         engine.timeline = Timeline(start, start)
         anchors = rec.anchors
-        for i in np.nonzero(anchors.t_us > end)[0]:
+        # the frames from the checkpoint's last anchor on, as a replay delivers them (that one: what
+        # renders past the span are projected onto until the first online anchor)
+        for i in np.nonzero(anchors.t_us >= int(meta.anchors_us[-1]))[0]:
             t = int(anchors.t_us[i])
             frame = Frames(anchors.t_us[i:i + 1], anchors.images[i:i + 1],
                            None if anchors.poses is None else anchors.poses[i:i + 1])
             online.on_frames(frame, engine.timeline.scene_of)
+            if t <= end:
+                continue
             a = online.anchors()[-1]
             if fit and name != "live":
                 online._fit(a, anchors.images[i])

@@ -194,7 +194,7 @@ class Engine:
         return self._entry(instant)[:2]
 
     def _entry(self, instant: Instant) -> tuple[object, int, np.ndarray | None]:
-        """``state``'s pair and the window's I_E where an online anchor's frame starts it (cached)."""
+        """``state``'s pair and the window's I_E (None: no events, or none needed) (cached)."""
         online = self.online.get(instant.window[0]) if self.online is not None else None
         key = (instant.t_us, instant.anchor_us, instant.window,
                None if online is None else (online.version, self.online.transition_version))
@@ -210,8 +210,8 @@ class Engine:
             events = self.ring.slice(*instant.window)
         except WindowUnavailable as exc:
             self._unavailable(f"the events for t={self._fmt(instant.t_us)} are gone: {exc}")
-        emap = None
-        if (self.meta.has_event_branch or online is not None) and len(events):
+        emap = None  # the model's input, and past the span what a render is projected onto (_frame)
+        if (self.meta.has_event_branch or instant.t_us > self.end_us) and len(events):
             emap = accumulate(events, self.meta.event_width, self.meta.event_height)
         if online is not None:  # from the online anchor's state, by the events since it (model/online.py)
             try:
@@ -222,7 +222,7 @@ class Engine:
             state = model_online.with_spawned(model_online.state_of(self.model, motion, online.colors),
                                               online.spawned)
             return state, len(events), emap
-        return self.model.deform(instant.t_us, emap), len(events), None
+        return self.model.deform(instant.t_us, emap), len(events), emap
 
     def event_map(self, t_us: int | None) -> tuple[Instant, int, np.ndarray]:
         """(instant, events, I_E) of the window a render at ``t_us`` (None: the head) uses: the signed
@@ -279,12 +279,12 @@ class Engine:
 
     def _frame(self, instant: Instant) -> np.ndarray | None:
         """The frame a render of the event camera's view at ``instant`` is projected onto the events
-        since (model/event_bounds.py; the model renders what they leave open): past the span, an online
-        anchor's own frame, with ``online.project`` on; else None."""
-        if self.online is None or not self.online.project:
+        since (model/event_bounds.py; the model renders what they leave open): past the span, with
+        ``online.project`` on, the stream's frame its window starts at (an online anchor's, or before
+        the first one the checkpoint's last anchor's); else None."""
+        if self.online is None or not self.online.project or instant.t_us <= self.end_us:
             return None
-        online = self.online.get(instant.window[0])
-        return None if online is None else online.frame
+        return self.online.frame_at(instant.window[0])
 
     def warm_up(self) -> float:
         """Compile the fast paths (numba) with one render at the first anchor, off the request path.

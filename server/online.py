@@ -78,6 +78,13 @@ class OnlineAnchor:
     anchor are projected onto with the events since it (``project``; server/engine.py)."""
 
 
+def _frozen(image: np.ndarray) -> np.ndarray:
+    """A read-only copy (the source may reuse its buffer; readers share this one)."""
+    frame = image.copy()
+    frame.flags.writeable = False
+    return frame
+
+
 class OnlineAnchors:
     """The online anchor store, its predictor (called by the ingest thread) and its fit worker."""
 
@@ -125,6 +132,7 @@ class OnlineAnchors:
         self._anchors: tuple[OnlineAnchor, ...] = ()  # published, oldest first; replaced whole
         self._lock = threading.Lock()  # writers only
         self._newest_frame_us: int | None = None
+        self._span_frame: tuple[int, np.ndarray] | None = None  # (stream µs, frame) at the last ckpt anchor
         self.refused = dict.fromkeys(REFUSED_REASONS, 0)
         self.skipped = dict.fromkeys(SKIPPED_REASONS, 0)
         self.predicted = 0
@@ -167,6 +175,15 @@ class OnlineAnchors:
     # ------------------------------------------------------------------ readers (no lock)
     def anchors(self) -> tuple[OnlineAnchor, ...]:
         return self._anchors
+
+    def frame_at(self, stream_us: int) -> np.ndarray | None:
+        """The stream's frame at ``stream_us`` where it starts renders past the span: an online anchor's,
+        or the one at the checkpoint's last anchor (this pass's); else None."""
+        anchor = self.get(stream_us)
+        if anchor is not None:
+            return anchor.frame
+        span = self._span_frame
+        return span[1] if span is not None and span[0] == stream_us else None
 
     def get(self, stream_us: int) -> OnlineAnchor | None:
         for a in reversed(self._anchors):
@@ -220,8 +237,10 @@ class OnlineAnchors:
                 continue
             self._newest_frame_us = t
             scene_t = scene_of(t)
-            if scene_t <= self.end_us:
-                continue  # within the checkpoint's span its own anchors rule
+            if scene_t <= self.end_us:  # within the checkpoint's span its own anchors rule
+                if scene_t == self.last_ckpt_us:  # renders past the span start from it until the first
+                    self._span_frame = (t, _frozen(image))  # online anchor
+                continue
             pose = None if frames.poses is None else np.asarray(frames.poses[i], np.float64)
             self._predict(t, scene_t, image, pose)
 
@@ -244,10 +263,8 @@ class OnlineAnchors:
             c2w = pose if pose is not None else self.default_pose(scene_t)  # the event camera at the frame
             base = model_online.checkpoint_motion(model, scene_t) if prev is None else prev.motion
             motion = self.advance(base, emap, c2w)
-            frame = image.copy()
-            frame.flags.writeable = False
             anchor = OnlineAnchor(t, scene_t, motion, False, 0, pose, None if prev is None else prev.spawned,
-                                  None if prev is None else prev.colors, frame)
+                                  None if prev is None else prev.colors, _frozen(image))
             self._publish((*self._anchors, anchor))
             self.predicted += 1
         if self.fit_enabled:

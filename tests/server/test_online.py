@@ -148,7 +148,7 @@ def test_a_fit_that_falls_behind_skips_and_counts_and_corrections_publish(long_s
     assert after <= before
 
 
-def _engine_past_the_span(rec, model) -> tuple[Engine, OnlineAnchors, EventRingBuffer, int]:
+def _engine_past_the_span(rec, model) -> tuple[Engine, OnlineAnchors, int]:
     """An engine with predicted online anchors (no fits) fed up to a head five frames past the span."""
     ring = EventRingBuffer(10**6)
     online = OnlineAnchors(model, ring, fit=False)
@@ -157,12 +157,12 @@ def _engine_past_the_span(rec, model) -> tuple[Engine, OnlineAnchors, EventRingB
     engine.timeline = tl = Timeline(start, start)
     head = model.meta.t_end_us + 5 * STEP_US + 20_000
     _feed(online, ring, rec, head + 1, tl)
-    return engine, online, ring, head
+    return engine, online, head
 
 
 def test_the_engine_renders_past_the_span_up_to_the_head(long_scene):
     rec, model = long_scene
-    engine, online, _, head = _engine_past_the_span(rec, model)
+    engine, online, head = _engine_past_the_span(rec, model)
     start = rec.t_range_us[0]
     assert engine.renderable() == [(start, head)]
     assert [s for s, *_ in engine.tau_rule.ranges(head)] == ["checkpoint", "online"]
@@ -173,33 +173,45 @@ def test_the_engine_renders_past_the_span_up_to_the_head(long_scene):
     assert before.anchor == "checkpoint" and before.instant.anchor_us == int(model.meta.anchors_us[-1])
 
 
-def test_the_event_cameras_view_past_the_span_is_projected_onto_the_events_since_its_frame(long_scene):
-    engine, online, ring, head = _engine_past_the_span(*long_scene)
-    model = long_scene[1]
-    anchor = online.anchors()[-1]
-    assert anchor.frame is not None and not anchor.frame.flags.writeable
-    out = engine.render(None, None, 64, 48)
-    assert out.projected and out.anchor == "predicted" and "project" in out.stages
-    # every pixel lies within one threshold of the frame moved by the events since it (uint8 rounding)
-    emap = accumulate(ring.slice(anchor.stream_us, head), 64, 48)
+def _assert_projected(engine, model, t_us, frame) -> None:
+    """A render of the camera's view at t_us lies within one threshold of ``frame`` moved by the events
+    of its window (uint8 rounding), and is the model's render alone clipped into those bounds."""
+    out = engine.render(t_us, None, 64, 48)
+    assert out.projected and "project" in out.stages
+    emap = accumulate(engine.ring.slice(*out.instant.window), 64, 48)
+    assert np.abs(emap).sum() > 0  # the events move the bounds
     c, eps = model.config.contrast_threshold, model.config.log_eps
-    frame = anchor.frame / 255.0
-    lo = integrate(frame, emap, c, shift=-c, eps=eps)
-    hi = integrate(frame, emap, c, shift=c, eps=eps)
+    lo = integrate(frame / 255.0, emap, c, shift=-c, eps=eps)
+    hi = integrate(frame / 255.0, emap, c, shift=c, eps=eps)
     pixels = out.pixels / 255.0
     assert (pixels >= lo - 0.5 / 255 - 1e-6).all() and (pixels <= hi + 0.5 / 255 + 1e-6).all()
-    # the model's render alone overruns them somewhere, and is what the projection clipped
-    model_alone = engine.render(None, None, 64, 48, camera_view=False)
+    model_alone = engine.render(t_us, None, 64, 48, camera_view=False)
     assert not model_alone.projected and not np.array_equal(model_alone.pixels, out.pixels)
-    clipped = np.clip(model_alone.pixels / 255.0, lo, hi)
-    assert np.abs(clipped - pixels).max() <= 1.0 / 255 + 1e-6
+    assert np.abs(np.clip(model_alone.pixels / 255.0, lo, hi) - pixels).max() <= 1.0 / 255 + 1e-6
+
+
+def test_the_event_cameras_view_past_the_span_is_projected_onto_the_events_since_its_frame(long_scene):
+    rec, model = long_scene
+    engine, online, head = _engine_past_the_span(rec, model)
+    anchor = online.anchors()[-1]
+    assert anchor.frame is not None and not anchor.frame.flags.writeable
+    _assert_projected(engine, model, head, anchor.frame)
+    out = engine.render(None, None, 64, 48)  # the head
+    assert out.projected and out.anchor == "predicted"
+    # past the span before the first online anchor: the stream's frame at the checkpoint's last anchor
+    last = int(model.meta.anchors_us[-1])
+    early = engine.render(model.meta.t_end_us + 10_000, None, 64, 48)
+    assert early.anchor == "checkpoint" and early.instant.anchor_us == last
+    _assert_projected(engine, model, model.meta.t_end_us + 10_000,
+                      rec.anchors.images[int(np.searchsorted(rec.anchors.t_us, last))])
     # a pose given is another view (not projected), unless the caller says it is the event camera's
     pose = engine.default_pose(out.instant.t_us)
+    model_alone = engine.render(None, None, 64, 48, camera_view=False)
     assert np.array_equal(engine.render(None, pose, 64, 48).pixels, model_alone.pixels)
     assert engine.render(None, pose, 64, 48, camera_view=True).projected
     # at another size the bounds are taken at each pixel's nearest frame and event pixel
     assert engine.render(None, None, 32, 24).projected
-    # within the span (the checkpoint's anchors: no frame held), and with online_project off: the model
+    # within the span, and with online_project off: the model alone
     assert not engine.render(model.meta.t_end_us - 10_000, None, 64, 48).projected
     online.project = False
     assert np.array_equal(engine.render(None, None, 64, 48).pixels, model_alone.pixels)
