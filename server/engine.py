@@ -294,10 +294,13 @@ class Engine:
         t0 = time.perf_counter()
         state = self.model.deform(self.first_us, None)
         c2w = self.default_pose(self.first_us) if self.meta.trajectory is not None else np.eye(4)
-        self.model.render(state, c2w, self.meta.intrinsics, fast=self.fast, threads=self.raster_threads)
+        image = self.model.render(state, c2w, self.meta.intrinsics, fast=self.fast,
+                                  threads=self.raster_threads)
         one = Events(np.zeros(1, np.int64), np.zeros(1, np.uint16), np.zeros(1, np.uint16),
                      np.ones(1, np.int8))
         emap = accumulate(one, self.meta.event_width, self.meta.event_height)
         if self.meta.has_event_branch and self.end_us > self.first_us:
             self.model.deform(self.first_us + 1, emap)  # past the anchor: at it the branch is skipped
+        if self.online is not None:  # the projection's kernel: compiling it holds the GIL for seconds
+            event_bounds.project(image, to_uint8(image), emap, self.model.config.contrast_threshold)
         return time.perf_counter() - t0
