@@ -266,16 +266,17 @@ class Engine:
         c2w = self.default_pose(instant.t_us) if pose is None else pose
         intr = self.intrinsics(width, height)
         image = self.model.render(state, c2w, intr, fast=self.fast, threads=self.raster_threads)
-        stages = {"state": t1 - t0, "raster": time.perf_counter() - t1}
         frame = self._frame(instant) if (pose is None if camera_view is None else camera_view) else None
         if frame is not None:
             t2 = time.perf_counter()
             shape = (self.meta.event_height, self.meta.event_width)
             image = event_bounds.project(image, frame, np.zeros(shape, np.float32) if emap is None else emap,
                                          self.model.config.contrast_threshold, eps=self.model.config.log_eps)
-            stages["project"] = time.perf_counter() - t2
-        return Rendered(to_uint8(image), instant, n_events, self.anchor_kind(instant), stages,
-                        frame is not None)
+        pixels = to_uint8(image)  # timed with the last stage, as before the projection
+        stages = {"state": t1 - t0, "raster": time.perf_counter() - t1}
+        if frame is not None:
+            stages["raster"], stages["project"] = t2 - t1, time.perf_counter() - t2
+        return Rendered(pixels, instant, n_events, self.anchor_kind(instant), stages, frame is not None)
 
     def _frame(self, instant: Instant) -> np.ndarray | None:
         """The frame a render of the event camera's view at ``instant`` is projected onto the events

@@ -73,8 +73,9 @@ class Metrics:
                                 ("path",), buckets=LATENCY_BUCKETS_S, registry=registry)
         self.render_stage = Histogram(
             "edmcgs_render_stage_seconds", "Where a render's time goes (seconds): state (the window's events "
-            "and the deformation, or a cache hit), raster (the rasterizer), project (onto the events since "
-            "an online anchor's frame, the event camera's view past the span), encode (PNG/JPEG/raw).",
+            "and the deformation, or a cache hit), raster (the rasterizer and uint8), project (onto the "
+            "events since an online anchor's frame, the event camera's view past the span; then uint8 is "
+            "here), encode (PNG/JPEG/raw).",
             ("stage",), buckets=STAGE_BUCKETS_S, registry=registry)
         self.frames_sent = Counter("edmcgs_stream_frames_sent_total", "Websocket frames sent.",
                                    registry=registry)
