@@ -8,7 +8,7 @@ validation dropped or reordered.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -57,7 +57,20 @@ class SensorBatch:
     loop: int = 0
     """Replays: how many times the recording has wrapped around."""
     time_shift_us: int = 0
-    """Replays: added to the file's timestamps in this loop so that time keeps increasing."""
+    """Replays: added to the file's timestamps (each loop's, so that time keeps increasing)."""
+
+    def shifted(self, dt_us: int) -> SensorBatch:
+        """Every time of the batch ``dt_us`` later (images and samples shared, times copied)."""
+        if not dt_us:
+            return self
+        imu = None
+        if self.imu is not None:
+            imu = self.imu.copy()
+            imu["t"] += np.int64(dt_us)
+        return replace(self, events=self.events.shifted(dt_us),
+                       frames=None if self.frames is None else self.frames.shifted(dt_us), imu=imu,
+                       t_end_us=None if self.t_end_us is None else self.t_end_us + int(dt_us),
+                       time_shift_us=self.time_shift_us + int(dt_us))
 
 
 @runtime_checkable

@@ -130,13 +130,7 @@ class Replay(SourceBase):
             got_imu = [a for a in got_imu if len(a)]
             fr = Frames.concat(got_frames) if got_frames else None
             im = np.concatenate(got_imu) if got_imu else None
-            if shift:
-                ev, fr = ev.shifted(shift), (fr.shifted(shift) if fr is not None else None)
-                if im is not None:
-                    im = im.copy()
-                    im["t"] += shift
-            return SensorBatch(events=ev, frames=fr, imu=im, t_end_us=w1 + shift, loop=loop,
-                               time_shift_us=shift)
+            return SensorBatch(events=ev, frames=fr, imu=im, t_end_us=w1, loop=loop).shifted(shift)
 
         def windows_until(horizon: int) -> Iterator[SensorBatch]:
             nonlocal w0

@@ -71,7 +71,7 @@ def _ingest(scene: SceneConfig, values: dict[str, Any]):
         name=f"ingest-{scene.name}", num_replicas=1, ray_actor_options={"num_cpus": 0},
         max_ongoing_requests=10_000, health_check_period_s=HEALTH_CHECK_PERIOD_S)
     replay = None if scene.replay is None else str(scene.replay)
-    return deployment.bind(scene.name, replay, scene.speed, scene.loop, batch_us)
+    return deployment.bind(scene.name, replay, scene.loop, batch_us)
 
 
 def build(config: RayConfig):

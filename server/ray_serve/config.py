@@ -72,6 +72,9 @@ class SceneConfig(BaseModel):
             raise ValueError("demo: true serves the bundled scene; give no checkpoint, replay or live")
         if not self.demo and self.checkpoint is None:
             raise ValueError("give a checkpoint (or demo: true)")
+        if self.live and self.speed != 1.0:
+            raise ValueError(f"speed {self.speed}: a live scene runs at the camera's pace (a replay played "
+                             "as a camera is stamped with the wall clock); give speed 1 or leave it out")
         if self.max_replicas is not None and self.max_replicas < self.replicas:
             raise ValueError(f"max_replicas ({self.max_replicas}) is below replicas ({self.replicas})")
         own = sorted(OWN_FIELDS & self.settings.keys())

@@ -3,21 +3,27 @@
 A camera is opened by one process only. The scene's ingest deployment (``SceneIngest``, one replica)
 owns it and keeps its latest batches in a bounded ring, each numbered; every render replica reads
 them through ``RemoteSource``, an ``EventSource`` like any other, so its ``Ingest`` thread, ring,
-anchors and online anchors are the single-process ones. A replica that falls behind the shared ring
-loses the batches that left it: it says so (a warning, ``missed_batches`` / ``missed_events``, the
-``behind`` reason of ``edmcgs_events_dropped_total``) and goes on from the oldest batch still held.
+anchors and online anchors are the single-process ones. A replica joins ``JOIN_BATCHES`` behind the
+head, not at the ring's oldest batch: that one is the next to leave, so a reader starting there races
+the eviction from its first pull. A replica that falls behind the shared ring loses the batches that
+left it: it says so (a warning, ``missed_batches`` / ``missed_events``, the ``behind`` reason of
+``edmcgs_events_dropped_total``) and goes on from the oldest batch still held.
 
 If the ingest replica dies, Serve starts another, which opens the source again with a ring of its own
 (a new ``epoch``). Each render replica's ``RemoteSource`` raises ``DeviceDisconnected`` when its pull
 fails, and its ingest thread reconnects as it does for a camera (``reconnect``: back-off until the new
-ingest answers, then on from its oldest batch); Serve's handle may also retry the pull on the new
+ingest answers, then on from its start); Serve's handle may also retry the pull on the new
 replica by itself, which the ring's new epoch tells. What the old one held and had not handed over is
 gone, and the replica logs and counts the reconnect; a replay played as live starts again from its beginning,
 and its events before the replica's watermark are the ring's counted ``late`` drops.
 
 ``live: true`` with a ``replay`` in the Ray config plays the recording as a live camera through the
 same path (a live scene tried without a camera): its batches carry no replay range, so each replica's
-clock starts at its first event, as for a camera.
+clock starts at its first event, as for a camera, and they are stamped with the wall clock as a
+camera's are (the recording's first event at the moment the ingest replica opened it). So a replaced
+ingest replica, which plays the recording again from its beginning, goes on after the old one's
+events on every replica's clock, as a camera does after a reconnect; on the recording's own clock its
+events would all fall behind the replicas' watermarks until it had played as long as the old one had.
 """
 
 from __future__ import annotations
@@ -40,8 +46,12 @@ RING_BATCHES = 2048
 """Batches the shared ring holds (at the default 5 ms per replay batch, about 10 s of stream)."""
 PULL_WAIT_S = 1.0
 """Longest a pull waits for a new batch (the replica's ingest thread checks for stop between pulls)."""
-PULL_MAX = 64
-"""Batches handed over per pull at most."""
+JOIN_BATCHES = RING_BATCHES // 4
+"""How far behind the head a new reader starts (about 2.5 s of stream: frames for its anchors, and
+three quarters of the ring to spare before anything it has not read is evicted)."""
+PULL_MAX = 256
+"""Batches handed over per pull at most (about 1.3 s of stream: a reader that lags a round trip or
+two catches up in one)."""
 RECONNECT_S = 120.0
 """How long a render replica waits for a replaced ingest replica before its source is reported failed."""
 
@@ -50,8 +60,12 @@ class SharedRing:
     """The latest batches of a stream, numbered from 0, for any number of readers at their own pace.
     ``append``/``finish``/``fail`` from the reader thread; ``pull`` on ``loop`` (the replica's)."""
 
-    def __init__(self, loop: asyncio.AbstractEventLoop | None = None, capacity: int = RING_BATCHES):
+    def __init__(self, loop: asyncio.AbstractEventLoop | None = None, capacity: int = RING_BATCHES,
+                 join: int = JOIN_BATCHES):
+        if not 1 <= join <= capacity:
+            raise ValueError(f"a reader joins 1 to capacity ({capacity}) batches behind the head, not {join}")
         self.ring: deque[tuple[int, int, SensorBatch]] = deque(maxlen=capacity)  # (seq, events before)
+        self.join = join
         self.epoch = uuid.uuid4().hex  # this ring's identity: a replaced ingest replica has another
         self.next_seq = 0
         self.events = 0
@@ -77,7 +91,8 @@ class SharedRing:
         self._wake()
 
     async def pull(self, after: int | None, wait_s: float = PULL_WAIT_S) -> dict:
-        """The batches after ``after`` (None: from the oldest held), waiting up to ``wait_s`` for one.
+        """The batches after ``after`` (None: a new reader, from ``join`` batches behind the head, or the
+        oldest held), waiting up to ``wait_s`` for one.
         ``first_events``: events the stream held before the first batch returned (the caller's count
         of what it got tells what it missed); ``missed``: batches after ``after`` that left the ring;
         ``end``: no more will come; ``error``: the source's."""
@@ -86,7 +101,7 @@ class SharedRing:
             self._new.clear()
             with self._lock:
                 oldest = self.ring[0][0] if self.ring else self.next_seq
-                start = max(0 if after is None else after + 1, oldest)
+                start = max(self.next_seq - self.join if after is None else after + 1, oldest)
                 items = [item for item in self.ring if item[0] >= start][:PULL_MAX]
                 first_events = items[0][1] if items else self.events
             if items or self.ended or self.error is not None or time.monotonic() >= deadline:
@@ -102,15 +117,17 @@ class SharedRing:
 class SceneIngest:
     """Serve deployment class (one replica per live scene): the source, its reader thread and the ring."""
 
-    async def __init__(self, name: str, replay: str | None, speed: float, loop: bool, batch_us: int):
+    async def __init__(self, name: str, replay: str | None, loop: bool, batch_us: int):
         from edmcgs.sensor.sources.open import open_source
         from edmcgs.sensor.sources.pacing import Pacing
 
         self.name = name
         self.shared = SharedRing(asyncio.get_running_loop())  # the replica's loop: pull runs on it
+        self._shift_us = 0
         if replay is not None:
-            self.source = open_source(replay, pacing=Pacing(factor=speed, loop=loop, batch_us=batch_us))
+            self.source = open_source(replay, pacing=Pacing(loop=loop, batch_us=batch_us))
             self._info = replace(self.source.info, live=True, t_range_us=None)
+            self._shift_us = time.time_ns() // 1000 - self.source.info.t_range_us[0]
         else:
             self.source = open_source(live=True)
             self._info = self.source.info
@@ -124,7 +141,7 @@ class SceneIngest:
                 batch = self.source.read()
                 if batch is None:
                     break
-                self.shared.append(batch)
+                self.shared.append(batch.shifted(self._shift_us))
         except Exception as exc:  # reported to every replica's pull, and so on each one's /healthz
             log.error("scene %s: the shared source failed: %s: %s", self.name, type(exc).__name__, exc)
             self.shared.finish(f"{type(exc).__name__}: {exc}")
@@ -183,8 +200,8 @@ class RemoteSource:
                 raise SensorError(f"the scene's shared source failed: {answer['error']}")
             if self.epoch is not None and answer["epoch"] != self.epoch:
                 # a new ingest replica: its ring, and its numbers, start over
-                log.warning("scene %s: the shared source restarted (a new ingest replica); going on from "
-                            "its oldest batch", self.scene)
+                log.warning("scene %s: the shared source restarted (a new ingest replica); joining it as "
+                            "a new reader", self.scene)
                 self.epoch, self.after, self.received_events = answer["epoch"], None, 0
                 self.reconnects += 1
                 self._came_back = False

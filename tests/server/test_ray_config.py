@@ -54,6 +54,7 @@ def test_a_live_scene_takes_many_replicas_and_keeps_its_replay_for_its_ingest(fi
     (scene(colour="red"), "scenes[0] (street).colour: Extra inputs are not permitted"),
     (scene(checkpoint="missing.ckpt"), "scenes (street).checkpoint: no file"),
     ({"name": "x"}, "give a checkpoint (or demo: true)"),
+    (scene(live=True, speed=2.0), "speed 2.0: a live scene runs at the camera's pace"),
 ])
 def test_config_errors_name_the_scene_and_field(files, entry, says):
     with pytest.raises(InvalidInputError, match=r"^scenes\.yaml: ") as info:

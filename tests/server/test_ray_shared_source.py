@@ -61,7 +61,7 @@ def test_every_reader_gets_every_batch_in_order():
 
 
 def test_a_reader_that_falls_behind_says_what_it_missed(caplog):
-    shared = SharedRing(capacity=4)
+    shared = SharedRing(capacity=4, join=4)
     reader = RemoteSource(Handle(shared), "cam")
     shared.append(batch(0))
     assert int(reader.read().events.t[0]) == 0
@@ -75,12 +75,31 @@ def test_a_reader_that_falls_behind_says_what_it_missed(caplog):
     assert reader.missed_batches == 5, "no more missed once caught up"
 
 
-def test_a_late_reader_starts_at_the_oldest_batch_held_without_counting_a_loss():
-    shared = SharedRing(capacity=2)
-    for i in range(5):
-        shared.append(batch(100 * i))
+def test_a_late_reader_joins_inside_the_ring_and_keeps_up_while_it_moves_on(monkeypatch):
+    """Joining at the oldest batch held, the next to leave, a reader whose pulls are capped would lose
+    batches as soon as the source appended between its first two pulls; it joins ``join`` behind the
+    head instead."""
+    from edmcgs.server.ray_serve import shared_source
+
+    monkeypatch.setattr(shared_source, "PULL_MAX", 2)
+    shared = SharedRing(capacity=8, join=4)
+    for i in range(20):
+        shared.append(batch(100 * i))  # seq 0..19; the ring keeps 12..19
     reader = RemoteSource(Handle(shared), "cam")
-    assert int(reader.read().events.t[0]) == 300 and reader.missed_batches == 0
+    assert [int(reader.read().events.t[0]) for _ in range(2)] == [1600, 1700]  # its first pull: 16, 17
+    for i in range(20, 23):  # the source goes on before the next pull; the ring keeps 15..22
+        shared.append(batch(100 * i))
+    assert [int(reader.read().events.t[0]) for _ in range(5)] == [1800, 1900, 2000, 2100, 2200]
+    assert reader.missed_batches == 0
+    young = SharedRing(capacity=8, join=4)  # fewer batches than ``join``: from the first
+    young.append(batch(0))
+    assert int(RemoteSource(Handle(young), "cam").read().events.t[0]) == 0
+
+
+@pytest.mark.parametrize("join", [0, 9])
+def test_a_join_outside_the_ring_is_refused(join):
+    with pytest.raises(ValueError, match="joins 1 to capacity"):
+        SharedRing(capacity=8, join=join)
 
 
 def test_the_sources_failure_reaches_every_reader():
@@ -107,7 +126,7 @@ class Replaceable:
         return fn()
 
 
-def test_a_replaced_ingest_replica_is_reconnected_and_read_from_its_oldest_batch(caplog):
+def test_a_replaced_ingest_replica_is_reconnected_and_read_from_its_first_batch(caplog):
     from edmcgs.errors import DeviceDisconnected
     from edmcgs.sensor.buffer.ingest import Ingest
     from edmcgs.sensor.buffer.ring import EventRingBuffer
