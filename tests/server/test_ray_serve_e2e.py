@@ -315,9 +315,9 @@ def test_a_replica_killed_mid_load_costs_no_failed_request(cluster):
         victim = sorted(replicas)[0]
         before = len(statuses)
         cluster.kill_replica(victim)
-        deadline = time.monotonic() + 180  # a replacement starts (torch, the checkpoint, its replay's
-        # span) under the load of three clients and the other scenes, on 2 cores.
-        # Replaced: two replicas running again, and the replacement (a new name) answers.
+        # Replaced: two replicas running again, and the replacement (a new name) answers. It starts
+        # (torch, the checkpoint, its replay's span) under three clients and the other scenes, on 2 cores.
+        deadline = time.monotonic() + 180
         while cluster.running_replicas("scene-beta") < 2 or len(replicas) < 3:
             assert time.monotonic() < deadline, "the killed replica was not replaced"
             time.sleep(0.2)
