@@ -3,9 +3,12 @@
 
 The same math as the torch versions (Jacobian with the frustum-clamped x/z, y/z, depth clamped at
 ``near``, the 0.3 px^2 low-pass, det as a sum of squared minors, colour = SH + 0.5 clamped at 0),
-evaluated per Gaussian in float64 and parallel over Gaussians; the torch versions stay the
-reference (the tests compare values and gradients). A Gaussian whose outputs get no gradient (one
-the rasterizer culled) gets exactly zero, never 0 * inf.
+evaluated per Gaussian in float64; the torch versions stay the reference (the tests compare values
+and gradients). The projection's kernels read and write columns ([3, N], not [N, 3]) and branch only
+on forward/backward, which each kernel fixes, so LLVM vectorises them (2.5x faster than the row-wise
+scalar loop, forward and backward: ``bench.render --profile numba``); they run parallel over Gaussians on
+torch's thread count. A Gaussian whose outputs get no gradient (one the rasterizer culled) gets
+exactly zero, never 0 * inf.
 
 Backward of the projection, with M = J R_w2c R(q) diag(s) [2, 3], cov = M M^T + 0.3 I and
 conic = (c, -b, a) / det:
@@ -19,46 +22,45 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import torch
 from torch import Tensor
 
 from edmcgs.geometry import Intrinsics
-from edmcgs.model.render.jit import njit_cached
+from edmcgs.model.render.jit import in_torch_threads, njit_cached
 from edmcgs.model.render.projection import FRUSTUM_SLACK, LOWPASS
 from edmcgs.model.render.sh import SH_C0, SH_C1, SH_C2, SH_C3
 
 __all__ = ["project_fast", "sh_color_fast"]
 
 
-@njit_cached(nogil=True)
-def _project(means, quats, scales, w2c, cam, lims, near, g_mean2d, g_conic, g_depth, mean2d, cov2d, conic,
-             depth, d_means, d_quats, d_scales, backward):
-    """Forward (backward False): mean2d, cov2d, conic, depth per Gaussian. Backward: d_means,
-    d_quats, d_scales from the incoming gradients of mean2d, conic and depth."""
-    for i in range(means.shape[0]):
-        _project_one(i, means, quats, scales, w2c, cam, lims, near, g_mean2d, g_conic, g_depth, mean2d, cov2d,
-                     conic, depth, d_means, d_quats, d_scales, backward)
+@njit_cached(parallel=True, nogil=True, error_model="numpy")
+def _project_forward(mt, qt, st, w2c, cam, lims, near, out):
+    """out[:, i] = (mean2d x, y, cov2d a, b, c, conic a, b, c, depth) of Gaussian i."""
+    g = np.zeros((1, 1), out.dtype)  # no incoming gradients (not read)
+    for i in numba.prange(mt.shape[1]):
+        _project_one(i, mt, qt, st, w2c, cam, lims, near, g, g, g, out, g, g, g, False)
+
+
+@njit_cached(parallel=True, nogil=True, error_model="numpy")
+def _project_backward(mt, qt, st, w2c, cam, lims, near, g_mean2d, g_conic, g_depth, d_means, d_quats,
+                      d_scales):
+    """d_means, d_quats, d_scales [:, i] from the incoming gradients [:, i] of mean2d, conic, depth."""
+    out = np.zeros((1, 1), d_means.dtype)  # no forward outputs (not written)
+    for i in numba.prange(mt.shape[1]):
+        _project_one(i, mt, qt, st, w2c, cam, lims, near, g_mean2d, g_conic, g_depth, out, d_means, d_quats,
+                     d_scales, True)
 
 
 @njit_cached(error_model="numpy", inline="always")
-def _project_one(i, means, quats, scales, w2c, cam, lims, near, g_mean2d, g_conic, g_depth, mean2d, cov2d,
-                 conic, depth, d_means, d_quats, d_scales, backward):
+def _project_one(i, mt, qt, st, w2c, cam, lims, near, g_mean2d, g_conic, g_depth, out, d_means, d_quats,
+                 d_scales, backward):
+    """Gaussian i, every array in columns [k, i]. Branch-free apart from ``backward``, a constant of
+    each caller once inlined, so that LLVM vectorises both loops."""
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     lim_xn, lim_xp, lim_yn, lim_yp = lims[0], lims[1], lims[2], lims[3]
-    gu = gv = ga = gb = gc = gz = 0.0
-    if backward:
-        gu, gv = np.float64(g_mean2d[i, 0]), np.float64(g_mean2d[i, 1])
-        ga, gb, gc = np.float64(g_conic[i, 0]), np.float64(g_conic[i, 1]), np.float64(g_conic[i, 2])
-        gz = np.float64(g_depth[i])
-        if gu == 0 and gv == 0 and ga == 0 and gb == 0 and gc == 0 and gz == 0:
-            for k in range(3):
-                d_means[i, k] = 0.0
-                d_scales[i, k] = 0.0
-            for k in range(4):
-                d_quats[i, k] = 0.0
-            return
-    px, py, pz = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
+    px, py, pz = np.float64(mt[0, i]), np.float64(mt[1, i]), np.float64(mt[2, i])
     x = w2c[0, 0] * px + w2c[0, 1] * py + w2c[0, 2] * pz + w2c[0, 3]
     y = w2c[1, 0] * px + w2c[1, 1] * py + w2c[1, 2] * pz + w2c[1, 3]
     z = w2c[2, 0] * px + w2c[2, 1] * py + w2c[2, 2] * pz + w2c[2, 3]
@@ -73,8 +75,7 @@ def _project_one(i, means, quats, scales, w2c, cam, lims, near, g_mean2d, g_coni
                      j00 * w2c[0, 2] + j02 * w2c[2, 2])
     p10, p11, p12 = (j11 * w2c[1, 0] + j12 * w2c[2, 0], j11 * w2c[1, 1] + j12 * w2c[2, 1],
                      j11 * w2c[1, 2] + j12 * w2c[2, 2])
-    q0, q1, q2, q3 = (np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]),
-                      np.float64(quats[i, 3]))
+    q0, q1, q2, q3 = np.float64(qt[0, i]), np.float64(qt[1, i]), np.float64(qt[2, i]), np.float64(qt[3, i])
     qn = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
     qw, qx, qy, qz = q0 / qn, q1 / qn, q2 / qn, q3 / qn
     g00, g01, g02 = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)
@@ -84,7 +85,7 @@ def _project_one(i, means, quats, scales, w2c, cam, lims, near, g_mean2d, g_coni
                         p00 * g02 + p01 * g12 + p02 * g22)
     pg10, pg11, pg12 = (p10 * g00 + p11 * g10 + p12 * g20, p10 * g01 + p11 * g11 + p12 * g21,
                         p10 * g02 + p11 * g12 + p12 * g22)
-    s0, s1, s2 = np.float64(scales[i, 0]), np.float64(scales[i, 1]), np.float64(scales[i, 2])
+    s0, s1, s2 = np.float64(st[0, i]), np.float64(st[1, i]), np.float64(st[2, i])
     m00, m01, m02 = pg00 * s0, pg01 * s1, pg02 * s2
     m10, m11, m12 = pg10 * s0, pg11 * s1, pg12 * s2
     a0 = m00 * m00 + m01 * m01 + m02 * m02
@@ -94,12 +95,18 @@ def _project_one(i, means, quats, scales, w2c, cam, lims, near, g_mean2d, g_coni
     det = k01 * k01 + k02 * k02 + k12 * k12 + LOWPASS * (a0 + c0) + LOWPASS * LOWPASS
     a, c = a0 + LOWPASS, c0 + LOWPASS
     if not backward:
-        mean2d[i, 0] = fx * x * inv_z + cx
-        mean2d[i, 1] = fy * y * inv_z + cy
-        cov2d[i, 0], cov2d[i, 1], cov2d[i, 2] = a, b, c
-        conic[i, 0], conic[i, 1], conic[i, 2] = c / det, -b / det, a / det
-        depth[i] = z
+        out[0, i] = fx * x * inv_z + cx
+        out[1, i] = fy * y * inv_z + cy
+        out[2, i], out[3, i], out[4, i] = a, b, c
+        out[5, i], out[6, i], out[7, i] = c / det, -b / det, a / det
+        out[8, i] = z
         return
+    gu, gv = np.float64(g_mean2d[0, i]), np.float64(g_mean2d[1, i])
+    ga, gb, gc = np.float64(g_conic[0, i]), np.float64(g_conic[1, i]), np.float64(g_conic[2, i])
+    gz = np.float64(g_depth[0, i])
+    # A Gaussian with no incoming gradient (one the rasterizer culled) gets exactly zero, never 0 * inf:
+    # everything is computed and then replaced (a select, not a branch).
+    live = (gu != 0) | (gv != 0) | (ga != 0) | (gb != 0) | (gc != 0) | (gz != 0)
     # conic -> (a, b, c, det) -> M
     inv_det = 1.0 / det
     g_det = -(ga * c - gb * b + gc * a) * inv_det * inv_det
@@ -114,9 +121,9 @@ def _project_one(i, means, quats, scales, w2c, cam, lims, near, g_mean2d, g_coni
     dm11 = g_c * m11 + g_b * m01 + t01 * m00 - t12 * m02
     dm12 = g_c * m12 + g_b * m02 + t02 * m00 + t12 * m01
     # M = PG diag(s): scales, then G (rotation) and P
-    d_scales[i, 0] = dm00 * pg00 + dm10 * pg10
-    d_scales[i, 1] = dm01 * pg01 + dm11 * pg11
-    d_scales[i, 2] = dm02 * pg02 + dm12 * pg12
+    d_scales[0, i] = dm00 * pg00 + dm10 * pg10 if live else 0.0
+    d_scales[1, i] = dm01 * pg01 + dm11 * pg11 if live else 0.0
+    d_scales[2, i] = dm02 * pg02 + dm12 * pg12 if live else 0.0
     e00, e01, e02, e10, e11, e12 = dm00 * s0, dm01 * s1, dm02 * s2, dm10 * s0, dm11 * s1, dm12 * s2  # d PG
     r00, r01, r02 = p00 * e00 + p10 * e10, p00 * e01 + p10 * e11, p00 * e02 + p10 * e12  # d G
     r10, r11, r12 = p01 * e00 + p11 * e10, p01 * e01 + p11 * e11, p01 * e02 + p11 * e12
@@ -130,31 +137,24 @@ def _project_one(i, means, quats, scales, w2c, cam, lims, near, g_mean2d, g_coni
     dy = 2 * (-2 * qy * r00 + qx * r01 + qw * r02 + qx * r10 + qz * r12 - qw * r20 + qz * r21 - 2 * qy * r22)
     dz = 2 * (-2 * qz * r00 - qw * r01 + qx * r02 + qw * r10 - 2 * qz * r11 + qy * r12 + qx * r20 + qy * r21)
     dot = qw * dw + qx * dx + qy * dy + qz * dz
-    d_quats[i, 0] = (dw - qw * dot) / qn
-    d_quats[i, 1] = (dx - qx * dot) / qn
-    d_quats[i, 2] = (dy - qy * dot) / qn
-    d_quats[i, 3] = (dz - qz * dot) / qn
-    # P = J R_w2c -> J entries -> inv_z, x/z, y/z
+    d_quats[0, i] = (dw - qw * dot) / qn if live else 0.0
+    d_quats[1, i] = (dx - qx * dot) / qn if live else 0.0
+    d_quats[2, i] = (dy - qy * dot) / qn if live else 0.0
+    d_quats[3, i] = (dz - qz * dot) / qn if live else 0.0
+    # P = J R_w2c -> J entries -> inv_z, x/z, y/z (the clamps pass no gradient where they bite)
     dj00 = dp00 * w2c[0, 0] + dp01 * w2c[0, 1] + dp02 * w2c[0, 2]
     dj02 = dp00 * w2c[2, 0] + dp01 * w2c[2, 1] + dp02 * w2c[2, 2]
     dj11 = dp10 * w2c[1, 0] + dp11 * w2c[1, 1] + dp12 * w2c[1, 2]
     dj12 = dp10 * w2c[2, 0] + dp11 * w2c[2, 1] + dp12 * w2c[2, 2]
-    d_inv = fx * dj00 - fx * xz * dj02 + fy * dj11 - fy * yz * dj12
-    d_xz, d_yz = -fx * inv_z * dj02, -fy * inv_z * dj12
-    d_x, d_y, d_z = 0.0, 0.0, gz
-    if -lim_xn <= xr <= lim_xp:
-        d_x += d_xz * inv_z
-        d_inv += d_xz * x
-    if -lim_yn <= yr <= lim_yp:
-        d_y += d_yz * inv_z
-        d_inv += d_yz * y
-    d_x += gu * fx * inv_z
-    d_y += gv * fy * inv_z
-    d_inv += gu * fx * x + gv * fy * y
-    if z >= near:
-        d_z -= d_inv * inv_z * inv_z
+    d_xz = -fx * inv_z * dj02 if (-lim_xn <= xr) & (xr <= lim_xp) else 0.0
+    d_yz = -fy * inv_z * dj12 if (-lim_yn <= yr) & (yr <= lim_yp) else 0.0
+    d_x = (d_xz + gu * fx) * inv_z
+    d_y = (d_yz + gv * fy) * inv_z
+    d_inv = (fx * dj00 - fx * xz * dj02 + fy * dj11 - fy * yz * dj12 + d_xz * x + d_yz * y
+             + gu * fx * x + gv * fy * y)
+    d_z = gz - (d_inv * inv_z * inv_z if z >= near else 0.0)
     for k in range(3):
-        d_means[i, k] = w2c[0, k] * d_x + w2c[1, k] * d_y + w2c[2, k] * d_z
+        d_means[k, i] = w2c[0, k] * d_x + w2c[1, k] * d_y + w2c[2, k] * d_z if live else 0.0
 
 
 def _limits(intrinsics: Intrinsics) -> np.ndarray:
@@ -166,39 +166,39 @@ def _limits(intrinsics: Intrinsics) -> np.ndarray:
                      k.cy / k.fy + slack_y, (k.height - k.cy) / k.fy + slack_y])
 
 
+def _columns(*tensors: Tensor, dtype: torch.dtype) -> list[np.ndarray]:
+    """Each [N, K] tensor as a C-contiguous [K, N] numpy array of ``dtype`` (the kernels' columns)."""
+    return [t.detach().to(dtype).reshape(t.shape[0], math.prod(t.shape[1:])).T.contiguous().numpy()
+            for t in tensors]
+
+
 class ProjectFast(torch.autograd.Function):
     """(means, quats, scales) -> (mean2d [N, 2], cov2d [N, 3] (not differentiable), conic [N, 3],
     depth [N]); w2c [4, 4] float64 numpy, intrinsics and near are constants."""
 
     @staticmethod
     def forward(ctx, means, quats, scales, w2c, intrinsics, near):
-        n, dtype = means.shape[0], means.dtype
-        arrays = [t.detach().contiguous().numpy() for t in (means, quats, scales)]
-        mean2d, cov2d, conic = (np.empty((n, d), arrays[0].dtype) for d in (2, 3, 3))
-        depth = np.empty(n, arrays[0].dtype)
+        dtype = means.dtype
+        cols = _columns(means, quats, scales, dtype=dtype)
+        out = np.empty((9, means.shape[0]), cols[0].dtype)
         k = intrinsics
         cam = np.array([k.fx, k.fy, k.cx, k.cy], np.float64)
         ctx.constants = (w2c, cam, _limits(intrinsics), float(near))
-        empty, empty1 = np.zeros((0, 3), arrays[0].dtype), np.zeros(0, arrays[0].dtype)
-        _project(*arrays, w2c, cam, ctx.constants[2], float(near), empty, empty, empty1, mean2d, cov2d,
-                 conic, depth, empty, np.zeros((0, 4), arrays[0].dtype), empty, False)
+        in_torch_threads(_project_forward, *cols, *ctx.constants, out)
         ctx.save_for_backward(means, quats, scales)
-        cov2d = torch.from_numpy(cov2d)
+        mean2d, cov2d, conic, depth = (torch.from_numpy(np.ascontiguousarray(out[rows].T))
+                                       for rows in (slice(0, 2), slice(2, 5), slice(5, 8), 8))
         ctx.mark_non_differentiable(cov2d)
-        return torch.from_numpy(mean2d), cov2d, torch.from_numpy(conic), torch.from_numpy(depth).to(dtype)
+        return mean2d, cov2d, conic, depth
 
     @staticmethod
     def backward(ctx, g_mean2d, g_cov2d, g_conic, g_depth):
         means, quats, scales = ctx.saved_tensors
-        w2c, cam, lims, near = ctx.constants
-        arrays = [t.detach().contiguous().numpy() for t in (means, quats, scales)]
-        dt = arrays[0].dtype
-        grads = [np.empty_like(a) for a in arrays]
-        empty = np.zeros((0, 3), dt)
-        _project(*arrays, w2c, cam, lims, near, g_mean2d.to(means.dtype).contiguous().numpy(),
-                 g_conic.to(means.dtype).contiguous().numpy(), g_depth.to(means.dtype).contiguous().numpy(),
-                 np.zeros((0, 2), dt), empty, empty, np.zeros(0, dt), *grads, True)
-        return (*(torch.from_numpy(g) for g in grads), None, None, None)
+        cols = _columns(means, quats, scales, dtype=means.dtype)
+        grads = [np.empty_like(c) for c in cols]
+        in_torch_threads(_project_backward, *cols, *ctx.constants,
+                         *_columns(g_mean2d, g_conic, g_depth, dtype=means.dtype), *grads)
+        return (*(torch.from_numpy(g.T.copy()) for g in grads), None, None, None)
 
 
 def project_fast(means: Tensor, quats: Tensor, scales: Tensor, w2c: np.ndarray, intrinsics: Intrinsics,
@@ -313,6 +313,8 @@ class ShColorFast(torch.autograd.Function):
 def sh_color_fast(coeffs: Tensor, means: Tensor, w2c: np.ndarray) -> Tensor:
     """``sh_to_color`` towards each Gaussian from the camera centre of w2c, on the CPU;
     differentiable w.r.t. coeffs [N, K, C] and means [N, 3]."""
+    if coeffs.shape[1] == 1:  # degree 0 sees no direction: two torch ops, 8x faster than the kernel
+        return (coeffs[:, 0] * SH_C0 + 0.5).clamp_min(0.0)
     w2c = np.asarray(w2c, np.float64)
     centre = np.ascontiguousarray(-(w2c[:3, :3].T @ w2c[:3, 3]))
     return ShColorFast.apply(coeffs, means, centre)
