@@ -32,6 +32,10 @@ from edmcgs.server.online import OnlineAnchors
 from edmcgs.server.playback import Playback
 from edmcgs.server.state_cache import StateCache
 
+CAMERA_POSE_ATOL = 1e-5
+"""A pose given whose entries (rotation, translation in m) are all within this of the event camera's
+own is its view: at the DAVIS346's focal length (~300 px), a hundredth of a pixel at most."""
+
 
 @dataclass(frozen=True)
 class Rendered:
@@ -257,8 +261,8 @@ class Engine:
         """Pixels of the scene at ``t_us`` (None: the head) from ``pose`` (None: the event camera's).
 
         camera_view: whether ``pose`` is the event camera's own at that time (default: when ``pose`` is
-        None). Its view from an online anchor whose frame the stream gave is projected onto the events
-        since that frame (``_frame``)."""
+        None or equals it, ``CAMERA_POSE_ATOL``). Its view from an online anchor whose frame the stream
+        gave is projected onto the events since that frame (``_frame``)."""
         instant = self.resolve(t_us)
         t0 = time.perf_counter()
         state, n_events, emap = self._entry(instant)
@@ -266,7 +270,9 @@ class Engine:
         c2w = self.default_pose(instant.t_us) if pose is None else pose
         intr = self.intrinsics(width, height)
         image = self.model.render(state, c2w, intr, fast=self.fast, threads=self.raster_threads)
-        frame = self._frame(instant) if (pose is None if camera_view is None else camera_view) else None
+        if camera_view is None:
+            camera_view = pose is None or self._is_camera_pose(pose, instant.t_us)
+        frame = self._frame(instant) if camera_view else None
         if frame is not None:
             t2 = time.perf_counter()
             shape = (self.meta.event_height, self.meta.event_width)
@@ -277,6 +283,13 @@ class Engine:
         if frame is not None:
             stages["raster"], stages["project"] = t2 - t1, time.perf_counter() - t2
         return Rendered(pixels, instant, n_events, self.anchor_kind(instant), stages, frame is not None)
+
+    def _is_camera_pose(self, pose: np.ndarray, t_us: int) -> bool:
+        try:
+            own = self.default_pose(t_us)
+        except InvalidInputError:  # no trajectory, no frame poses: the camera's pose is unknown
+            return False
+        return bool(np.allclose(pose, own, rtol=0.0, atol=CAMERA_POSE_ATOL))
 
     def _frame(self, instant: Instant) -> np.ndarray | None:
         """The frame a render of the event camera's view at ``instant`` is projected onto the events

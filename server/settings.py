@@ -118,10 +118,11 @@ class Settings(BaseSettings):
     online_fit_scale: float = Field(0.5, gt=0, le=1,
         description="Fraction of the frame's size the correction renders and compares at.")
     online_project: bool = Field(True,
-        description="Renders of the event camera's own view (no pose given) from an online anchor are "
-                    "clipped into the bounds its frame and the events since it put on each pixel: one "
-                    "contrast threshold either side of the frame moved by the events (model/event_bounds.py)."
-                    " The model renders what the events leave open. Off: the model's render alone.")
+        description="Renders of the event camera's own view (no pose given, or its own) from an online "
+                    "anchor are clipped into the bounds its frame and the events since it put on each "
+                    "pixel: one contrast threshold either side of the frame moved by the events "
+                    "(model/event_bounds.py). The model renders what the events leave open. Off: the "
+                    "model's render alone.")
     raster_threads: int | None = Field(None, gt=0, le=1024,
         description="Threads of the numba rasterizer per render; "
                                        "none: every core (on a 2-core CPU, 2 per render beat 1 at one and at "

@@ -19,7 +19,7 @@ from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.frames import Frames
 from edmcgs.server.clock import Timeline
-from edmcgs.server.engine import Engine
+from edmcgs.server.engine import CAMERA_POSE_ATOL, Engine
 from edmcgs.server.online import OnlineAnchors
 from tests.support.server import build_scene
 
@@ -204,11 +204,17 @@ def test_the_event_cameras_view_past_the_span_is_projected_onto_the_events_since
     assert early.anchor == "checkpoint" and early.instant.anchor_us == last
     _assert_projected(engine, model, model.meta.t_end_us + 10_000,
                       rec.anchors.images[int(np.searchsorted(rec.anchors.t_us, last))])
-    # a pose given is another view (not projected), unless the caller says it is the event camera's
+    # the event camera's own pose given is its view; any other pose is the model's alone
     pose = engine.default_pose(out.instant.t_us)
     model_alone = engine.render(None, None, 64, 48, camera_view=False)
-    assert np.array_equal(engine.render(None, pose, 64, 48).pixels, model_alone.pixels)
-    assert engine.render(None, pose, 64, 48, camera_view=True).projected
+    assert np.array_equal(engine.render(None, pose, 64, 48).pixels, out.pixels)
+    rounded = pose.copy()
+    rounded[:3] += 0.5 * CAMERA_POSE_ATOL
+    assert engine.render(None, rounded, 64, 48).projected, "a round trip's rounding"
+    other = pose.copy()
+    other[0, 3] += 0.01
+    assert not engine.render(None, other, 64, 48).projected
+    assert engine.render(None, other, 64, 48, camera_view=True).projected, "the caller's word"
     # at another size the bounds are taken at each pixel's nearest frame and event pixel
     assert engine.render(None, None, 32, 24).projected
     # within the span, and with online_project off: the model alone
