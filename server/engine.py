@@ -270,9 +270,10 @@ class Engine:
         c2w = self.default_pose(instant.t_us) if pose is None else pose
         intr = self.intrinsics(width, height)
         image = self.model.render(state, c2w, intr, fast=self.fast, threads=self.raster_threads)
-        if camera_view is None:
-            camera_view = pose is None or self._is_camera_pose(pose, instant.t_us)
-        frame = self._frame(instant) if camera_view else None
+        frame = None if camera_view is False else self._frame(instant)
+        if frame is not None and camera_view is None and pose is not None:
+            # a pose given is the camera's view when it is the camera's own (checked only where it counts)
+            frame = frame if self._is_camera_pose(pose, instant.t_us) else None
         if frame is not None:
             t2 = time.perf_counter()
             shape = (self.meta.event_height, self.meta.event_width)

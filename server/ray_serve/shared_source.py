@@ -14,8 +14,7 @@ If the ingest replica dies, Serve starts another, which opens the source again w
 fails, and its ingest thread reconnects as it does for a camera (``reconnect``: back-off until the new
 ingest answers, then on from its start); Serve's handle may also retry the pull on the new
 replica by itself, which the ring's new epoch tells. What the old one held and had not handed over is
-gone, and the replica logs and counts the reconnect; a replay played as live starts again from its beginning,
-and its events before the replica's watermark are the ring's counted ``late`` drops.
+gone, and the replica logs and counts the reconnect.
 
 ``live: true`` with a ``replay`` in the Ray config plays the recording as a live camera through the
 same path (a live scene tried without a camera): its batches carry no replay range, so each replica's
@@ -29,6 +28,7 @@ events would all fall behind the replicas' watermarks until it had played as lon
 from __future__ import annotations
 
 import asyncio
+import itertools
 import logging
 import threading
 import time
@@ -102,7 +102,8 @@ class SharedRing:
             with self._lock:
                 oldest = self.ring[0][0] if self.ring else self.next_seq
                 start = max(self.next_seq - self.join if after is None else after + 1, oldest)
-                items = [item for item in self.ring if item[0] >= start][:PULL_MAX]
+                skip = start - oldest  # seqs are consecutive: ``start`` sits at this index
+                items = list(itertools.islice(self.ring, skip, skip + PULL_MAX))
                 first_events = items[0][1] if items else self.events
             if items or self.ended or self.error is not None or time.monotonic() >= deadline:
                 return {"batches": [b for _, _, b in items], "first_seq": start, "first_events": first_events,
