@@ -12,7 +12,7 @@ past the span is scored (PSNR) for
 
     live       the service's render of the event camera's view: newest corrected anchor before t + the
                events since it, projected onto the bounds the anchor's frame and those events put on
-               each pixel (``project``: the server's ``online_project``; model/event_bounds.py)
+               each pixel (``project``: the server's ``online_project``; model/online/bounds.py)
     live_model the same render before that projection: the model alone
     no_corr    the live chain, never corrected (the model's transition alone), projected as ``live``
     no_events  the ablation of the events past the span: the same fits with no transition (each
@@ -79,15 +79,17 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
     from edmcgs.model import online as model_online
     from edmcgs.model.checkpoint import load_checkpoint
     from edmcgs.model.eval.baselines import DEFAULT_CONTRAST
-    from edmcgs.model.event_bounds import integrate
-    from edmcgs.model.event_bounds import project as project_events
+    from edmcgs.model.online.bounds import integrate
+    from edmcgs.model.online.bounds import project as project_events
     from edmcgs.sensor.buffer.ring import EventRingBuffer
     from edmcgs.sensor.event_map import accumulate
     from edmcgs.sensor.files.recording import Recording, read_recording
     from edmcgs.sensor.frames import Frames
-    from edmcgs.server.clock import Timeline
     from edmcgs.server.engine import Engine
-    from edmcgs.server.online import OnlineAnchors
+    from edmcgs.server.live.anchors import OnlineAnchors
+    from edmcgs.server.live.clock import Timeline
+    from edmcgs.server.live.config import OnlineConfig
+    from edmcgs.server.live.timebase import Timebase
 
     rec = recording if isinstance(recording, Recording) else read_recording(recording)
     contrast = DEFAULT_CONTRAST if rec.contrast_threshold is None else rec.contrast_threshold
@@ -106,11 +108,11 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
                              ("no_events", True, "none")):
         ring = EventRingBuffer(len(rec.events) + 1)
         ring.push(rec.events, complete_until_us=rec.t_range_us[1] + 1)
-        online = OnlineAnchors(model, ring, capacity=10**6, fit=False, fit_steps=steps, fit_scale=scale,
-                               fit_lr=lr, finetune_steps=finetune_steps, finetune_lr=finetune_lr,
-                               spawn=spawn, colour_lr=colour_lr, transition=moves, project=project,
-                               default_pose=pose)
-        engine = Engine(model, ring, None, cache_size=4, online=online)
+        online = OnlineAnchors(model, ring, OnlineConfig(
+            capacity=10**6, fit=False, fit_steps=steps, fit_scale=scale, fit_lr=lr,
+            finetune_steps=finetune_steps, finetune_lr=finetune_lr, spawn=spawn, colour_lr=colour_lr,
+            transition=moves, project=project), pose=pose)
+        engine = Engine(model, ring, Timebase(model, online), cache_size=4)
         engine.timeline = Timeline(start, start)
         anchors = rec.anchors
         # the frames from the checkpoint's last anchor on, as a replay delivers them (that one: what
@@ -138,7 +140,7 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
                 corrected = _psnr(model.render(state, pose(t), meta.intrinsics), anchors.images[i] / 255.0)
                 pred_rows.append({"t_us": t, "since_end_s": (t - end) / 1e6, "pred_psnr": pred,
                                   "corrected_psnr": corrected, "fit_s": fit_s,
-                                  "transition": online.transition_kind,
+                                  "transition": online.transitions.kind,
                                   "loss_before": online.last_loss[0], "loss_after": online.last_loss[1]})
         chains[name] = engine
     held = rec.held_out
@@ -248,6 +250,50 @@ def timing(checkpoint: Path, recording: Path, width: int, height: int, steps: in
             "gaussians": len(model.gaussians), "control_points": model.control.num_points}
 
 
+def online_drift(rows: list[dict], predictions: list[dict], path: Path, fit: str) -> None:
+    """PSNR against time since training ended: the live render (corrected online anchors, projected onto
+    the events since each frame) and before its projection, the chain never corrected, the same fits
+    without events, the causal baselines (hold the last anchor; it projected onto the events; the events
+    integrated onto it), and each new anchor frame against its prediction (bench.online);
+    below, the same in 1 s bands (where "never worse than hold-last" is read)."""
+    from matplotlib.figure import Figure
+
+    from bench.figures import save
+
+    fig = Figure(figsize=(9, 6.4), layout="constrained")
+    ax, low = fig.subplots(2, 1, height_ratios=(3, 2), sharex=True)
+    x = [r["since_end_s"] for r in rows]
+    lines = (("live", f"live render (corrected, {fit}, projected onto the events)", "#1b6ca8"),
+             ("live_model", "the same before the projection (the model alone)", "#8ab6d6"),
+             ("no_corr", "no correction (events only)", "#d1495b"),
+             ("no_events", "no events moving the anchors (corrections only)", "#7b4f9d"),
+             ("hold_last", "hold last anchor frame", "#888888"),
+             ("hold_projected", "that frame projected onto the events (no model)", "#c2a83e"),
+             ("integrate", "events integrated onto the last anchor", "#66a182"))
+    for key, label, colour in lines:
+        ax.plot(x, [r[key] for r in rows], marker="o", ms=2.5, lw=1, color=colour, label=label)
+    blend = [(r["since_end_s"], r["blend"]) for r in rows if r.get("blend") is not None]
+    if blend:
+        ax.plot([b[0] for b in blend], [b[1] for b in blend], ls="--", lw=1, color="#b07aa1",
+                label="blend of the anchors either side (not causal)")
+    ax.plot([p["since_end_s"] for p in predictions], [p["pred_psnr"] for p in predictions], ls="none",
+            marker="x", color="#edae49", label="prediction vs the new anchor frame")
+    ax.set_ylabel("PSNR (dB) vs held-out frame")
+    ax.set_title("Online anchors past the checkpoint's span: drift")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    summary = bands(rows)
+    edges = [b["from_s"] for b in summary] + [summary[-1]["to_s"]]
+    for key, label, colour in lines:
+        values = [b[key] for b in summary]
+        low.stairs(values, edges, baseline=None, color=colour, label=label,
+                   lw=2 if key in ("live", "hold_last") else 1.2)
+    low.set_xlabel("time since training ended (s)")
+    low.set_ylabel(f"mean PSNR per {BAND_S:g} s (dB)")
+    low.grid(alpha=0.3)
+    save(fig, path)
+
+
 def main(argv=None) -> None:
     from edmcgs.protocol import TRANSITIONS
     from edmcgs.server.settings import Settings
@@ -318,8 +364,6 @@ def main(argv=None) -> None:
                 w.writeheader()
                 w.writerows(rows)
         if args.plot is not None:
-            from bench.report.plots import online_drift
-
             args.plot.parent.mkdir(parents=True, exist_ok=True)
             online_drift(rows, extra["pred"], args.plot,
                          f"{args.steps} steps of {args.lr:g} at {args.scale:g}x size, "

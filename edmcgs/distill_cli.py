@@ -1,5 +1,5 @@
 """``edmcgs distill CKPT RECORDING -o OUT``: give a checkpoint the event transition its online anchors use
-past its span, learnt from its own motion over the span (``edmcgs.model.online_distill``).
+past its span, learnt from its own motion over the span (``edmcgs.model.online.distill``).
 
 RECORDING is the one the checkpoint was trained on (any format ``edmcgs train`` reads, with the same
 flags): its events over the span are the inputs. The written checkpoint is the input's with
@@ -18,7 +18,7 @@ from edmcgs.options import RecordingOptions, add_recording_arguments
 
 
 def main(argv: list[str] | None = None) -> int:
-    from edmcgs.model import online_distill
+    from edmcgs.model.online import distill as online_distill
 
     parser = argparse.ArgumentParser(prog="edmcgs distill", description=__doc__.split("\n\n")[0])
     parser.add_argument("checkpoint", help="EdMCGS checkpoint with an event branch")
@@ -50,7 +50,7 @@ def _run(args) -> int:
     import torch
 
     from edmcgs.model.checkpoint import load_checkpoint
-    from edmcgs.model.online_distill import distill, save_with
+    from edmcgs.model.online.distill import distill, save_with
     from edmcgs.pipeline import open_recording, training_data
 
     if args.threads < 1:

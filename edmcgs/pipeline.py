@@ -22,9 +22,9 @@ import numpy as np
 from edmcgs.errors import InvalidInputError, PoseError, TrainingError
 from edmcgs.geometry import Intrinsics, Trajectory, pose_from_quat, validate_pose
 from edmcgs.model.config import EdmcgsConfig, preset
+from edmcgs.model.data import TrainingData
 from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.motion.leanness import events_decision
-from edmcgs.model.train.data import TrainingData
 from edmcgs.options import RecordingOptions
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.files.record import read_source

@@ -13,7 +13,7 @@ _EXPORTS = {
     "EdmcgsConfig": "edmcgs.model.config", "PRESETS": "edmcgs.model.config", "preset": "edmcgs.model.config",
     "load_checkpoint": "edmcgs.model.checkpoint", "save_checkpoint": "edmcgs.model.checkpoint",
     "read_checkpoint": "edmcgs.model.checkpoint",
-    "Trainer": "edmcgs.model.train.trainer", "TrainingData": "edmcgs.model.train.data",
+    "Trainer": "edmcgs.model.train.trainer", "TrainingData": "edmcgs.model.data",
     "evaluate": "edmcgs.model.eval.evaluation", "summarize": "edmcgs.model.eval.evaluation",
     "rasterize": "edmcgs.model.render.rasterize", "rasterize_fast": "edmcgs.model.render.rasterize_fast",
 }

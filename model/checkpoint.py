@@ -16,7 +16,7 @@ Version 2 adds what the scene leaves out (``edmcgs.model.motion.leanness``): the
 (decided when a final checkpoint is written, ``train_state`` None) and ``lean``, the record of every
 decision; a static camera's trajectory is stored as one pose. Version 1 files load with nothing frozen
 and ``lean`` derived from the weights. Version 3 adds the optional ``online_transition`` (the event
-transition online anchors use past the span, ``model/online_distill.py``); versions 1 and 2 have none. A
+transition online anchors use past the span, ``model/online/distill.py``); versions 1 and 2 have none. A
 missing, truncated, foreign or newer file raises ``CheckpointError``.
 Writes are atomic (a temporary file in the same folder, fsynced, then renamed over the target).
 """

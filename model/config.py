@@ -18,6 +18,7 @@ import dataclasses
 from dataclasses import dataclass, fields
 
 from edmcgs.errors import InvalidInputError
+from edmcgs.luminance import LOG_EPS
 
 
 @dataclass
@@ -70,7 +71,7 @@ class Structure:
     contrast_threshold: float = 0.2
     """C: log-luminance change per event (taken from the recording when it states one); the event loss's
     unit, and the scale of I_E that Phi reads."""
-    log_eps: float = 1e-3
+    log_eps: float = LOG_EPS
     """epsilon of the log-luminance L = log(I + epsilon), I in [0, 1]; it also bounds Phi's input."""
 
     @property

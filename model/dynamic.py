@@ -20,6 +20,7 @@ from torch import Tensor, nn
 
 from edmcgs.errors import InvalidInputError, RenderError, translated
 from edmcgs.geometry import Intrinsics, Trajectory, project, quat_normalize, validate_pose, world_to_camera
+from edmcgs.luminance import LUMA
 from edmcgs.model.config import EdmcgsConfig
 from edmcgs.model.motion.background import BackgroundLayer, composite
 from edmcgs.model.motion.control_points import ControlPoints
@@ -31,7 +32,6 @@ from edmcgs.model.motion.leanness import choose_sh_degree, control_reach, motion
 from edmcgs.model.motion.skin_plan import SkinPlan, build_plan, plan_key, skin
 from edmcgs.model.motion.skinning import identity_rotations, lbs
 from edmcgs.model.render.rasterize import rasterize
-from edmcgs.model.train.losses import LUMA
 
 NEAR = 0.01
 """Control points closer than this to the event camera (or behind it) read a zero motion code."""
@@ -106,7 +106,7 @@ class EdMCGS(nn.Module):
         """The distant background layer (config.bg_layer), or None: the constant ``background``."""
         self.online_transition: EventTransition | None = None
         """The transition online anchors use past the span, distilled from this model's own motion
-        (``model/online_distill.py``); None: g_phi as trained."""
+        (``model/online/distill.py``); None: g_phi as trained."""
         self.register_buffer("center", center.float().reshape(3))
         self.register_buffer("extent", torch.tensor(float(extent)))
         self.register_buffer("event_scale", torch.tensor(1.0))
@@ -205,7 +205,20 @@ class EdMCGS(nn.Module):
         """The anchor index whose Gaussians are drawn at ``t_us`` (config.anchor_windows), else None."""
         if self.gaussians.birth is None:
             return None
-        return int(np.searchsorted(self.meta.anchors_us, self.tau(t_us), side="left"))
+        return self._anchor_index(self.tau(t_us))
+
+    def _anchor_index(self, anchor_us: int) -> int:
+        return int(np.searchsorted(self.meta.anchors_us, anchor_us, side="left"))
+
+    def _anchor(self, anchor_us: int, t_us: int) -> int:
+        """``anchor_us`` checked to be one of the checkpoint's anchors at or before ``t_us``."""
+        anchor_us = _int_time(anchor_us, "anchor_us")
+        anchors = self.meta.anchors_us
+        i = self._anchor_index(anchor_us)
+        if anchor_us > t_us or i == len(anchors) or int(anchors[i]) != anchor_us:
+            raise InvalidInputError(f"anchor_us={anchor_us} is not one of the checkpoint's anchors at or "
+                                    f"before t_us={t_us}")
+        return anchor_us
 
     # ------------------------------------------------------------------ differentiable core
     def normalize_points(self, points: Tensor) -> Tensor:
@@ -283,20 +296,23 @@ class EdMCGS(nn.Module):
     # ------------------------------------------------------------------ inference API
     @torch.no_grad()
     def deform(self, t_us: int, event_map: np.ndarray | Tensor | None = None,
-               ev_c2w: np.ndarray | None = None) -> GaussianState:
+               ev_c2w: np.ndarray | None = None, *, anchor_us: int | None = None) -> GaussianState:
         """The Gaussians at absolute time ``t_us`` driven by the events since the last anchor.
 
         event_map: [event_height, event_width] float32 signed polarity sum over [tau(t_us), t_us)
                    (None or all-zero: an empty window); ignored when the model has no event branch.
         ev_c2w: [4, 4] event-camera c2w at t_us (default: the checkpoint's trajectory at t_us).
+        anchor_us: tau(t_us), the anchor the events are since, when the caller decided it (the server's
+                   timebase): one of the checkpoint's anchors <= t_us; default ``tau(t_us)``.
         At an anchor time the window is empty: the event map is not read and the result is the anchor
         state. The time-independent work is done once per model (``skin_plan``); the result equals
         ``state_at`` to float32 rounding, and Gaussians bound only to frozen control points keep their
         canonical pose (within ``meta.freeze_threshold``).
         """
         t_us = _int_time(t_us, "t_us")
+        tau = self.tau(t_us) if anchor_us is None else self._anchor(anchor_us, t_us)
         # At an anchor the window [tau, t) is empty: the anchor's state, the event branch skipped.
-        at_anchor = t_us == self.tau(t_us)
+        at_anchor = t_us == tau
         device = self.center.device
         emap = None
         if event_map is not None and self.transition is not None and not at_anchor:
@@ -319,8 +335,8 @@ class EdMCGS(nn.Module):
                 validate_pose(np.asarray(ev_c2w, dtype=np.float64), name="ev_c2w")
             w2c = torch.as_tensor(world_to_camera(np.asarray(ev_c2w, dtype=np.float64)),
                                   dtype=torch.float32, device=device)
-        window = self.window(t_us)
-        since = None if window is None else self.meta.normalized_time(self.tau(t_us))
+        window = None if self.gaussians.birth is None else self._anchor_index(tau)
+        since = None if window is None else self.meta.normalized_time(tau)
         trans, rot, _ = self.control_motion(self.meta.normalized_time(t_us), emap, w2c, since=since)
         # Frozen Gaussians keep their canonical pose only while every frozen point's motion at this very
         # query (prior and events) stays within the threshold: the stated bound then holds at any time,

@@ -91,7 +91,7 @@ class Fit(_Body):
 
 
 class Transition(_Body):
-    """What moves the online anchors past the span (server/online.py)."""
+    """What moves the online anchors past the span (server/live/transitions.py)."""
 
     mode: str
     """select (chosen by the frames), or the one fixed by EDMCGS_ONLINE_TRANSITION."""

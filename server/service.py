@@ -4,12 +4,12 @@ render pool and the metrics. Opened and closed by the app's lifespan (``app.py``
 A checkpoint without an event branch may be served alone (no --replay, no --live): no source, no
 ingest thread, an empty one-slot ring, tau(t) from the checkpoint's anchors, the whole span renderable
 at once, and a playback clock looping over the span at ``speed`` as the head that GET /render without
-t and the websocket's live mode follow (playback.py). A checkpoint with an event branch needs its
+t and the websocket's live mode follow (live/playback.py). A checkpoint with an event branch needs its
 events: alone it is refused, naming the fix.
 
-With a sensor, tau(t) comes from the checkpoint's anchors over its span (clock.TauRule); past its end a
-source's frames become online anchors (online.py: predicted by the event transition, corrected in the
-background), so a stream longer than the span renders to its head.
+With a sensor, tau(t) comes from the checkpoint's anchors over its span (live/clock.TauRule); past its end
+a source's frames become online anchors (live/anchors.py: predicted by the event transition, corrected in
+the background), so a stream longer than the span renders to its head.
 """
 
 from __future__ import annotations
@@ -32,13 +32,14 @@ from edmcgs.sensor.sources.base import EventSource, SensorBatch
 from edmcgs.sensor.sources.open import open_source
 from edmcgs.sensor.sources.pacing import Pacing
 from edmcgs.server import demo
-from edmcgs.server.clock import Timeline
 from edmcgs.server.encode import encode, event_rgba
 from edmcgs.server.engine import Engine
-from edmcgs.server.live import Arrivals, HeadSignal
+from edmcgs.server.live.anchors import OnlineAnchors
+from edmcgs.server.live.clock import Timeline
+from edmcgs.server.live.playback import Playback
+from edmcgs.server.live.signal import Arrivals, HeadSignal
+from edmcgs.server.live.timebase import Timebase
 from edmcgs.server.metrics import Metrics
-from edmcgs.server.online import OnlineAnchors
-from edmcgs.server.playback import Playback
 from edmcgs.server.render_pool import RenderPool
 from edmcgs.server.settings import Settings
 from edmcgs.server.views import training_views
@@ -123,19 +124,10 @@ class Service:
                     f"the event source is {info.width}x{info.height} but the checkpoint's event maps are "
                     f"{meta.event_width}x{meta.event_height}: replay the recording it was trained on")
             ring = EventRingBuffer(settings.ring_events)
-            online = None
-            # Past the span, the stream's frames become online anchors (online.py).
-            if info.has_frames:
-                online = OnlineAnchors(model, ring, capacity=settings.online_anchors,
-                                       fit_steps=settings.online_fit_steps,
-                                       fit_scale=settings.online_fit_scale, fit_lr=settings.online_fit_lr,
-                                       finetune_steps=settings.online_finetune_steps,
-                                       finetune_lr=settings.online_finetune_lr,
-                                       spawn=settings.online_spawn, colour_lr=settings.online_colour_lr,
-                                       transition=settings.online_transition,
-                                       project=settings.online_project)
-            engine = Engine(model, ring, None, cache_size=settings.deform_cache,
-                            raster_threads=settings.raster_threads, online=online)
+            # Past the span, the stream's frames become online anchors (live/anchors.py).
+            online = OnlineAnchors(model, ring, settings.online) if info.has_frames else None
+            engine = Engine(model, ring, Timebase(model, online), cache_size=settings.deform_cache,
+                            raster_threads=settings.raster_threads)
             if info.t_range_us is not None:
                 engine.timeline = replay_timeline(info.t_range_us, meta.t_start_us, meta.t_end_us,
                                                   inputs.loop)
@@ -163,8 +155,8 @@ class Service:
                 "recording without events) is served without a sensor")
         ring = EventRingBuffer(1)  # never written: there are no events
         playback = Playback(int(meta.anchors_us[0]), meta.t_end_us, settings.speed)
-        engine = Engine(model, ring, None, cache_size=settings.deform_cache,
-                        raster_threads=settings.raster_threads, playback=playback)
+        engine = Engine(model, ring, cache_size=settings.deform_cache, raster_threads=settings.raster_threads,
+                        playback=playback)
         service = cls(settings, inputs, model, None, ring, None, engine)
         seconds = engine.warm_up()
         log.info("model %s on %s: %d Gaussians, warm-up %.1f s; no sensor (no event branch): the span "
@@ -175,9 +167,8 @@ class Service:
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
         """Start ingesting (the replay's real-time clock starts here) and waking live streams on ``loop``."""
         self.signal = HeadSignal(loop)
-        if self.engine.online is not None:
-            self.engine.online.on_fit = self._on_fit
-            self.engine.online.start()
+        if self.online is not None:
+            self.online.start()
         if self.source is not None:
             self.ingest = Ingest(self.source, self.ring, self.anchors, on_batch=self._on_batch).start()
 
@@ -189,25 +180,26 @@ class Service:
                 log.warning("the ingest thread did not stop within 5 s")
         if self.source is not None:
             self.source.close()
-        if self.engine.online is not None:
-            self.engine.online.stop()
+        if self.online is not None:
+            self.online.stop()
         self.pool.close()
 
-    def _on_fit(self, seconds: float, before: float, after: float) -> None:
-        self.metrics.fit.observe(seconds)
-        self.metrics.fit_loss.observe(after)
+    @property
+    def online(self) -> OnlineAnchors | None:
+        """The online anchors past the checkpoint's span (None: the stream has no frames)."""
+        return self.engine.timebase.online
 
     def _on_batch(self, batch: SensorBatch) -> None:
         """Ingest thread, after each batch is stored."""
         if self.engine.timeline is None and len(batch.events):
             # A camera's clock is known at its first event; align it with the scene's start and loop
-            # over the trained span (see clock.py).
+            # over the trained span (see live/clock.py).
             # With frames, online anchors carry it past the span instead: no loop.
             meta = self.model.meta
             self.engine.timeline = Timeline(int(batch.events.t[0]), meta.t_start_us,
-                                            None if self.engine.online is not None
+                                            None if self.online is not None
                                             else meta.t_end_us - meta.t_start_us + 1)
-        online, tl = self.engine.online, self.engine.timeline
+        online, tl = self.online, self.engine.timeline
         if online is not None and batch.frames is not None and len(batch.frames) and tl is not None:
             online.on_frames(batch.frames, tl.scene_of)
         wm = self.ring.watermark_us
@@ -342,32 +334,8 @@ class Service:
 
     def online_info(self) -> dict | None:
         """GET /scene's ``online``: the online anchors past the checkpoint's span (None: the stream has
-        no frames, or the checkpoint uses anchor windows or a background layer, not supported yet)."""
-        online, engine = self.engine.online, self.engine
-        if online is None:
-            return None
-        anchors = online.anchors()
-        fits = sorted(online.fit_seconds)
-        return {
-            "span": None if not anchors else engine.range_dict((anchors[0].t_us, anchors[-1].t_us)),
-            "anchors": [{"t_us": a.t_us, "stream_us": a.stream_us, "corrected": a.corrected}
-                        for a in anchors],
-            "capacity": online.capacity,
-            "predicted": online.predicted, "corrected": online.corrected, "expired": online.expired,
-            "skipped": dict(online.skipped), "refused": dict(online.refused),
-            "queue_depth": online.queue_depth,
-            "project": online.project,
-            "transition": {"mode": "select" if online.select else online.transition_kind,
-                           "current": online.transition_kind,
-                           # a snapshot of each: the fit thread appends meanwhile
-                           "evidence": {name: float(np.mean(v)) if (v := list(losses)) else None
-                                        for name, losses in online.evidence.items()}},
-            "fit": {"steps": online.fit_steps if online.fit_enabled else 0, "scale": online.fit_scale,
-                    "colour_lr": online.colour_lr, "last_s": online.last_fit_s,
-                    "median_s": fits[len(fits) // 2] if fits else None,
-                    "last_loss": None if online.last_loss is None else {
-                        "before": online.last_loss[0], "after": online.last_loss[1]}},
-        }
+        no frames)."""
+        return None if self.online is None else self.online.info(self.engine.range_dict)
 
     # ------------------------------------------------------------------ metrics
     def _register_metrics(self) -> None:
@@ -406,24 +374,8 @@ class Service:
                 "queue slot taken.", lambda: self.pool.rejected)
         gauge("edmcgs_renders_in_flight", "Renders running or waiting for a worker.",
               lambda: self.pool.in_flight)
-        online = self.engine.online
-        if online is not None:
-            gauge("edmcgs_online_anchors", "Online anchors held past the checkpoint's span.",
-                  lambda: float(len(online.anchors())))
-            counter("edmcgs_online_anchors_total", "Online anchors by outcome: predicted, corrected (fitted "
-                    "to their frame), expired (out of the bounded store).",
-                    lambda: {"predicted": online.predicted, "corrected": online.corrected,
-                             "expired": online.expired}, "result")
-            counter("edmcgs_online_anchors_skipped_total", "Online anchors not corrected (superseded: a "
-                    "newer frame took the one-slot fit queue) or not made (events_gone: their events left "
-                    "the ring).", lambda: dict(online.skipped), "reason")
-            counter("edmcgs_frames_refused_total", "Stream frames refused as anchors, by reason (size, "
-                    "channels, timestamp: not after the newest frame).", lambda: dict(online.refused),
-                    "reason")
-            gauge("edmcgs_online_fit_queue_depth", "Online anchors waiting for or in a fit (0..2).",
-                  lambda: float(online.queue_depth))
-            gauge("edmcgs_online_fit_loss", "L1 photometric loss of the last correction, after its steps.",
-                  lambda: float("nan") if online.last_loss is None else online.last_loss[1])
+        if self.online is not None:
+            self.online.register_metrics(self.metrics)
         gauge("edmcgs_stream_clients", "Open websocket streams.", lambda: self.metrics.stream_clients)
         counter("edmcgs_streams_refused_total", "Websocket streams refused: max_streams open.",
                 lambda: self.metrics.streams_refused)

@@ -12,10 +12,13 @@ from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from edmcgs.protocol import TRANSITIONS
+from edmcgs.server.live.config import OnlineConfig
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 RING_BYTES_PER_EVENT = 13
 """t int64, x and y uint16, p int8: the ring's arrays (sensor/buffer/ring.py)."""
+ONLINE = OnlineConfig()
+"""The online anchors' defaults (live/config.py: their one place)."""
 
 
 def _memory_bytes() -> int:
@@ -89,39 +92,40 @@ class Settings(BaseSettings):
                                                          "renders run side by side on the pool instead, "
                                                          "and a parallel region never waits on a core "
                                                          "another process holds; none: torch's own.")
-    online_anchors: int = Field(64, gt=0, le=100_000,
+    online_anchors: int = Field(ONLINE.capacity, gt=0, le=100_000,
         description="Online anchors kept past the checkpoint's span (the stream's frames, predicted and "
                     "corrected); older ones also expire with their events.")
-    online_fit_steps: int = Field(4, ge=0, le=10_000,
+    online_fit_steps: int = Field(ONLINE.fit_steps, ge=0, le=10_000,
         description="Optimisation steps correcting each online anchor against its frame, in a background "
                     "thread (0: predictions only).")
-    online_fit_lr: float = Field(6e-3, gt=0, le=1,
+    online_fit_lr: float = Field(ONLINE.fit_lr, gt=0, le=1,
         description="Adam step size of that correction, as a fraction of the scene's extent.")
-    online_transition: Literal[TRANSITIONS] = Field("select",
+    online_transition: Literal[TRANSITIONS] = Field(ONLINE.transition,
         description="What moves online anchors past the span: select (default): of g_phi, the "
                     "checkpoint's distilled transition (edmcgs distill) and none, the one whose predictions "
                     "of the recent frames were best; or that one, fixed.")
-    online_finetune_steps: int = Field(0, ge=0, le=10_000,
+    online_finetune_steps: int = Field(ONLINE.finetune_steps, ge=0, le=10_000,
         description="After each correction, Adam steps letting a copy of g_phi (the event transition) "
                     "learn from it, for the predictions past the span only (0: g_phi stays as trained).")
-    online_finetune_lr: float = Field(1e-4, gt=0, le=1, description="Adam step size of that fine-tune.")
-    online_spawn: int = Field(0, ge=0, le=100_000,
+    online_finetune_lr: float = Field(ONLINE.finetune_lr, gt=0, le=1,
+        description="Adam step size of that fine-tune.")
+    online_spawn: int = Field(ONLINE.spawn, ge=0, le=100_000,
         description="For a checkpoint drawn in anchor windows (the real preset): at most this many static "
         "Gaussians added at each corrected online anchor where its frame differs from the render (what "
         "entered the view since the checkpoint's last window); 0 (default): none, as they ghost once what "
         "they show moves on (reports/online-traffic.md).")
-    online_colour_lr: float = Field(0.01, ge=0, le=1,
+    online_colour_lr: float = Field(ONLINE.colour_lr, ge=0, le=1,
         description="Step size of the per-Gaussian colour offsets each correction learns beside the motion "
                     "(online appearance: what the frames show that the checkpoint never saw, such as views "
                     "past the training ones); they carry from anchor to anchor. 0: the checkpoint's colours "
                     "(reports/online.md).")
-    online_fit_scale: float = Field(0.5, gt=0, le=1,
+    online_fit_scale: float = Field(ONLINE.fit_scale, gt=0, le=1,
         description="Fraction of the frame's size the correction renders and compares at.")
-    online_project: bool = Field(True,
+    online_project: bool = Field(ONLINE.project,
         description="Renders of the event camera's own view (no pose given, or its own) from an online "
                     "anchor are clipped into the bounds its frame and the events since it put on each "
                     "pixel: one contrast threshold either side of the frame moved by the events "
-                    "(model/event_bounds.py). The model renders what the events leave open. Off: the "
+                    "(model/online/bounds.py). The model renders what the events leave open. Off: the "
                     "model's render alone.")
     raster_threads: int | None = Field(None, gt=0, le=1024,
         description="Threads of the numba rasterizer per render; "
@@ -157,6 +161,15 @@ class Settings(BaseSettings):
         if (self.live or self.replay is not None) and self.checkpoint is None:
             raise ValueError("a checkpoint is required with replay or live (the model of that scene)")
         return self  # a checkpoint alone: Service.open checks that it has no event branch
+
+    @property
+    def online(self) -> OnlineConfig:
+        """The online anchors' configuration these settings give (live/config.py)."""
+        return OnlineConfig(capacity=self.online_anchors, fit_steps=self.online_fit_steps,
+                            fit_lr=self.online_fit_lr, fit_scale=self.online_fit_scale,
+                            colour_lr=self.online_colour_lr, transition=self.online_transition,
+                            finetune_steps=self.online_finetune_steps, finetune_lr=self.online_finetune_lr,
+                            spawn=self.online_spawn, project=self.online_project)
 
     @property
     def host_allowlist(self) -> list[str] | None:

@@ -28,9 +28,10 @@ import numpy as np
 from tqdm import tqdm
 
 from edmcgs.errors import EdmcgsError, InvalidInputError
+from edmcgs.luminance import LUMA
 from edmcgs.sensor.files.recording import Recording, write_recording
 from edmcgs.sensor.frames import Frames
-from edmcgs.synth.esim import LUMA_WEIGHTS, AdaptiveSampling, SimulatorConfig, simulate_render
+from edmcgs.synth.esim import AdaptiveSampling, SimulatorConfig, simulate_render
 from edmcgs.synth.scene import CAMERAS, SCENES, SIZES, Scene, make_scene, render
 
 GENERATOR = "edmcgs.synth.build/1"
@@ -159,7 +160,7 @@ def build_recording(config: BuildConfig, *, progress: bool = True) -> Recording:
         "background": list(scene.background),
         "blur": {"enabled": config.blur, "shutter": SHUTTER, "exposure_us": exposure_us,
                  "subframes": BLUR_SUBFRAMES if config.blur else 1},
-        "simulator": sim_config.to_metadata() | {"luma_weights": list(LUMA_WEIGHTS),
+        "simulator": sim_config.to_metadata() | {"luma_weights": list(LUMA),
                                                   "log": "L = log(luminance + eps) of the float render "
                                                          "(linear RGB in [0, 1]), before uint8"},
         "sampling": asdict(config.sampling) | {"samples": len(samples),

@@ -26,10 +26,10 @@ import numba as nb
 import numpy as np
 
 from edmcgs.errors import InvalidInputError
+from edmcgs.luminance import LOG_EPS, LUMA
 from edmcgs.sensor.events import Events
 
-# Rec.601 luma weights, as ESIM (OpenCV's RGB2GRAY) uses them.
-LUMA_WEIGHTS = (0.299, 0.587, 0.114)
+_R, _G, _B = LUMA  # numba reads module-level numbers as constants
 _NEVER = np.iinfo(np.int64).min // 4  # "no event yet": far enough back for any refractory period
 
 
@@ -56,7 +56,7 @@ class SimulatorConfig:
     hot_pixel_rate_hz: float = 0.0
     """Events per second of each hot pixel: Poisson in time, random polarity, independent of the signal
     and of the refractory period (like the background activity, a leak that never moves the reference)."""
-    eps: float = 1e-3
+    eps: float = LOG_EPS
     """L = log(I + eps) with I the luminance in [0, 1]; keeps black pixels finite."""
     seed: int = 0
     """Seed of the threshold mismatch and of the noise: a seed gives the same events every run."""
@@ -93,7 +93,7 @@ def _log_row(img, y, scale, eps, out):  # pragma: no cover - compiled
     bad = 0
     for x in range(img.shape[1]):
         if img.shape[2] == 3:
-            v = (0.299 * img[y, x, 0] + 0.587 * img[y, x, 1] + 0.114 * img[y, x, 2]) * scale
+            v = (_R * img[y, x, 0] + _G * img[y, x, 1] + _B * img[y, x, 2]) * scale
         else:
             v = img[y, x, 0] * scale
         if not np.isfinite(v):
@@ -279,7 +279,7 @@ def luminance(image: np.ndarray) -> np.ndarray:
     hwc, scale = _as_hwc(image, "image")
     hwc = hwc.astype(np.float64) * scale
     if hwc.shape[2] == 3:
-        return hwc @ np.asarray(LUMA_WEIGHTS)
+        return hwc @ np.asarray(LUMA)
     return hwc[:, :, 0]
 
 

@@ -8,14 +8,18 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 FOLDERS = {"edmcgs": "edmcgs", "sensor": "edmcgs.sensor", "model": "edmcgs.model", "synth": "edmcgs.synth",
            "server": "edmcgs.server", "clients": "edmcgs.clients", "bench": "bench", "tests": "tests"}
-BASE = ("edmcgs.errors", "edmcgs.atomic", "edmcgs.geometry")
-"""Shared by every layer: the error tree, atomic file output and the camera / pose / quaternion maths."""
+BASE = ("edmcgs.errors", "edmcgs.atomic", "edmcgs.geometry", "edmcgs.luminance")
+"""Shared by every layer: the error tree, atomic file output, the camera / pose / quaternion maths and
+what an event pixel sees of an image (luminance)."""
 PROTOCOL = "edmcgs.protocol"
 APPLICATION = ("edmcgs.pipeline", "edmcgs.options", "edmcgs.cli", "edmcgs.train_cli", "edmcgs.eval_cli",
                "edmcgs.record_cli", "edmcgs.export_ply_cli")
 CLI_MODULES = ("edmcgs.cli", "edmcgs.train_cli", "edmcgs.eval_cli", "edmcgs.record_cli",
                "edmcgs.export_ply_cli", "edmcgs.server.cli")
-MODEL_ROOMS = ("render", "motion", "train", "eval")
+MODEL_ROOMS = ("render", "motion", "train", "eval", "online")
+MODEL_CORE = ("edmcgs.model.dynamic", "edmcgs.model.motion", "edmcgs.model.render", "edmcgs.model.config",
+              "edmcgs.model.data", "edmcgs.model.checkpoint")
+"""The inference core and what it is built from: it never imports what trains, scores or extends it."""
 RAY_ROOMS = ("edmcgs.server.ray_serve", "edmcgs.fanout")
 """The only installed modules that import ``ray`` (the optional extra): the Serve application and the
 training fan-out."""
@@ -75,6 +79,7 @@ def test_the_shared_base_imports_nothing_above_it():
     assert _violations("edmcgs.errors", ()) == []
     assert _violations("edmcgs.atomic", ("edmcgs.errors",)) == []
     assert _violations("edmcgs.geometry", ("edmcgs.errors",)) == []
+    assert _violations("edmcgs.luminance", ()) == []
     assert _violations(PROTOCOL, ()) == [], "the wire protocol imports nothing of the project"
 
 
@@ -90,6 +95,74 @@ def test_the_renderer_imports_no_other_room_of_the_model():
 @pytest.mark.parametrize("room", MODEL_ROOMS)
 def test_model_rooms_import_no_application_or_server(room):
     assert _violations(f"edmcgs.model.{room}", ("edmcgs.model", *BASE)) == []
+
+
+def test_the_model_core_imports_no_training_evaluation_or_online_room():
+    above = ("edmcgs.model.train", "edmcgs.model.eval", "edmcgs.model.online")
+    bad = [v for core in MODEL_CORE for v in _violations(core, ("edmcgs.model", *BASE))
+           if _within(v.split(" imports ")[1], *above)]
+    assert bad == []
+
+
+def test_evaluation_never_imports_training():
+    assert [v for v in _violations("edmcgs.model.eval", ("edmcgs.model", *BASE))
+            if _within(v.split(" imports ")[1], "edmcgs.model.train")] == []
+
+
+def _cycle(edges: dict[str, set[str]]) -> list[str] | None:
+    """One cycle of the directed graph ``edges`` (as its nodes in order), or None."""
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    path: list[str] = []
+
+    def visit(node):
+        state[node] = 1
+        path.append(node)
+        for nxt in sorted(edges.get(node, ())):
+            if state.get(nxt) == 1:
+                return [*path[path.index(nxt):], nxt]
+            if nxt not in state and (found := visit(nxt)):
+                return found
+        state[node] = 2
+        path.pop()
+        return None
+
+    for node in sorted(edges):
+        if node not in state and (found := visit(node)):
+            return found
+    return None
+
+
+def _sibling_edges(package: str) -> dict[str, set[str]]:
+    """Imports between the direct children (modules and sub-packages) of ``package``."""
+    depth = package.count(".") + 1
+
+    def child(name):
+        parts = name.split(".")
+        return ".".join(parts[:depth + 1]) if _within(name, package) and len(parts) > depth else None
+
+    edges: dict[str, set[str]] = {}
+    for name, path in MODULES.items():
+        a = child(name)
+        if a is None:
+            continue
+        for i in _imports(path):
+            b = child(i)
+            if b is not None and b != a:
+                edges.setdefault(a, set()).add(b)
+    return edges
+
+
+PACKAGES = sorted({n for n, p in MODULES.items() if p.name == "__init__.py"})
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_no_import_cycle_between_the_rooms_of_a_package(package):
+    assert _cycle(_sibling_edges(package)) is None
+
+
+def test_a_cycle_is_found():
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert _cycle({"a": {"b"}, "b": {"c"}}) is None
 
 
 def test_synth_imports_sensor_and_model_only():

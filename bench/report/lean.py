@@ -28,11 +28,11 @@ import torch
 from bench.report.render import pick_frame
 from edmcgs.model.checkpoint import checksum, load_checkpoint, read_checkpoint, save_checkpoint
 from edmcgs.model.config import EdmcgsConfig
+from edmcgs.model.data import TrainingData
 from edmcgs.model.dynamic import background_color
 from edmcgs.model.eval.metrics import psnr
 from edmcgs.model.motion.leanness import control_motion_bound
 from edmcgs.model.render.sh import SH_C0
-from edmcgs.model.train.data import TrainingData
 from edmcgs.sensor.files.recording import Recording
 from edmcgs.sensor.frames import Frames
 from edmcgs.synth.esim import luminance

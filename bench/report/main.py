@@ -31,6 +31,7 @@ import numba
 import torch
 from tqdm import tqdm
 
+from bench.online import online_drift
 from bench.report.baselines import baseline_rows
 from bench.report.data import scene_recordings
 from bench.report.lean import event_branch_ms, grey_recording, lean_rows, median_threshold, refrozen
@@ -38,7 +39,7 @@ from bench.report.lean import section as lean_section
 from bench.report.markdown import summary
 from bench.report.online import long_recording, online_rows
 from bench.report.online import section as online_section
-from bench.report.plots import ablation_bars, error_vs_time, online_drift, render_knobs
+from bench.report.plots import ablation_bars, error_vs_time, render_knobs
 from bench.report.render import render_sweep
 from bench.report.settings import FULL, SMALL, VARIANTS, ReportSettings
 from bench.report.stability import (

@@ -54,7 +54,7 @@ def online_rows(rec: Recording, checkpoint: Path, training: Recording) -> tuple[
     from bench.online import drift
     from edmcgs.errors import InvalidInputError
     from edmcgs.model.checkpoint import load_checkpoint
-    from edmcgs.model.online_distill import distill, save_with
+    from edmcgs.model.online.distill import distill, save_with
     from edmcgs.pipeline import training_data
     from edmcgs.server.settings import Settings
 
@@ -96,7 +96,7 @@ def section(rows: list[dict], predictions: list[dict], context: dict) -> list[st
            f"the next; the transition is chosen by the frames (distilled online transition: "
            f"{context.get('distilled', 'no')}; chosen: {context.get('transition') or 'none yet'}); "
            "each render of the event camera's view is projected onto the events since its anchor's "
-           f"frame (model/event_bounds.py); {len(rows)} held-out frames past the span, mean PSNR (dB):", "",
+           f"frame (model/online/bounds.py); {len(rows)} held-out frames past the span, mean PSNR (dB):", "",
            "| | mean PSNR | first half | second half | frames >= hold-last |", "|---|---|---|---|---|"]
     half = len(rows) // 2
     hold = np.array([r["hold_last"] for r in rows])

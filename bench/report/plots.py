@@ -5,20 +5,15 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
+from bench.figures import save
 from bench.report.paper import PAPER_SYNTHETIC
 from bench.report.settings import VARIANTS
 
 COLORS = {"full": "#1b6ca8", "no_events": "#d1495b", "no_markov": "#edae49", "no_local_sampling": "#66a182",
           "no_tli": "#8e6c8a"}
-
-
-def _save(fig: Figure, path: Path) -> None:
-    FigureCanvasAgg(fig)
-    fig.savefig(path, dpi=110)
 
 
 def error_vs_time(runs: list[dict], path: Path, threads: int) -> None:
@@ -40,7 +35,7 @@ def error_vs_time(runs: list[dict], path: Path, threads: int) -> None:
             ax.grid(alpha=0.3)
     handles, labels = axes[0, 0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="outside upper center", ncols=len(labels))
-    _save(fig, path)
+    save(fig, path)
 
 
 def render_knobs(rows: list[dict], path: Path) -> None:
@@ -74,7 +69,7 @@ def render_knobs(rows: list[dict], path: Path) -> None:
         axes[1, col].set_ylim(min(lo, (lo + hi) / 2 - 0.5) - 0.2, max(hi, (lo + hi) / 2 + 0.5) + 0.2)
     fig.suptitle("Fast path knobs: error against time per frame (one held-out frame of the trained full "
                  "model; median times; default alpha_min 1/255, t_min 1e-4)")
-    _save(fig, path)
+    save(fig, path)
 
 
 def _label(knob: str, r: dict) -> str:
@@ -115,46 +110,6 @@ def ablation_bars(table: list[dict], path: Path) -> None:
                   Patch(facecolor="grey", alpha=0.35, hatch="//", label="paper (their data, 30k it.)")]
         ax.legend(handles=legend, fontsize=8, loc="upper right")
         ax.grid(axis="y", alpha=0.3)
-    _save(fig, path)
+    save(fig, path)
 
 
-def online_drift(rows: list[dict], predictions: list[dict], path: Path, fit: str) -> None:
-    """PSNR against time since training ended: the live render (corrected online anchors, projected onto
-    the events since each frame) and before its projection, the chain never corrected, the same fits
-    without events, the causal baselines (hold the last anchor; it projected onto the events; the events
-    integrated onto it), and each new anchor frame against its prediction (bench.online);
-    below, the same in 1 s bands (where "never worse than hold-last" is read)."""
-    from bench.online import BAND_S, bands
-
-    fig = Figure(figsize=(9, 6.4), layout="constrained")
-    ax, low = fig.subplots(2, 1, height_ratios=(3, 2), sharex=True)
-    x = [r["since_end_s"] for r in rows]
-    lines = (("live", f"live render (corrected, {fit}, projected onto the events)", "#1b6ca8"),
-             ("live_model", "the same before the projection (the model alone)", "#8ab6d6"),
-             ("no_corr", "no correction (events only)", "#d1495b"),
-             ("no_events", "no events moving the anchors (corrections only)", "#7b4f9d"),
-             ("hold_last", "hold last anchor frame", "#888888"),
-             ("hold_projected", "that frame projected onto the events (no model)", "#c2a83e"),
-             ("integrate", "events integrated onto the last anchor", "#66a182"))
-    for key, label, colour in lines:
-        ax.plot(x, [r[key] for r in rows], marker="o", ms=2.5, lw=1, color=colour, label=label)
-    blend = [(r["since_end_s"], r["blend"]) for r in rows if r.get("blend") is not None]
-    if blend:
-        ax.plot([b[0] for b in blend], [b[1] for b in blend], ls="--", lw=1, color="#b07aa1",
-                label="blend of the anchors either side (not causal)")
-    ax.plot([p["since_end_s"] for p in predictions], [p["pred_psnr"] for p in predictions], ls="none",
-            marker="x", color="#edae49", label="prediction vs the new anchor frame")
-    ax.set_ylabel("PSNR (dB) vs held-out frame")
-    ax.set_title("Online anchors past the checkpoint's span: drift")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    summary = bands(rows)
-    edges = [b["from_s"] for b in summary] + [summary[-1]["to_s"]]
-    for key, label, colour in lines:
-        values = [b[key] for b in summary]
-        low.stairs(values, edges, baseline=None, color=colour, label=label,
-                   lw=2 if key in ("live", "hold_last") else 1.2)
-    low.set_xlabel("time since training ended (s)")
-    low.set_ylabel(f"mean PSNR per {BAND_S:g} s (dB)")
-    low.grid(alpha=0.3)
-    _save(fig, path)

@@ -6,7 +6,7 @@
 - **events integrated onto the last anchor**: the newest anchor frame moved forward by the events since
   it, pixel by pixel, with the sensor's own model: each event is a change of C in log intensity,
   log(I_t + eps) = log(I_tau + eps) + C E(p) (frame plus events, no model; C is the recording's contrast
-  threshold when known, else ``DEFAULT_CONTRAST``; ``model/event_bounds.py``).
+  threshold when known, else ``DEFAULT_CONTRAST``; ``model/online/bounds.py``).
 
 A method that does not beat them has not worked, whatever its absolute number.
 """
@@ -15,10 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from edmcgs.model.data import TrainingData
 from edmcgs.model.eval.evaluation import FrameScore
 from edmcgs.model.eval.metrics import psnr, ssim_score
-from edmcgs.model.event_bounds import integrate
-from edmcgs.model.train.data import TrainingData
+from edmcgs.model.online.bounds import integrate
 
 BASELINES = ("hold last anchor", "blend of neighbouring anchors", "events integrated onto the last anchor")
 SHORT = dict(zip(BASELINES, ("hold_last", "blend", "integrate"), strict=True))

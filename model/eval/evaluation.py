@@ -6,10 +6,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from edmcgs.model.data import TrainingData
 from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.eval.lpips import LPIPS
 from edmcgs.model.eval.metrics import psnr, ssim_score
-from edmcgs.model.train.data import TrainingData
 
 
 @dataclass

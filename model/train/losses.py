@@ -11,10 +11,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from edmcgs.luminance import LUMA
 from edmcgs.model.eval.ssim import ssim
-
-LUMA = (0.299, 0.587, 0.114)
-"""Rec. 601 weights that turn a rendered RGB image into the luminance an event pixel sees."""
 
 
 def log_luminance(image: Tensor, eps: float) -> Tensor:

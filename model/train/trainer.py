@@ -28,11 +28,11 @@ from tqdm.auto import tqdm
 from edmcgs.errors import InvalidInputError, TrainingError
 from edmcgs.geometry import world_to_camera
 from edmcgs.model.checkpoint import save_checkpoint
+from edmcgs.model.data import EventGrid, TrainingData
 from edmcgs.model.dynamic import EdMCGS, background_color, render_image
 from edmcgs.model.eval.evaluation import evaluate, summarize
 from edmcgs.model.motion.gaussians import GaussianState
 from edmcgs.model.train.curves import Curves
-from edmcgs.model.train.data import EventGrid, TrainingData
 from edmcgs.model.train.density import GradientStats, densify_and_prune, reset_opacity, screen_space_grad
 from edmcgs.model.train.losses import event_loss, laplacian_smoothness, photometric_loss, pyramid_l1, tli_loss
 from edmcgs.model.train.resume import remove_sidecar, write_sidecar

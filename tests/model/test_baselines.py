@@ -3,10 +3,10 @@
 import numpy as np
 
 from edmcgs.geometry import Intrinsics, Trajectory
+from edmcgs.model.data import TrainingData
 from edmcgs.model.eval import baselines as b
 from edmcgs.model.eval.baselines import BASELINES, baseline_image, score_baselines
-from edmcgs.model.event_bounds import integrate
-from edmcgs.model.train.data import TrainingData
+from edmcgs.model.online.bounds import integrate
 
 INTEGRATE = BASELINES[2]
 

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from edmcgs.errors import InvalidInputError
-from edmcgs.model.event_bounds import LOG_EPS, integrate, project
+from edmcgs.luminance import LOG_EPS
+from edmcgs.model.online.bounds import integrate, project
 
 C = 0.2
 

@@ -1,4 +1,4 @@
-"""The online transition distilled from a checkpoint's own motion (model/online_distill.py, edmcgs distill):
+"""The online transition distilled from a checkpoint's own motion (model/online/distill.py, edmcgs distill):
 it learns the motion over the span better than g_phi as trained, a checkpoint carries it, and the server's
 online anchors use it past the span."""
 
@@ -11,11 +11,12 @@ import torch
 from edmcgs.cli import main
 from edmcgs.errors import InvalidInputError
 from edmcgs.model.checkpoint import VERSION, load_checkpoint, read_checkpoint, save_checkpoint
-from edmcgs.model.online_distill import distill
+from edmcgs.model.online.distill import distill
 from edmcgs.pipeline import open_recording, training_data
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.server.demo import files
-from edmcgs.server.online import OnlineAnchors
+from edmcgs.server.live.anchors import OnlineAnchors
+from edmcgs.server.live.config import OnlineConfig
 from tests.support.models import build, randomize_event_branch
 
 
@@ -56,18 +57,19 @@ def test_a_checkpoint_carries_its_online_transition_and_the_server_uses_it(demo,
     for k, v in out.transition.state_dict().items():
         assert torch.equal(loaded.online_transition.state_dict()[k], v)
     ring = EventRingBuffer(16)
-    online = OnlineAnchors(loaded, ring, fit=False)  # "select": the distilled one until frames say
-    assert online.transition is loaded.online_transition and online.transition_kind == "distilled"
-    assert list(online.candidates) == ["distilled", "g_phi", "none"] and online.select
-    online = OnlineAnchors(loaded, ring, fit=False, transition="g_phi")
-    assert online.transition is loaded.transition and not online.select
+    online = OnlineAnchors(loaded, ring, OnlineConfig(fit=False))  # select: distilled until frames say
+    assert online.transitions.module is loaded.online_transition and online.transitions.kind == "distilled"
+    assert list(online.transitions.candidates) == ["distilled", "g_phi", "none"] and online.transitions.select
+    online = OnlineAnchors(loaded, ring, OnlineConfig(fit=False, transition="g_phi"))
+    assert online.transitions.module is loaded.transition and not online.transitions.select
     # without one (every earlier checkpoint): g_phi first, and "distilled" is refused by name
     plain = load_checkpoint(files()[0])
     assert plain.online_transition is not None  # the bundled demo carries one
     plain.online_transition = None
-    assert list(OnlineAnchors(plain, ring, fit=False).candidates) == ["g_phi", "none"]
+    plain_online = OnlineAnchors(plain, ring, OnlineConfig(fit=False))
+    assert list(plain_online.transitions.candidates) == ["g_phi", "none"]
     with pytest.raises(InvalidInputError, match="edmcgs distill"):
-        OnlineAnchors(plain, ring, fit=False, transition="distilled")
+        OnlineAnchors(plain, ring, OnlineConfig(fit=False, transition="distilled"))
 
 
 def test_distilling_needs_an_event_branch_and_the_checkpoint_s_events():

@@ -6,19 +6,26 @@ import numpy as np
 import pytest
 
 from edmcgs.protocol import TauSource
-from edmcgs.server.clock import (
+from edmcgs.server.live.clock import (
     Span,
     TauRule,
     Timeline,
     TimeNotRenderable,
+    instant,
+    locate,
     playback_watermark,
     renderable,
-    resolve,
 )
 
 T0 = 1_600_000_000_000_000
 ANCHORS = np.array([T0, T0 + 100_000, T0 + 200_000], dtype=np.int64)
 SPAN = Span(T0, T0 + 250_000)
+
+
+def resolve(t_us, head, timeline, span, tau_of):
+    """locate, then the instant from the anchor ``tau_of`` gives (as the engine's timebase does)."""
+    query = locate(t_us, head, timeline, span, T0)
+    return instant(query, tau_of(query.stream_t, query.t_us), timeline, span, T0)
 
 
 def tau(stream_t, scene_t):

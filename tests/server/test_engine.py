@@ -10,8 +10,8 @@ from edmcgs.sensor.buffer.anchors import AnchorStore
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import read_recording
-from edmcgs.server.clock import Timeline, TimeNotRenderable
 from edmcgs.server.engine import Engine
+from edmcgs.server.live.clock import Timeline, TimeNotRenderable
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +24,7 @@ def _engine(scene, capacity: int, loop: bool) -> tuple[Engine, Events]:
     rec, model = scene
     events = rec.events
     start, end = rec.t_range_us
-    engine = Engine(model, EventRingBuffer(capacity), None, cache_size=4)
+    engine = Engine(model, EventRingBuffer(capacity), cache_size=4)
     engine.timeline = Timeline(start, start, end + 1 - start if loop else None)
     return engine, events
 

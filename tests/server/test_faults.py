@@ -115,7 +115,7 @@ def test_deep_or_huge_pose_is_a_422_naming_pose(stub_client, pose):
 
 def test_a_looping_replay_never_overflows_and_keeps_the_span_renderable():
     from edmcgs.sensor.events import Events
-    from edmcgs.server import clock
+    from edmcgs.server.live import clock
     from edmcgs.server.service import retain_passes
 
     period, per_pass, t0 = 2_000_000, 30_000, 1_600_000_000_000_000

@@ -1,10 +1,11 @@
-"""Online anchors (server/online.py, model/online.py): frames past the checkpoint's span become anchors,
+"""Online anchors (server/live/, model/online/): frames past the checkpoint's span become anchors,
 predicted by the event transition and corrected in the background; bad frames are refused and counted,
 a fit that falls behind skips and counts, the store stays bounded, and the engine renders up to the head."""
 
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,15 +13,17 @@ import torch
 
 from edmcgs.model import online as model_online
 from edmcgs.model.checkpoint import load_checkpoint
-from edmcgs.model.event_bounds import integrate
+from edmcgs.model.online.bounds import integrate
 from edmcgs.model.render.sh import SH_C0
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.frames import Frames
-from edmcgs.server.clock import Timeline
 from edmcgs.server.engine import CAMERA_POSE_ATOL, Engine
-from edmcgs.server.online import OnlineAnchors
+from edmcgs.server.live.anchors import OnlineAnchors
+from edmcgs.server.live.clock import Timeline
+from edmcgs.server.live.config import OnlineConfig
+from edmcgs.server.live.timebase import Timebase
 from tests.support.server import build_scene
 
 STEP_US = 50_000
@@ -57,7 +60,7 @@ def _feed(online: OnlineAnchors, ring: EventRingBuffer, rec, until_us: int, time
 def test_frames_past_the_span_become_predicted_anchors_chained_by_the_events(long_scene):
     rec, model = long_scene
     ring = EventRingBuffer(10**6)
-    online = OnlineAnchors(model, ring, fit=False)
+    online = OnlineAnchors(model, ring, OnlineConfig(fit=False))
     start = rec.t_range_us[0]
     tl = Timeline(start, start)
     _feed(online, ring, rec, model.meta.t_end_us + 3 * STEP_US + 1, tl)
@@ -80,7 +83,7 @@ def test_frames_past_the_span_become_predicted_anchors_chained_by_the_events(lon
 def test_bad_frames_are_refused_and_counted(long_scene):
     rec, model = long_scene
     ring = EventRingBuffer(10**6)
-    online = OnlineAnchors(model, ring, fit=False)
+    online = OnlineAnchors(model, ring, OnlineConfig(fit=False))
     tl = Timeline(rec.t_range_us[0], rec.t_range_us[0])
     end = model.meta.t_end_us
     ring.push(_events(end - 100_000, end + 400_000), complete_until_us=end + 400_000)
@@ -100,12 +103,12 @@ def test_the_store_is_bounded_and_expires_with_the_events(long_scene):
     rec, model = long_scene
     tl = Timeline(rec.t_range_us[0], rec.t_range_us[0])
     ring = EventRingBuffer(10**6)
-    online = OnlineAnchors(model, ring, capacity=4, fit=False)
+    online = OnlineAnchors(model, ring, OnlineConfig(capacity=4, fit=False))
     _feed(online, ring, rec, rec.t_range_us[1], tl)
     assert len(online.anchors()) == 4 and online.expired == online.predicted - 4 > 0
     # a ring holding ~150 ms of events: anchors go with their events
     ring = EventRingBuffer(3000)
-    online = OnlineAnchors(model, ring, capacity=64, fit=False)
+    online = OnlineAnchors(model, ring, OnlineConfig(capacity=64, fit=False))
     lo = rec.t_range_us[0]
     for hi in range(lo + STEP_US, rec.t_range_us[1], STEP_US):
         _feed(online, ring, rec, hi, tl, from_us=hi - STEP_US)
@@ -117,7 +120,7 @@ def test_the_store_is_bounded_and_expires_with_the_events(long_scene):
 def test_a_fit_that_falls_behind_skips_and_counts_and_corrections_publish(long_scene):
     rec, model = long_scene
     ring = EventRingBuffer(10**6)
-    online = OnlineAnchors(model, ring, fit_steps=3, fit_scale=0.5)
+    online = OnlineAnchors(model, ring, OnlineConfig(fit_steps=3, fit_scale=0.5, colour_lr=0.0))
     gate = threading.Event()
     correct = model_online.correct
 
@@ -151,8 +154,8 @@ def test_a_fit_that_falls_behind_skips_and_counts_and_corrections_publish(long_s
 def _engine_past_the_span(rec, model) -> tuple[Engine, OnlineAnchors, int]:
     """An engine with predicted online anchors (no fits) fed up to a head five frames past the span."""
     ring = EventRingBuffer(10**6)
-    online = OnlineAnchors(model, ring, fit=False)
-    engine = Engine(model, ring, None, cache_size=4, online=online)
+    online = OnlineAnchors(model, ring, OnlineConfig(fit=False))
+    engine = Engine(model, ring, Timebase(model, online), cache_size=4)
     start = rec.t_range_us[0]
     engine.timeline = tl = Timeline(start, start)
     head = model.meta.t_end_us + 5 * STEP_US + 20_000
@@ -165,7 +168,7 @@ def test_the_engine_renders_past_the_span_up_to_the_head(long_scene):
     engine, online, head = _engine_past_the_span(rec, model)
     start = rec.t_range_us[0]
     assert engine.renderable() == [(start, head)]
-    assert [s for s, *_ in engine.tau_rule.ranges(head)] == ["checkpoint", "online"]
+    assert [s for s, *_ in engine.timebase.rule.ranges(head)] == ["checkpoint", "online"]
     out = engine.render(None, None, 64, 48)
     assert out.instant.t_us == head and out.anchor == "predicted"
     assert out.instant.anchor_us == online.anchors()[-1].t_us and out.events > 0
@@ -219,7 +222,7 @@ def test_the_event_cameras_view_past_the_span_is_projected_onto_the_events_since
     assert engine.render(None, None, 32, 24).projected
     # within the span, and with online_project off: the model alone
     assert not engine.render(model.meta.t_end_us - 10_000, None, 64, 48).projected
-    online.project = False
+    online.config = replace(online.config, project=False)
     assert np.array_equal(engine.render(None, None, 64, 48).pixels, model_alone.pixels)
 
 
@@ -285,7 +288,8 @@ def test_spawned_gaussians_draw_what_the_frame_shows_that_the_render_lacks(windo
 def test_a_corrected_anchor_of_a_windowed_checkpoint_carries_its_spawned_gaussians_on(windowed_scene):
     rec, model, *_ = windowed_scene
     ring = EventRingBuffer(10**6)
-    online = OnlineAnchors(model, ring, fit=False, fit_steps=2, spawn=50)
+    online = OnlineAnchors(model, ring, OnlineConfig(fit=False, fit_steps=2, fit_scale=1.0, colour_lr=0.0,
+                                                    spawn=50))
     start = rec.t_range_us[0]
     tl = Timeline(start, start)
     first = int(model.meta.t_end_us) + STEP_US
@@ -296,7 +300,7 @@ def test_a_corrected_anchor_of_a_windowed_checkpoint_carries_its_spawned_gaussia
     assert fitted.corrected and fitted.spawned is not None and len(fitted.spawned) <= 50
     _feed(online, ring, rec, first + STEP_US + 1, tl, from_us=first + 1)
     assert online.anchors()[-1].spawned is fitted.spawned  # the prediction inherits them
-    plain = OnlineAnchors(model, ring, fit=False, spawn=0)
+    plain = OnlineAnchors(model, ring, OnlineConfig(fit=False, spawn=0))
     assert plain.spawn_limit == 0
 
 
@@ -307,12 +311,12 @@ def test_a_windowed_checkpoint_renders_past_its_span_from_online_anchors(windowe
     rec, model, rec_path, ckpt = windowed_scene
     service = service_module.Service.open(Settings(replay=rec_path, checkpoint=ckpt))
     try:
-        assert service.engine.online is not None
+        assert service.online is not None
     finally:
         service.close()
     ring = EventRingBuffer(10**6)
-    online = OnlineAnchors(model, ring, fit=False)
-    engine = Engine(model, ring, None, cache_size=4, online=online)
+    online = OnlineAnchors(model, ring, OnlineConfig(fit=False))
+    engine = Engine(model, ring, Timebase(model, online), cache_size=4)
     start = rec.t_range_us[0]
     engine.timeline = tl = Timeline(start, start)
     head = model.meta.t_end_us + 4 * STEP_US + 20_000
@@ -361,30 +365,30 @@ def test_fine_tuning_g_phi_learns_from_corrections_and_touches_only_the_span_pas
     rec, model = long_scene
     own = [p.detach().clone() for p in model.transition.parameters()]
     ring = EventRingBuffer(10**6)
-    online = OnlineAnchors(model, ring, fit=False, fit_steps=3, fit_scale=0.5, finetune_steps=4,
-                           finetune_lr=1e-3, transition="g_phi")
+    online = OnlineAnchors(model, ring, OnlineConfig(fit=False, fit_steps=3, fit_scale=0.5, colour_lr=0.0,
+                                                    finetune_steps=4, finetune_lr=1e-3, transition="g_phi"))
     start = rec.t_range_us[0]
     tl = Timeline(start, start)
-    engine = Engine(model, ring, None, cache_size=4, online=online)
+    engine = Engine(model, ring, Timebase(model, online), cache_size=4)
     engine.timeline = tl
     _feed(online, ring, rec, int(model.meta.t_end_us) + 3 * STEP_US + 1, tl)
     inside = int(model.meta.anchors_us[1]) + STEP_US // 2
     before = engine.render(inside, None, 64, 48).pixels
     first, second = online.anchors()[:2]
     online._fit(first, rec.anchors.images[int(np.searchsorted(rec.anchors.t_us, first.stream_us))])
-    assert online.transition is not model.transition and online.transition_version == 1
-    tuned_once = online.transition
+    assert online.transitions.module is not model.transition and online.transitions.version == 1
+    tuned_once = online.transitions.module
     online._fit(second, rec.anchors.images[int(np.searchsorted(rec.anchors.t_us, second.stream_us))])
-    assert online.transition is not tuned_once and online.transition_version == 2
+    assert online.transitions.module is not tuned_once and online.transitions.version == 2
     loss_before, loss_after = online.last_finetune
     assert np.isfinite(loss_before) and loss_after < loss_before  # it learns the correction
     assert all(torch.equal(p, q) for p, q in zip(own, model.transition.parameters(), strict=True))
-    assert not any(p.requires_grad for p in online.transition.parameters())
+    assert not any(p.requires_grad for p in online.transitions.module.parameters())
     # the checkpoint's span renders exactly as before; past it the new transition drives the motion
     assert np.array_equal(engine.render(inside, None, 64, 48).pixels, before)
     later = int(second.stream_us) + STEP_US // 2
     tuned = engine.render(later, None, 64, 48).pixels
-    online.transition, online.transition_version = model.transition, 0
+    online.transitions.module, online.transitions.version = model.transition, 0
     assert not np.array_equal(engine.render(later, None, 64, 48).pixels, tuned)
 
 
@@ -392,8 +396,10 @@ def test_the_transition_past_the_span_is_the_one_that_predicted_the_recent_frame
     rec, model = long_scene
     ring = EventRingBuffer(10**6)
     # the model's render alone (no projection onto the events): what the transition moves
-    online = OnlineAnchors(model, ring, fit=False, fit_steps=1, fit_scale=0.5, project=False)
-    assert online.select and online.transition_kind == "g_phi" and list(online.evidence) == ["g_phi", "none"]
+    online = OnlineAnchors(model, ring, OnlineConfig(fit=False, fit_steps=1, fit_scale=0.5, colour_lr=0.0,
+                                                    project=False))
+    moves = online.transitions
+    assert moves.select and moves.kind == "g_phi" and list(moves.evidence) == ["g_phi", "none"]
     start, end = rec.t_range_us[0], int(model.meta.t_end_us)
     tl = Timeline(start, start)
     # a scene that stops at the span's end while its events go on: every frame past it shows the state
@@ -407,11 +413,11 @@ def test_the_transition_past_the_span_is_the_one_that_predicted_the_recent_frame
     online.on_frames(Frames(rec.anchors.t_us[sel], images, rec.anchors.poses[sel]), tl.scene_of)
     for anchor, image in zip(online.anchors(), images, strict=True):
         online._fit(anchor, image)
-    assert all(len(v) == 3 for v in online.evidence.values())
-    assert np.mean(online.evidence["none"]) < np.mean(online.evidence["g_phi"])
-    assert online.transition_kind == "none" and online.transition is None and online.transition_version == 1
+    assert all(len(v) == 3 for v in online.transitions.evidence.values())
+    assert np.mean(moves.evidence["none"]) < np.mean(moves.evidence["g_phi"])
+    assert moves.kind == "none" and moves.module is None and moves.version == 1
     # from now on a render past the span holds its anchor's state, whatever the events since
-    engine = Engine(model, ring, None, cache_size=4, online=online)
+    engine = Engine(model, ring, Timebase(model, online), cache_size=4)
     engine.timeline = tl
     last = online.anchors()[-1]
     assert len(ring.slice(last.stream_us, horizon - 1)) > 0
@@ -468,7 +474,7 @@ def test_colour_offsets_learn_what_the_frame_shows_and_stay_put_without_a_step_s
 def test_corrections_learn_colours_that_carry_to_the_next_anchors(long_scene):
     rec, model = long_scene
     ring = EventRingBuffer(10**6)
-    online = OnlineAnchors(model, ring, fit=False, fit_steps=3, colour_lr=0.02)
+    online = OnlineAnchors(model, ring, OnlineConfig(fit=False, fit_steps=3, fit_scale=1.0, colour_lr=0.02))
     tl = Timeline(rec.t_range_us[0], rec.t_range_us[0])
     _feed(online, ring, rec, model.meta.t_end_us + STEP_US + 1, tl)
     first = online.anchors()[0]
@@ -481,7 +487,7 @@ def test_corrections_learn_colours_that_carry_to_the_next_anchors(long_scene):
     nxt = online.anchors()[1]
     assert not nxt.corrected and nxt.colors is fitted.colors  # the prediction inherits them
     # and the served render past that anchor draws them
-    engine = Engine(model, ring, None, cache_size=4, online=online)
+    engine = Engine(model, ring, Timebase(model, online), cache_size=4)
     engine.timeline = tl
     instant = engine.resolve(nxt.t_us)
     state, _ = engine.state(instant)

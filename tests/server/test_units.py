@@ -79,7 +79,7 @@ def test_accept_negotiation_and_pose_text():
 
 
 def test_arrivals_date_a_stream_time_by_the_batch_that_brought_it():
-    from edmcgs.server.live import Arrivals
+    from edmcgs.server.live.signal import Arrivals
 
     clock = iter(range(1_000, 10_000, 1_000))  # Unix µs of each arrival
     arrivals = Arrivals(keep=3, clock=lambda: next(clock))
@@ -110,7 +110,7 @@ def test_ring_first_time_is_the_oldest_event_in_a_window():
 def test_head_signal_wakes_waiters_from_another_thread():
     import asyncio
 
-    from edmcgs.server.live import HeadSignal
+    from edmcgs.server.live.signal import HeadSignal
 
     async def scenario():
         signal = HeadSignal(asyncio.get_running_loop())

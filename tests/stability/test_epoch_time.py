@@ -14,8 +14,8 @@ import numpy as np
 import torch
 
 from edmcgs.geometry import Trajectory, pose_from_quat
+from edmcgs.model.data import EventGrid, TrainingData
 from edmcgs.model.dynamic import EdMCGS
-from edmcgs.model.train.data import EventGrid, TrainingData
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.events import Events
 from tests.support import tiny_scene

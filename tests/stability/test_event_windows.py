@@ -14,9 +14,9 @@ import pytest
 import torch
 
 from edmcgs.geometry import project
+from edmcgs.model.data import TrainingData
 from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.motion.event_branch import FIELD
-from edmcgs.model.train.data import TrainingData
 from edmcgs.model.train.trainer import Trainer
 from edmcgs.pipeline import new_model
 from edmcgs.sensor.event_map import accumulate

@@ -10,8 +10,8 @@ import numpy as np
 import torch
 
 from edmcgs.geometry import Trajectory
+from edmcgs.model.data import TrainingData
 from edmcgs.model.dynamic import EdMCGS
-from edmcgs.model.train.data import TrainingData
 from edmcgs.model.train.losses import event_loss, log_luminance, photometric_loss
 from edmcgs.model.train.trainer import Trainer
 from tests.support import tiny_scene

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from edmcgs.geometry import Intrinsics, Trajectory
-from edmcgs.model.train.data import TrainingData
+from edmcgs.model.data import TrainingData
 
 T0 = 1_700_000_000_000_000  # Unix-epoch microseconds: float32 cannot hold these
 W, H = 48, 32

@@ -2,7 +2,7 @@
 
 Within its span the model moves control point j by f_theta(x_j, t) + g_phi(x_j, m_j(I_E[tau(t), t))):
 the time prior carries most of the motion and g_phi corrects it. Past the span the prior stops at the
-span's end and online anchors chain T(t) = T_k + g(x, I_E[A_k, t)) (``model/online.py``): g alone has to
+span's end and online anchors chain T(t) = T_k + g(x, I_E[A_k, t)) (``model/online/``): g alone has to
 carry the motion, which g_phi was never trained to do (on the jumpingjack scene it moves the figure the
 wrong way in some phases, reports/online.md).
 
@@ -30,7 +30,7 @@ from edmcgs.errors import InvalidInputError
 from edmcgs.geometry import world_to_camera
 from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.motion.event_branch import EventTransition
-from edmcgs.model.online import motion_codes
+from edmcgs.model.online.transition import motion_codes
 
 SAMPLES = 3000
 """Times sampled over the span (one in five held out to measure the fit)."""

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import time
 
-from edmcgs.server.clock import Timeline, playback_watermark
+from edmcgs.server.live.clock import Timeline, playback_watermark
 
 
 class Playback:

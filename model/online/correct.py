@@ -1,33 +1,6 @@
-"""Online anchors: the control-point state at a new APS frame past the checkpoint's span, predicted by
-the model's own event-driven transition and corrected against the frame.
-
-An anchor's state is the control-point motion (translations [M, 3], rotations [M, 4]) at its time; the
-Gaussians follow by skinning. Past the span the time prior f_theta has no data: its time input is
-clamped to the span's end (``SceneMeta.normalized_time`` clamps), so it contributes a constant and the
-events carry the motion:
-
-    checkpoint anchor L (the last):  T_L = f_theta(x, t_L)                     (as trained)
-    first online anchor A_1:         T_1 = f_theta(x, 1) + g(x, I_E[L, A_1))   (g = g_phi: deform(A_1))
-    online anchor A_k, k > 1:        T_k = T_{k-1} + g(x, I_E[A_{k-1}, A_k)),  R_k = R_{k-1}
-    a render at t in [A_k, A_k+1):   T(t) = T_k + g(x, I_E[A_k, t))
-
-with g the transition the server chose past the span (see below).
-
-A checkpoint drawn in anchor windows (the ``real`` preset) draws, at each time, only the Gaussians of
-the window it falls in, moved relative to that window's anchor; past the span that is the last window, so
-online anchors carry its Gaussians forward (the prior taken relative to the last anchor, as ``deform``
-does there). A background layer is drawn behind them, in the fit as in the served render.
-
-``correct`` refines a predicted state against the frame: a per-control-point translation residual,
-optimised for a bounded number of Adam steps on the photometric loss through the differentiable
-rasterizer, with the canonical Gaussians and the networks frozen; with ``colour_lr`` > 0, per-Gaussian
-colour offsets learnt in the same steps (online appearance: what the stream shows that the checkpoint
-never saw, its views past the training ones). The offsets carry from each anchor to the next and each
-correction refines them, so they accumulate what the frames showed. Which transition moves the anchors
-past the span (g_phi, the checkpoint's distilled one of ``model/online_distill.py``, or none) the server
-chooses by how well each predicted the recent frames (``prediction_losses``); ``finetune`` (off by
-default) lets a copy of it learn from the corrections.
-"""
+"""Fitting an online anchor to its frame: the correction (a motion residual and colour offsets), how
+well candidate predictions explain a frame, the transition's fine-tune, and the Gaussians spawned for
+what the frame shows that the carried-forward window lacks."""
 
 from __future__ import annotations
 
@@ -37,76 +10,18 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from edmcgs.errors import InvalidInputError
-from edmcgs.geometry import Intrinsics, project, world_to_camera
+from edmcgs.geometry import Intrinsics, world_to_camera
 from edmcgs.model.dynamic import NEAR, EdMCGS, background_color, render_image
-from edmcgs.model.motion.event_branch import sample_global, sample_local
 from edmcgs.model.motion.gaussians import GaussianState
-from edmcgs.model.motion.skin_plan import skin
+from edmcgs.model.online.transition import (
+    Motion,
+    last_window,
+    motion_codes,
+    recolored,
+    state_of,
+    with_spawned,
+)
 from edmcgs.model.render.sh import SH_C0
-
-Motion = tuple[Tensor, Tensor]
-"""(translations [M, 3], rotations [M, 4]) of the control points."""
-
-
-@torch.no_grad()
-def checkpoint_motion(model: EdMCGS, t_us: int) -> Motion:
-    """The model's own motion at ``t_us`` from its checkpoint anchor, without events (prior clamped past
-    the span); the first online anchor's state before its events move it."""
-    window = last_window(model)
-    since = None if window is None else model.meta.normalized_time(int(model.meta.anchors_us[window]))
-    trans, rot, _ = model.control_motion(model.meta.normalized_time(int(t_us)), None, since=since)
-    return trans, rot
-
-
-def last_window(model: EdMCGS) -> int | None:
-    """The anchor window whose Gaussians online anchors carry forward (the last one), or None when the
-    model has no anchor windows (every Gaussian is drawn at every time)."""
-    return None if model.gaussians.birth is None else len(model.meta.anchors_us) - 1
-
-
-@torch.no_grad()
-def event_displacement(model: EdMCGS, base_trans: Tensor, event_map: np.ndarray | Tensor | None,
-                       ev_c2w: np.ndarray | None, transition: torch.nn.Module | None = None) -> Tensor:
-    """g_phi's displacement [M, 3] of the control points from the state ``base_trans`` by the events
-    ``event_map`` ([He, We] signed polarity sum); zeros without an event branch or events.
-    transition: g_phi to use (default: the model's; ``finetune`` makes online copies)."""
-    codes = motion_codes(model, base_trans, event_map, ev_c2w)
-    if codes is None:
-        return torch.zeros_like(model.control.positions)
-    g = model.transition if transition is None else transition
-    return g(model.normalize_points(model.control.positions), codes) * (model.extent * model.event_scale)
-
-
-@torch.no_grad()
-def motion_codes(model: EdMCGS, base_trans: Tensor, event_map: np.ndarray | Tensor | None,
-                 ev_c2w: np.ndarray | None) -> Tensor | None:
-    """The control points' motion codes [M, 32] of ``event_map`` seen from the state ``base_trans``
-    (Phi, then local or global sampling); None without an event branch or events."""
-    cp = model.control.positions
-    if model.transition is None or event_map is None:
-        return None
-    emap = torch.as_tensor(event_map, dtype=torch.float32, device=cp.device)
-    if not bool(torch.any(emap != 0)):
-        return None
-    feats = model.encoder(model.config.contrast_threshold * emap[None, None])[0]
-    if model.config.local_sampling:
-        if ev_c2w is None:
-            raise InvalidInputError("ev_c2w is needed to project control points on the event camera")
-        w2c = torch.as_tensor(world_to_camera(np.asarray(ev_c2w, np.float64)), dtype=torch.float32,
-                              device=cp.device)
-        intr = model.meta.event_intrinsics
-        uv, depth = project(cp + base_trans, w2c, intr)
-        return sample_local(feats, uv, depth > NEAR, intr.width, intr.height)
-    return sample_global(feats, cp.shape[0])
-
-
-def advance(model: EdMCGS, motion: Motion, event_map, ev_c2w,
-            transition: torch.nn.Module | None = None) -> Motion:
-    """The Markov transition from an anchor's ``motion`` by the events since it (``transition``: as in
-    ``event_displacement``)."""
-    trans, rot = motion
-    return trans + event_displacement(model, trans, event_map, ev_c2w, transition), rot
 
 
 @torch.no_grad()
@@ -159,25 +74,6 @@ def finetune(model: EdMCGS, transition: torch.nn.Module, prev_motion: Motion, ev
     with torch.no_grad():
         after = float((tuned(x, codes) - target).pow(2).sum(-1).mean())
     return tuned, losses[0], after
-
-
-@torch.no_grad()
-def state_of(model: EdMCGS, motion: Motion, colors: Tensor | None = None) -> GaussianState:
-    """The Gaussians of a control-point motion (every Gaussian skinned: past the span nothing is frozen),
-    with the colour offsets ``colors`` [N, C] learnt online (``correct``) when given."""
-    trans, rot = motion
-    state = skin(model.skin_plan(frozen=False), model.control.positions, rot, trans)
-    visible = model.gaussians.visible_in(last_window(model))
-    opacities = state.opacities if visible is None else state.opacities * visible.to(state.opacities.device)
-    return GaussianState(state.means, state.quats, state.scales, opacities,
-                         state.colors if colors is None else recolored(state.colors, colors))
-
-
-def recolored(colors: Tensor, offsets: Tensor) -> Tensor:
-    """Colours (RGB [N, C], or SH [N, K, C]: their base colour, the DC term) moved by ``offsets`` [N, C]."""
-    if colors.dim() == 3:
-        return torch.cat([colors[:, :1] + (offsets / SH_C0)[:, None], colors[:, 1:]], 1)
-    return colors + offsets
 
 
 def correct(model: EdMCGS, motion: Motion, image: np.ndarray, c2w: np.ndarray, intrinsics: Intrinsics, *,
@@ -283,12 +179,3 @@ def spawn(model: EdMCGS, state: GaussianState, image: np.ndarray, c2w: np.ndarra
     return GaussianState(torch.as_tensor(points, dtype=torch.float32, device=dev), quats.to(dev),
                          torch.full((n, 3), size, dtype=torch.float32, device=dev),
                          torch.full((n,), opacity, dtype=torch.float32, device=dev), colors.to(dev))
-
-
-def with_spawned(state: GaussianState, spawned: GaussianState | None) -> GaussianState:
-    """``state`` and an anchor's spawned Gaussians drawn together."""
-    if spawned is None:
-        return state
-    return GaussianState(*(torch.cat([a, b.to(a.dtype)]) for a, b in
-                           zip(state.tensors(), spawned.tensors(), strict=True)))
-

@@ -16,10 +16,9 @@ from __future__ import annotations
 import numpy as np
 
 from edmcgs.errors import InvalidInputError
+from edmcgs.luminance import LOG_EPS
 from edmcgs.model.render.jit import njit_cached
 
-LOG_EPS = 1e-3
-"""The offset of the log intensity (as the simulator and the model's event loss use)."""
 MAX_LOG_CHANGE = 20.0
 """Clamp of C E: beyond it a pixel is black or white anyway, and exp() stays finite."""
 

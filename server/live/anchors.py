@@ -8,12 +8,12 @@
                    the frame from the anchor before it; the one with the lowest mean loss over the last
                    EVIDENCE frames becomes g ("select"; or one fixed by ``transition``); then a bounded
                    number of steps against the frame from this frame's best prediction
-                   (model/online.correct) ──> published as corrected; its residual carried on to the
+                   (model/online/correct.py) ──> published as corrected; its residual carried on to the
                    anchors predicted from it meanwhile; optionally (finetune_steps > 0) a copy of g learns
                    from the correction and replaces it
 
-    render:        the anchor's state moved by g(events since it); of the event camera's own view,
-                   projected onto the events since the anchor's frame (``project``; server/engine.py)
+    render:        the anchor's state moved by g(events since it) (``Timebase.state``); of the event
+                   camera's own view, projected onto the events since the anchor's frame (``project``)
 
 Anchors are keyed by stream time (a looping replay passes the same scene times again; each pass chains
 from the checkpoint's last anchor anew). The store is bounded (``capacity``) and drops anchors whose
@@ -27,27 +27,26 @@ import logging
 import sys
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 
-from edmcgs.errors import InvalidInputError, WindowUnavailable
+from edmcgs.errors import WindowUnavailable
 from edmcgs.model import online as model_online
 from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.motion.gaussians import GaussianState
-from edmcgs.protocol import TRANSITIONS
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.frames import Frames
+from edmcgs.server.live.config import OnlineConfig
+from edmcgs.server.live.transitions import Transitions
+from edmcgs.server.metrics import Metrics
 
 log = logging.getLogger("edmcgs.server")
 
 REFUSED_REASONS = ("size", "channels", "timestamp")
-EVIDENCE = 8
-"""Frames the transition is chosen by (the most recent)."""
 SKIPPED_REASONS = ("superseded", "events_gone")
 SWITCH_INTERVAL_S = 0.0005
 """The GIL switch interval while fitting (see ``start``)."""
@@ -88,43 +87,18 @@ def _frozen(image: np.ndarray) -> np.ndarray:
 class OnlineAnchors:
     """The online anchor store, its predictor (called by the ingest thread) and its fit worker."""
 
-    def __init__(self, model: EdMCGS, ring: EventRingBuffer, *, capacity: int = 64, fit_steps: int = 4,
-                 fit_scale: float = 1.0, fit_lr: float = 6e-3, finetune_steps: int = 0,
-                 finetune_lr: float = 1e-4, spawn: int = 0, colour_lr: float = 0.0, fit: bool = True,
-                 transition: str = "select", project: bool = True,
-                 default_pose: Callable[[int], np.ndarray | None] | None = None):
+    def __init__(self, model: EdMCGS, ring: EventRingBuffer, config: OnlineConfig | None = None, *,
+                 pose: Callable[[int], np.ndarray | None] | None = None):
+        """config: how they run (config.py); pose: the event camera's pose at a scene time past the span
+        when a frame brings none (default: the checkpoint's trajectory, clamped to its span)."""
         self.model, self.ring = model, ring
-        self.capacity, self.fit_steps, self.fit_scale = int(capacity), int(fit_steps), float(fit_scale)
-        self.fit_lr, self.colour_lr = float(fit_lr), float(colour_lr)
-        self.finetune_steps, self.finetune_lr = int(finetune_steps), float(finetune_lr)
-        # the candidates past the span, best first while there is no evidence (None: events move nothing)
-        self.candidates: dict[str, torch.nn.Module | None] = {"none": None}
-        if model.transition is not None:
-            self.candidates = {"g_phi": model.transition, "none": None}
-            if model.online_transition is not None:
-                self.candidates = {"distilled": model.online_transition, **self.candidates}
-        if transition not in TRANSITIONS:
-            raise InvalidInputError(f"transition must be one of {', '.join(TRANSITIONS)}, got {transition!r}")
-        if transition != "select" and transition not in self.candidates:
-            raise InvalidInputError(f"transition {transition!r}: the checkpoint has none "
-                                    + ("(edmcgs distill makes one)" if transition == "distilled"
-                                       else "(no event branch)"))
-        self.select = transition == "select" and len(self.candidates) > 1
-        self.transition_kind = next(iter(self.candidates)) if transition == "select" else transition
-        """The candidate moving the predictions and renders past the span now (/scene)."""
-        self.transition = self.candidates[self.transition_kind]
-        """Its module (None: none), or a copy fine-tuned on the corrections (``finetune_steps`` > 0);
-        replaced whole, before ``transition_version`` is bumped (readers take the reference once)."""
-        self.evidence: dict[str, deque[float]] = {n: deque(maxlen=EVIDENCE) for n in self.candidates}
-        """Per candidate, the L1 of its prediction of each recent frame."""
-        self.transition_version = 0
+        self.config = config = config or OnlineConfig()
+        self.transitions = Transitions(model, config.transition)
         # Only a model drawn in anchor windows lacks Gaussians for what enters the view past its span.
-        self.spawn_limit = int(spawn) if model_online.last_window(model) is not None else 0
+        self.spawn_limit = config.spawn if model_online.last_window(model) is not None else 0
         self.last_finetune: tuple[float, float] | None = None  # (loss before, after) of the last one
-        self.fit_enabled = fit and fit_steps > 0
-        self.project = bool(project)
-        """Renders of the event camera's view are projected onto the events since their anchor's frame."""
-        self.default_pose = default_pose or self._trajectory_pose
+        self.fit_enabled = config.fit and config.fit_steps > 0
+        self.pose = pose or self._trajectory_pose
         meta = model.meta
         self.end_us = int(meta.t_end_us)
         self.last_ckpt_us = int(meta.anchors_us[-1])
@@ -205,7 +179,7 @@ class OnlineAnchors:
     def advance(self, motion: model_online.Motion, event_map, ev_c2w) -> model_online.Motion:
         """An online anchor's ``motion`` moved by the events since it (``event_map``), by the transition
         chosen past the span (renders and predictions)."""
-        transition = self.transition
+        transition = self.transitions.module
         if transition is None:
             return motion
         return model_online.advance(self.model, motion, event_map, ev_c2w, transition)
@@ -260,7 +234,7 @@ class OnlineAnchors:
                 return
             emap = (accumulate(events, model.meta.event_width, model.meta.event_height)
                     if len(events) else None)
-            c2w = pose if pose is not None else self.default_pose(scene_t)  # the event camera at the frame
+            c2w = pose if pose is not None else self.pose(scene_t)  # the event camera at the frame
             base = model_online.checkpoint_motion(model, scene_t) if prev is None else prev.motion
             motion = self.advance(base, emap, c2w)
             anchor = OnlineAnchor(t, scene_t, motion, False, 0, pose, None if prev is None else prev.spawned,
@@ -279,7 +253,7 @@ class OnlineAnchors:
         stats = self.ring.stats()
         floor = stats.oldest_us if (stats.overflowed or stats.expired) else None
         keep = [a for a in anchors if floor is None or a.stream_us > floor]
-        keep = keep[-self.capacity:]
+        keep = keep[-self.config.capacity:]
         self.expired += len(anchors) - len(keep)
         self._anchors = tuple(keep)
 
@@ -305,14 +279,15 @@ class OnlineAnchors:
         current = self.get(anchor.stream_us)
         if current is None:
             return  # expired meanwhile
-        c2w = anchor.pose if anchor.pose is not None else self.default_pose(anchor.t_us)
+        c2w = anchor.pose if anchor.pose is not None else self.pose(anchor.t_us)
         if c2w is None:
             return
         t0 = time.perf_counter()
-        start = self._select(current, image, c2w) if self.select else current.motion
+        cfg = self.config
+        start = self._select(current, image, c2w) if self.transitions.select else current.motion
         (trans, _), colors, before, after = model_online.correct(
-            self.model, start, image, c2w, self.model.meta.intrinsics, steps=self.fit_steps,
-            lr=self.fit_lr, scale=self.fit_scale, colors=current.colors, colour_lr=self.colour_lr)
+            self.model, start, image, c2w, self.model.meta.intrinsics, steps=cfg.fit_steps,
+            lr=cfg.fit_lr, scale=cfg.fit_scale, colors=current.colors, colour_lr=cfg.colour_lr)
         spawned = current.spawned
         if self.spawn_limit:
             state = model_online.state_of(self.model, (trans, current.motion[1]), colors)
@@ -333,7 +308,7 @@ class OnlineAnchors:
                 out.append(a)
             self._publish(tuple(out))
         self.corrected += 1
-        if self.finetune_steps > 0:
+        if cfg.finetune_steps > 0:
             self._finetune(anchor, trans, c2w)
             seconds = time.perf_counter() - t0
         self.last_fit_s, self.last_loss = seconds, (before, after)
@@ -351,18 +326,13 @@ class OnlineAnchors:
         if since is None or since[1] is None:
             return anchor.motion  # no events: every candidate predicts the same
         base, emap = since
-        names = list(self.candidates)
+        names = list(self.transitions.candidates)
         predictions = [base if g is None else model_online.advance(model, base, emap, c2w, g)
-                       for g in self.candidates.values()]
+                       for g in self.transitions.candidates.values()]
         losses = model_online.prediction_losses(model, predictions, anchor.spawned, image, c2w,
-                                                model.meta.intrinsics, scale=self.fit_scale,
+                                                model.meta.intrinsics, scale=self.config.fit_scale,
                                                 colors=anchor.colors)
-        for name, loss in zip(names, losses, strict=True):
-            self.evidence[name].append(loss)
-        chosen = min(names, key=lambda n: float(np.mean(self.evidence[n])))
-        if chosen != self.transition_kind:
-            self.transition, self.transition_kind = self.candidates[chosen], chosen
-            self.transition_version += 1  # after the transition: see ``transition``
+        self.transitions.record(dict(zip(names, losses, strict=True)))
         return predictions[int(np.argmin(losses))]
 
     def _finetune(self, anchor: OnlineAnchor, corrected: torch.Tensor, c2w: np.ndarray) -> None:
@@ -370,14 +340,14 @@ class OnlineAnchors:
         before it by the events between them, then publish the copy (as that candidate) for the next
         predictions and renders."""
         since = self._since_previous(anchor)
-        if since is None or self.transition is None:
+        current = self.transitions.module
+        if since is None or current is None:
             return
-        tuned = model_online.finetune(self.model, self.transition, since[0], since[1], c2w, corrected,
-                                      steps=self.finetune_steps, lr=self.finetune_lr)
+        tuned = model_online.finetune(self.model, current, since[0], since[1], c2w, corrected,
+                                      steps=self.config.finetune_steps, lr=self.config.finetune_lr)
         if tuned is not None:
-            self.transition, self.last_finetune = tuned[0], tuned[1:]
-            self.candidates[self.transition_kind] = tuned[0]
-            self.transition_version += 1
+            self.last_finetune = tuned[1:]
+            self.transitions.replace(tuned[0])
 
     def _since_previous(self, anchor: OnlineAnchor) -> tuple[model_online.Motion, np.ndarray | None] | None:
         """(the motion of the anchor before ``anchor`` as it stands now, the event map between them; None
@@ -399,3 +369,50 @@ class OnlineAnchors:
         while self.queue_depth and time.monotonic() < deadline:
             time.sleep(0.01)
         return not self.queue_depth
+
+    # ------------------------------------------------------------------ what the service shows
+    def info(self, range_dict: Callable[[tuple[int, int]], dict]) -> dict:
+        """GET /scene's ``online`` (``range_dict``: scene µs interval -> the protocol's range)."""
+        anchors, cfg = self.anchors(), self.config
+        fits = sorted(self.fit_seconds)
+        return {
+            "span": None if not anchors else range_dict((anchors[0].t_us, anchors[-1].t_us)),
+            "anchors": [{"t_us": a.t_us, "stream_us": a.stream_us, "corrected": a.corrected}
+                        for a in anchors],
+            "capacity": cfg.capacity,
+            "predicted": self.predicted, "corrected": self.corrected, "expired": self.expired,
+            "skipped": dict(self.skipped), "refused": dict(self.refused),
+            "queue_depth": self.queue_depth,
+            "project": cfg.project,
+            "transition": self.transitions.info(),
+            "fit": {"steps": cfg.fit_steps if self.fit_enabled else 0, "scale": cfg.fit_scale,
+                    "colour_lr": cfg.colour_lr, "last_s": self.last_fit_s,
+                    "median_s": fits[len(fits) // 2] if fits else None,
+                    "last_loss": None if self.last_loss is None else {
+                        "before": self.last_loss[0], "after": self.last_loss[1]}},
+        }
+
+    def register_metrics(self, metrics: Metrics) -> None:
+        """Their series in the service's metrics: counts read when scraped, each fit observed."""
+        gauge, counter = metrics.readings.gauge, metrics.readings.counter
+        gauge("edmcgs_online_anchors", "Online anchors held past the checkpoint's span.",
+              lambda: float(len(self.anchors())))
+        counter("edmcgs_online_anchors_total", "Online anchors by outcome: predicted, corrected (fitted "
+                "to their frame), expired (out of the bounded store).",
+                lambda: {"predicted": self.predicted, "corrected": self.corrected, "expired": self.expired},
+                "result")
+        counter("edmcgs_online_anchors_skipped_total", "Online anchors not corrected (superseded: a "
+                "newer frame took the one-slot fit queue) or not made (events_gone: their events left "
+                "the ring).", lambda: dict(self.skipped), "reason")
+        counter("edmcgs_frames_refused_total", "Stream frames refused as anchors, by reason (size, "
+                "channels, timestamp: not after the newest frame).", lambda: dict(self.refused), "reason")
+        gauge("edmcgs_online_fit_queue_depth", "Online anchors waiting for or in a fit (0..2).",
+              lambda: float(self.queue_depth))
+        gauge("edmcgs_online_fit_loss", "L1 photometric loss of the last correction, after its steps.",
+              lambda: float("nan") if self.last_loss is None else self.last_loss[1])
+
+        def observe(seconds: float, before: float, after: float) -> None:
+            metrics.fit.observe(seconds)
+            metrics.fit_loss.observe(after)
+
+        self.on_fit = observe

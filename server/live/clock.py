@@ -18,18 +18,18 @@ tau(t), the anchor whose events window [tau, t) drives the deformation, is decid
 alone: within the checkpoint's span its own anchors (the windows it was trained on), whatever frames
 the stream carries; past the span's end, online anchors: the stream's frames, each predicted by the
 event transition from the one before (the checkpoint's last anchor first) and corrected in the
-background (server/online.py), so that a stream renders to its head however long it runs.
+background (``anchors``), so that a stream renders to its head however long it runs. The engine asks
+``Timebase`` (timebase.py), which applies the rule.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from edmcgs.errors import WindowUnavailable
-from edmcgs.protocol import TauSource
+from edmcgs.protocol import TauSource, seconds_of
 
 
 @dataclass(frozen=True)
@@ -129,7 +129,7 @@ class TauRule:
     stream_frames: bool
     """Whether the stream delivers frames (an anchor store is filled)."""
     online: bool = False
-    """Whether the stream's frames past the span become online anchors (server/online.py)."""
+    """Whether the stream's frames past the span become online anchors (anchors.py)."""
 
     def source(self, scene_t: int) -> TauSource | None:
         """Where tau comes from at ``scene_t``; None: no anchor rules there."""
@@ -153,50 +153,66 @@ class TauRule:
         return out
 
 
-def resolve(t_us: int | None, head_stream_us: int, timeline: Timeline, span: Span,
-            anchor_stream: Callable[[int, int], int | None], fmt: Callable[[int], str] = str,
-            online_end_us: int | None = None) -> Instant:
-    """The instant rendered for scene time ``t_us`` (None: the head), or TimeNotRenderable saying why.
+@dataclass(frozen=True)
+class Query:
+    """A scene time asked for, placed on the stream's clock (``locate``)."""
 
-    head_stream_us: the head on the stream clock (every event before it has arrived); anchor_stream:
-    (stream time, scene time) -> tau on the stream clock, or None when no anchor precedes it; fmt: how a
-    scene time is written in messages; online_end_us: with online anchors, the last renderable scene
-    time past the span (TauRule.end), which replaces the span's end.
+    t_us: int
+    """The scene time (the head's when none was asked for)."""
+    stream_t: int
+    """The stream time rendered for it: the newest one <= the head with that scene time."""
+    what: str
+    """How messages name it."""
+
+
+def fmt(t_us: int, origin_us: int) -> str:
+    """A scene time as messages write it: seconds from the scene's start ``origin_us``, and the µs."""
+    return f"{seconds_of(t_us, origin_us):.6f} s (t_us={t_us})"
+
+
+def locate(t_us: int | None, head_stream_us: int, timeline: Timeline, span: Span, origin_us: int,
+           online_end_us: int | None = None) -> Query:
+    """Scene time ``t_us`` (None: the head) on the stream clock, or TimeNotRenderable saying why.
+
+    head_stream_us: the head on the stream clock (every event before it has arrived); origin_us: the
+    scene's start, for messages; online_end_us: with online anchors, the last renderable scene time past
+    the span (TauRule.end), which replaces the span's end.
     """
     tl = timeline
     if online_end_us is not None:
         span = Span(span.first_us, max(span.end_us, int(online_end_us)))
     if t_us is None:
         t_us, stream_t = tl.scene_of(head_stream_us), head_stream_us
-        what = f"the head of the stream (scene time {fmt(t_us)})"
+        what = f"the head of the stream (scene time {fmt(t_us, origin_us)})"
     else:
         t_us = int(t_us)
         stream_t = tl.stream_of(t_us, head_stream_us)
-        what = f"t={fmt(t_us)}"
+        what = f"t={fmt(t_us, origin_us)}"
     if not span.first_us <= t_us <= span.end_us:
-        raise TimeNotRenderable(f"{what} is outside the checkpoint's span: the first anchor is at "
-                                f"{fmt(span.first_us)} and the span ends at {fmt(span.end_us)}"
-                                if online_end_us is None else
-                                f"{what} is outside what can be rendered: the first anchor is at "
-                                f"{fmt(span.first_us)} and the stream's head is at {fmt(span.end_us)}")
+        first, end = fmt(span.first_us, origin_us), fmt(span.end_us, origin_us)
+        raise TimeNotRenderable(f"{what} is outside the checkpoint's span: the first anchor is at {first} "
+                                f"and the span ends at {end}" if online_end_us is None else
+                                f"{what} is outside what can be rendered: the first anchor is at {first} "
+                                f"and the stream's head is at {end}")
     if stream_t > head_stream_us or (tl.period_us is not None and stream_t < tl.stream_origin_us):
         raise TimeNotRenderable(f"{what} has not been streamed yet")
-    a_stream = anchor_stream(stream_t, t_us)
-    a_scene = t_us - (stream_t - a_stream) if a_stream is not None else None
+    return Query(t_us, stream_t, what)
+
+
+def instant(query: Query, anchor_stream: int | None, timeline: Timeline, span: Span,
+            origin_us: int) -> Instant:
+    """The instant rendered for ``query`` from its anchor tau (``anchor_stream``, on the stream clock; None:
+    no anchor precedes it), or TimeNotRenderable saying why its window is not complete."""
+    tl, t_us, stream_t = timeline, query.t_us, query.stream_t
+    a_scene = t_us - (stream_t - anchor_stream) if anchor_stream is not None else None
     if a_scene is None or a_scene < span.first_us:
-        raise TimeNotRenderable(f"{what}: no anchor frame of this pass of the stream precedes it yet")
-    if tl.period_us is not None and a_stream < tl.pass_start(stream_t):
+        raise TimeNotRenderable(f"{query.what}: no anchor frame of this pass of the stream precedes it yet")
+    if tl.period_us is not None and anchor_stream < tl.pass_start(stream_t):
         # A looping stream restarts at the pass start: a window reaching before it would mix in the
         # end of the previous pass.
-        raise TimeNotRenderable(f"{what}: its anchor at {fmt(a_scene)} precedes the start of the "
-                                f"looping stream's pass ({fmt(tl.scene_origin_us)})")
-    return Instant(t_us, a_scene, (a_stream, stream_t))
-
-
-def scene_anchor_stream(scene_anchors: np.ndarray, stream_t: int, scene_t: int) -> int | None:
-    """tau on the stream clock from the checkpoint's anchor times (scene clock, sorted)."""
-    i = int(np.searchsorted(scene_anchors, scene_t, side="right")) - 1
-    return None if i < 0 else stream_t - (scene_t - int(scene_anchors[i]))
+        raise TimeNotRenderable(f"{query.what}: its anchor at {fmt(a_scene, origin_us)} precedes the start "
+                                f"of the looping stream's pass ({fmt(tl.scene_origin_us, origin_us)})")
+    return Instant(t_us, a_scene, (anchor_stream, stream_t))
 
 
 def renderable(head_stream_us: int, timeline: Timeline, span: Span, anchors: np.ndarray,

@@ -1,0 +1,142 @@
+"""The engine's one seam to the live path: where every render starts.
+
+For a scene time t the timebase decides tau(t) (``clock.TauRule``: within the checkpoint's span its own
+anchors, ``EdMCGS.tau``; past it the online anchors; elsewhere the stream's frames) and says what
+stands at tau (a ``Start``): the checkpoint's anchor, from which the model deforms by the events since
+it, or an online anchor, whose state the transition moves by them. It also knows the event camera's
+pose at t and what is renderable up to the head. The engine (engine.py) composes these with the ring,
+the cache and the rasterizer and never asks which kind of anchor it has.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from edmcgs.errors import WindowUnavailable
+from edmcgs.model.dynamic import EdMCGS
+from edmcgs.model.motion.gaussians import GaussianState
+from edmcgs.model.online import state_of, with_spawned
+from edmcgs.protocol import TauSource
+from edmcgs.sensor.buffer.anchors import AnchorStore
+from edmcgs.sensor.buffer.ring import RingStats
+from edmcgs.server.live import clock
+from edmcgs.server.live.anchors import OnlineAnchor, OnlineAnchors
+from edmcgs.server.live.clock import Instant, Span, Timeline, TimeNotRenderable
+
+
+@dataclass(frozen=True)
+class Start:
+    """What stands at a render's anchor tau(t)."""
+
+    kind: str
+    """protocol.ANCHOR_KINDS: the checkpoint's anchor, or an online one predicted or corrected."""
+    version: tuple[int, int] | None
+    """Changes whenever the state at tau does (part of the deform cache's key); None: it never does."""
+    online: OnlineAnchor | None = None
+    """The online anchor (None: the checkpoint's)."""
+    frame: np.ndarray | None = None
+    """The stream's frame at tau, when renders of the event camera's view are projected onto the events
+    since it (past the span, ``OnlineConfig.project``); else None."""
+
+
+CHECKPOINT = Start("checkpoint", None)
+
+
+class Timebase:
+    """model: the served checkpoint; online: its online anchors past the span (None: the span's end is
+    the last renderable time); stream_anchors: the stream's frames, tau where no other anchor rules."""
+
+    def __init__(self, model: EdMCGS, online: OnlineAnchors | None = None,
+                 stream_anchors: AnchorStore | None = None):
+        self.model, self.online, self.stream_anchors = model, online, stream_anchors
+        meta = model.meta
+        self.origin_us = int(meta.t_start_us)
+        self.scene_anchors = np.asarray(meta.anchors_us, dtype=np.int64)
+        self.span = Span(int(self.scene_anchors[0]), int(meta.t_end_us))
+        self.rule = clock.TauRule(self.span, stream_frames=stream_anchors is not None or online is not None,
+                                  online=online is not None)
+
+    # ------------------------------------------------------------------ time
+    def resolve(self, t_us: int | None, head: tuple[int, int], timeline: Timeline) -> Instant:
+        """The instant rendered for scene time ``t_us`` (None: the head), given the head (stream µs, scene
+        µs); TimeNotRenderable says why not."""
+        end = self.rule.end(head[1]) if self.online is not None else None
+        query = clock.locate(t_us, head[0], timeline, self.span, self.origin_us, end)
+        return clock.instant(query, self.tau(query.stream_t, query.t_us), timeline, self.span, self.origin_us)
+
+    def tau(self, stream_t: int, scene_t: int) -> int | None:
+        """tau on the stream clock for the time ``stream_t`` (scene ``scene_t``), from where the rule
+        says; None where no anchor precedes it."""
+        source = self.rule.source(scene_t)
+        if source is TauSource.CHECKPOINT:
+            return stream_t - (scene_t - self.model.tau(scene_t))
+        if source is TauSource.ONLINE:
+            return self.online.tau(stream_t, scene_t)
+        if source is TauSource.STREAM and self.stream_anchors is not None:
+            try:
+                return self.stream_anchors.tau(stream_t)
+            except WindowUnavailable as exc:
+                raise TimeNotRenderable(str(exc)) from None
+        return None
+
+    def tau_ranges(self, head_scene_us: int | None) -> list[tuple[TauSource, int, int]]:
+        """GET /scene's ``tau_sources``: (source, first µs, last µs inclusive) in order."""
+        return self.rule.ranges(head_scene_us)
+
+    def renderable(self, head: tuple[int, int], timeline: Timeline,
+                   stats: RingStats) -> list[tuple[int, int]]:
+        """Scene-time intervals [lo, hi] (µs, inclusive) renderable now, oldest first, given the head
+        (stream µs, scene µs) and what the ring holds."""
+        dropped = bool(stats.overflowed or stats.expired)
+        ranges = clock.renderable(head[0], timeline, self.span, self.scene_anchors, stats.oldest_us, dropped)
+        if self.online is None or head[1] <= self.span.end_us:
+            return ranges
+        # Past the span, up to the head: from the checkpoint's last anchor of this pass, or from the
+        # oldest online anchor whose events the ring still holds.
+        floor = (stats.oldest_us + 1 if stats.oldest_us is not None else None) if dropped else None
+        last_ckpt_stream = head[0] - (head[1] - int(self.scene_anchors[-1]))
+        if floor is None or last_ckpt_stream >= floor:
+            lo = self.span.end_us + 1
+        else:
+            lo = next((a.t_us for a in self.online.anchors()
+                       if a.stream_us >= floor and a.stream_us > last_ckpt_stream), None)
+            if lo is None:
+                return ranges
+        if ranges and ranges[-1][1] + 1 >= lo:
+            return [*ranges[:-1], (ranges[-1][0], head[1])]
+        return [*ranges, (lo, head[1])]
+
+    # ------------------------------------------------------------------ what stands at tau
+    def start(self, instant: Instant) -> Start:
+        """What the render at ``instant`` starts from (cheap: a lookup, no computation)."""
+        online = self.online
+        if online is None or instant.t_us <= self.span.end_us:
+            return CHECKPOINT
+        anchor = online.get(instant.window[0])
+        frame = online.frame_at(instant.window[0]) if online.config.project else None
+        if anchor is None:  # past the span before the first online anchor: the checkpoint's last one
+            return Start("checkpoint", None, None, frame)
+        return Start("corrected" if anchor.corrected else "predicted",
+                     (anchor.version, online.transitions.version), anchor, frame)
+
+    def state(self, start: Start, instant: Instant, event_map: np.ndarray | None,
+              pose: np.ndarray | None) -> GaussianState:
+        """The Gaussians at ``instant``: the state at its start moved by ``event_map`` (I_E of its window;
+        None: no events), seen by the event camera from ``pose`` (None: unknown)."""
+        if start.online is None:
+            return self.model.deform(instant.t_us, event_map, anchor_us=instant.anchor_us)
+        online = self.online
+        motion = online.advance(start.online.motion, event_map, pose)
+        return with_spawned(state_of(self.model, motion, start.online.colors), start.online.spawned)
+
+    def pose(self, t_us: int) -> np.ndarray | None:
+        """The event camera's pose at scene time ``t_us``: past the span the newest online anchor's frame's
+        when the stream gives poses, else the checkpoint's trajectory; None when neither knows it."""
+        if self.online is not None and int(t_us) > self.span.end_us:
+            for a in reversed(self.online.anchors()):
+                if a.t_us <= int(t_us) and a.pose is not None:
+                    return a.pose
+        trajectory = self.model.meta.trajectory
+        return None if trajectory is None else trajectory.at(int(t_us))
