@@ -7,13 +7,13 @@ serve:  ## set up, then serve the bundled demo scene on http://127.0.0.1:8000
 	scripts/bootstrap.sh
 	.venv/bin/edmcgs-serve
 
-test:   ## set up, then run the whole test suite
+test:   ## set up, then run the whole test suite (two workers; the 25 slowest tests listed at the end)
 	scripts/bootstrap.sh --test
-	$(PY) -m pytest
+	$(PY) -m pytest -n 2 --dist loadgroup --durations=25
 
 check:  ## the inner loop: everything but the slow end-to-end cases (real servers, the browser)
 	scripts/bootstrap.sh --test
-	$(PY) -m pytest -m "not slow" -q
+	$(PY) -m pytest -n 2 --dist loadgroup -m "not slow" -q
 
 lint:
 	.venv/bin/ruff check .

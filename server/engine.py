@@ -152,6 +152,10 @@ class Engine:
         _, state, n_events, _ = self._entry(instant, lambda: self.timebase.pose(instant.t_us))
         return state, n_events
 
+    def anchor_kind(self, instant: Instant) -> str:
+        """protocol.ANCHOR_KINDS of the instant's anchor."""
+        return self.timebase.start(instant).kind
+
     def _entry(self, instant: Instant, pose) -> tuple[Start, object, int, np.ndarray | None]:
         """(its start, the state, events in its window, the window's I_E (None: no events, or none
         needed)); the last three cached. pose: () -> the event camera's pose at the instant (or None)."""
