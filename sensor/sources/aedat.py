@@ -4,29 +4,30 @@ dv-processing reads the file in ``edmcgs.sensor.sources.aedat_decoder``, a child
 can spin forever on a corrupt packet while holding the GIL. A child that sends nothing for ``stall_s``
 seconds is killed and the replay fails with a ``ReplayFormatError`` naming the file; closing the
 replay kills the child whatever it is doing. Trigger and other streams are skipped. Files are read
-forward packet by packet (never whole). As with any ``multiprocessing`` code, a script that replays
-AEDAT4 must guard its entry point with ``if __name__ == "__main__":``.
+forward packet by packet (never whole). The child is a fresh interpreter running the decoder module
+itself (not a ``multiprocessing`` spawn, which re-imports the caller's ``__main__``), so a plain script
+without an ``if __name__ == "__main__":`` guard replays AEDAT4 too.
 """
 
 from __future__ import annotations
 
-import multiprocessing
 import os
+import socket
+import subprocess
+import sys
 import threading
 from collections.abc import Iterator
+from multiprocessing.connection import Connection
 from pathlib import Path
 
 import numpy as np
 
 from edmcgs.errors import InvalidInputError, ReplayFormatError
 from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.sources import aedat_decoder
 from edmcgs.sensor.sources.base import StreamInfo
 from edmcgs.sensor.sources.pacing import Pacing
 from edmcgs.sensor.sources.replay import Chunk, Replay
 
-# A fresh interpreter: forking a process that runs torch and numba thread pools is not safe.
-_CONTEXT = multiprocessing.get_context("spawn")
 _STARTUP_S = 60.0  # a fresh child's imports, on a loaded machine, before its hello
 
 
@@ -58,11 +59,19 @@ class AedatReplay(Replay):
     def _start(self) -> None:
         self._kill()
         self._check_open()
-        conn, child_conn = _CONTEXT.Pipe(duplex=True)
-        process = _CONTEXT.Process(target=aedat_decoder.serve, args=(str(self.path), child_conn),
-                                   name="edmcgs-aedat-decoder", daemon=True)
-        process.start()
-        child_conn.close()
+        # A fresh interpreter (forking a process that runs torch and numba thread pools is not safe),
+        # started on the decoder module: nothing of the caller's script runs in it.
+        ours, theirs = socket.socketpair()
+        conn, child_fd = Connection(ours.detach()), theirs.detach()
+        try:
+            process = subprocess.Popen([sys.executable, "-m", "edmcgs.sensor.sources.aedat_decoder",
+                                        str(self.path), str(child_fd)], pass_fds=(child_fd,),
+                                       stdin=subprocess.DEVNULL)
+        except OSError as exc:
+            conn.close()
+            raise ReplayFormatError(f"{self.path}: cannot start the AEDAT4 decoder: {exc}") from exc
+        finally:
+            os.close(child_fd)
         with self._lock:
             self._process, self._conn = process, conn
         self._exchange("start the decoder", patience=_STARTUP_S)  # its hello
@@ -93,7 +102,7 @@ class AedatReplay(Replay):
             raise ReplayFormatError(f"{self.path}: the replay was closed while trying to {doing}")
         if message[0] == "crashed":
             raise ReplayFormatError(f"{self.path}: the decoder died while trying to {doing} "
-                                    f"(exit code {process.exitcode})")
+                                    f"(exit code {process.poll()})")
         return message
 
     def _chunks(self, begin_us: int) -> Iterator[Chunk]:
@@ -123,7 +132,10 @@ class AedatReplay(Replay):
             conn.close()
         if process is not None:
             process.kill()
-            process.join(5)
+            try:
+                process.wait(5)
+            except subprocess.TimeoutExpired:
+                pass  # a zombie until the next wait: never block a close on it
 
     def close(self) -> None:
         super().close()

@@ -2,7 +2,8 @@
 
 It runs in a child process because dv-processing's LZ4 decoder can spin forever on a corrupt packet
 while holding the GIL: in the server's process that would stop HTTP, health and shutdown. The parent
-(``edmcgs.sensor.sources.aedat``) kills a child that stays silent too long.
+(``edmcgs.sensor.sources.aedat``) starts it as ``python -m edmcgs.sensor.sources.aedat_decoder PATH FD``
+(FD: its end of a socket pair) and kills a child that stays silent too long.
 
 Messages on the pipe, child to parent: ``("hello",)`` once its imports are done, ``("info", dict)``
 once the file is open, then per ``("read", begin_us)`` command
@@ -11,6 +12,9 @@ a run of ``("chunk", t, x, y, p, frames, imu, horizon_us)`` closed by ``("end",)
 """
 
 from __future__ import annotations
+
+import sys
+from multiprocessing.connection import Connection
 
 import dv_processing as dv
 import numpy as np
@@ -113,3 +117,7 @@ def _chunks(rec, begin_us: int):
         yield t, x, y, p, frames, imu, horizon
         if store is None:
             return
+
+
+if __name__ == "__main__":
+    serve(sys.argv[1], Connection(int(sys.argv[2])))

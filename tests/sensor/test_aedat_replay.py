@@ -176,3 +176,20 @@ def test_a_replay_starts_at_the_first_frame_when_it_precedes_the_first_event(tmp
         _, ev2, fr2 = _drain(src)
         assert src.stats.dropped == 0
     assert fr2 == frames and ev2 == ev  # nothing lost, the first frame included
+
+
+def test_a_plain_script_without_a_main_guard_reads_an_aedat4(tmp_path, dvxplorer_path):
+    """The decoder's child must not re-run the user's script (a spawn child imports ``__main__``)."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "count.py"
+    script.write_text("from edmcgs.sensor.sources.aedat import AedatReplay\n"
+                      "from edmcgs.sensor.sources.pacing import Pacing\n"
+                      "print('script body ran')\n"
+                      f"with AedatReplay({str(dvxplorer_path)!r}, Pacing(factor=0)) as src:\n"
+                      "    print('events', sum(len(b.events) for b in src))\n")
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
+                          cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.splitlines() == ["script body ran", f"events {DVX_EVENTS}"]
