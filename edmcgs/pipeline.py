@@ -34,6 +34,8 @@ from edmcgs.sensor.sources.hdf5 import SUPPORTED_LAYOUTS
 from edmcgs.sensor.sources.open import AEDAT_SUFFIXES, HDF5_SUFFIXES, open_source, parse_resolution
 from edmcgs.sensor.sources.pacing import Pacing
 
+_FOREVER = 2**62  # a time bound past any real timestamp
+
 
 def recording_intrinsics(rec: Recording) -> Intrinsics:
     """The recording's pinhole camera; without one, a centred camera with a 53-degree horizontal view."""
@@ -110,9 +112,11 @@ def build_config(name: str, overrides: list[str], rec: Recording) -> EdmcgsConfi
 # ------------------------------------------------------------------ any recording in
 
 
-def open_recording(path: str | Path, options: RecordingOptions | None = None, *,
-                   progress: bool = False) -> Recording:
-    """The recording at ``path`` in any format the sensor layer reads, with ``options`` applied."""
+def open_recording(path: str | Path, options: RecordingOptions | None = None, *, progress: bool = False,
+                   start_s: float = 0.0, duration_s: float | None = None, frames: bool = True) -> Recording:
+    """The recording at ``path`` in any format the sensor layer reads, with ``options`` applied; cut to
+    ``start_s`` .. ``duration_s`` as ``edmcgs record`` cuts a copy (``cut``), and without its frames when
+    ``frames`` is False."""
     path = Path(path)
     options = RecordingOptions() if options is None else options
     suffix = path.suffix.lower()
@@ -132,6 +136,13 @@ def open_recording(path: str | Path, options: RecordingOptions | None = None, *,
         if dropped:
             print(f"note: {dropped} invalid events of {path.name} were dropped: "
                   f"{rec.metadata['source_stats']}", file=sys.stderr)
+    if start_s or duration_s is not None:
+        rec = cut(rec, start_s=start_s, duration_s=duration_s)
+    if not frames:
+        if options.anchor_fps is not None or options.anchor_every is not None:
+            raise InvalidInputError("without frames there are no anchors to choose: leave out --no-frames or "
+                                    "--anchor-fps / --anchor-every")
+        rec = replace(rec, anchors=Frames.empty(rec.height, rec.width), held_out=None)
     if options.intrinsics is not None:
         rec = replace(rec, intrinsics=_intrinsics(options.intrinsics, rec.width, rec.height))
     if options.poses is not None:
@@ -147,6 +158,33 @@ def open_recording(path: str | Path, options: RecordingOptions | None = None, *,
     if options.anchor_fps is not None or options.anchor_every is not None:
         rec = split_frames(rec, fps=options.anchor_fps, every=options.anchor_every)
     return rec
+
+
+def cut(rec: Recording, *, start_s: float = 0.0, duration_s: float | None = None) -> Recording:
+    """``rec`` from ``start_s`` after its first timestamp, for ``duration_s`` counted from the first event
+    from there (as ``edmcgs record`` copies a replay); events and frames outside dropped, the trajectory
+    kept whole (poses are interpolated from it)."""
+    if not (math.isfinite(start_s) and start_s >= 0):
+        raise InvalidInputError(f"--start must be >= 0 seconds, got {start_s}")
+    if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
+        raise InvalidInputError(f"--duration must be a positive number of seconds, got {duration_s}")
+    span = rec.t_range_us
+    if span is None:
+        return rec
+    begin = span[0] + round(start_s * 1e6)
+    if begin > span[1]:
+        raise InvalidInputError(f"--start {start_s:g} s is past the end of the recording "
+                                f"({(span[1] - span[0]) / 1e6:g} s long)")
+    events = rec.events.time_slice(begin, _FOREVER)
+    first = begin if events.t_start is None else events.t_start
+    stop = _FOREVER if duration_s is None else first + round(duration_s * 1e6)
+
+    def window(frames: Frames | None) -> Frames | None:
+        return None if frames is None else frames.time_slice(begin, stop)
+
+    held = window(rec.held_out)
+    return replace(rec, events=events.time_slice(begin, stop), anchors=window(rec.anchors),
+                   held_out=held if held is not None and len(held) else None)
 
 
 def _is_ours(path: Path) -> bool:

@@ -1,6 +1,8 @@
 """``edmcgs record``: ``edmcgs.sensor.files.record`` (copy a camera or replay to AEDAT4 / HDF5), plus,
 for a file, the application layer's choices: ``--anchor-fps`` / ``--anchor-every`` store the anchor split
-(the other frames held out), ``--intrinsics`` and ``--poses`` the camera, in the HDF5 written."""
+(the other frames held out), ``--intrinsics`` and ``--poses`` the camera, in the HDF5 written. With those,
+``--start``, ``--duration`` and ``--no-frames`` cut the recording as a plain copy does; ``--factor``
+(real-time pacing) is refused, the file being read whole."""
 
 from __future__ import annotations
 
@@ -26,10 +28,17 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("the anchor split, intrinsics and poses are stored in our HDF5 format: give -o OUT.h5")
     if args.output.exists() and not args.force:
         parser.error(f"{args.output} exists (use --force to replace it)")
+    if args.factor:
+        parser.error("--factor paces a plain copy; with --anchor-fps, --anchor-every, --intrinsics or "
+                     "--poses the file is read whole, as fast as it decodes: leave out --factor")
+    if args.no_frames and (args.anchor_fps is not None or args.anchor_every is not None):
+        parser.error("--no-frames leaves no frames to choose anchors among: leave out --no-frames or "
+                     "--anchor-fps / --anchor-every")
     from edmcgs.pipeline import open_recording
 
     try:
-        rec = open_recording(args.source, options, progress=not args.quiet)
+        rec = open_recording(args.source, options, progress=not args.quiet, start_s=args.start,
+                             duration_s=args.duration, frames=not args.no_frames)
         write_recording(args.output, rec)
     except EdmcgsError as exc:
         print(f"edmcgs record: error: {exc}", file=sys.stderr)

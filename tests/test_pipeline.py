@@ -200,3 +200,29 @@ def test_help_is_instant_no_torch_before_the_arguments_parse(command):
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert "usage: edmcgs" in done.stdout
+
+
+def test_record_with_a_split_honours_start_and_duration_and_refuses_what_it_cannot(aps, tmp_path, capsys):
+    path, t = aps
+    out = tmp_path / "cut.h5"
+    args = ["record", str(path), "-o", str(out), "--anchor-every", "2", "--quiet"]
+    assert main([*args, "--start", "0.05", "--duration", "0.1"]) == 0
+    whole = open_recording(path)
+    begin = whole.t_range_us[0] + 50_000
+    first = whole.events.time_slice(begin, 2**62).t_start
+    rec = open_recording(out)
+    assert rec.events == whole.events.time_slice(begin, first + 100_000)
+    kept = t[(t >= begin) & (t < first + 100_000)]
+    assert rec.anchors.t_us.tolist() == kept[::2].tolist()
+    assert rec.held_out.t_us.tolist() == kept[1::2].tolist()
+    assert "events" in capsys.readouterr().out
+    for flag, said in ((["--factor", "1"], "--factor"), (["--no-frames"], "--no-frames")):
+        with pytest.raises(SystemExit):
+            main([*args, "--force", *flag])
+        assert said in capsys.readouterr().err
+    events_only = tmp_path / "events_only.h5"
+    assert main(["record", str(path), "-o", str(events_only), "--intrinsics", "40,40,23.5,15.5",
+                 "--no-frames", "--quiet"]) == 0
+    rec = open_recording(events_only)
+    assert len(rec.anchors) == 0 and rec.held_out is None and len(rec.events) == len(whole.events)
+    assert rec.intrinsics.tolist() == [40, 40, 23.5, 15.5]
