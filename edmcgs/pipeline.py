@@ -4,8 +4,9 @@ Every command (``edmcgs train``, ``edmcgs eval``, ``edmcgs record``), the server
 turn a recording into the model's plain arrays and config here; the model never sees the sensor's
 types, the sensor never the model's.
 
-Any recording the sensor layer reads comes in (``open_recording``: our HDF5 as stored; AEDAT4, DSEC
-and v2e files replayed into memory), with what the file cannot say given by the user: which frames are
+Any recording the sensor layer reads comes in (``open_recording``: our HDF5 as stored; every other
+format, ``edmcgs.sensor.sources.open.FORMATS``, replayed into memory, with the calibration and
+ground-truth trajectory it states), with what the file cannot say given by the user: which frames are
 anchors (``--anchor-fps`` / ``--anchor-every``: the other frames become held-out ground truth), the
 camera (``--intrinsics fx,fy,cx,cy`` or a DV calibration file) and its poses (``--poses`` TUM file).
 """
@@ -30,8 +31,7 @@ from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.files.record import read_source
 from edmcgs.sensor.files.recording import FORMAT_NAME, Recording, read_recording
 from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.sources.hdf5 import SUPPORTED_LAYOUTS
-from edmcgs.sensor.sources.open import AEDAT_SUFFIXES, HDF5_SUFFIXES, open_source, parse_resolution
+from edmcgs.sensor.sources.open import detect_format, open_source, parse_resolution
 from edmcgs.sensor.sources.pacing import Pacing
 
 _FOREVER = 2**62  # a time bound past any real timestamp
@@ -119,14 +119,7 @@ def open_recording(path: str | Path, options: RecordingOptions | None = None, *,
     ``frames`` is False."""
     path = Path(path)
     options = RecordingOptions() if options is None else options
-    suffix = path.suffix.lower()
-    if not path.is_file():
-        raise InvalidInputError(f"{path}: no such file")
-    if suffix not in AEDAT_SUFFIXES + HDF5_SUFFIXES:
-        raise InvalidInputError(f"{path}: not a recording this tool reads (a {suffix or 'suffix-less'} "
-                                f"file); expected AEDAT4 (.aedat4) or HDF5 (.h5, .hdf5: {FORMAT_NAME}, "
-                                + ", ".join(layout.split(" (")[0] for layout in SUPPORTED_LAYOUTS) + ")")
-    if suffix in HDF5_SUFFIXES and _is_ours(path):
+    if detect_format(path) == "hdf5" and _is_ours(path):
         rec = read_recording(path)
     else:
         resolution = parse_resolution(options.resolution)
@@ -136,6 +129,10 @@ def open_recording(path: str | Path, options: RecordingOptions | None = None, *,
         if dropped:
             print(f"note: {dropped} invalid events of {path.name} were dropped: "
                   f"{rec.metadata['source_stats']}", file=sys.stderr)
+        if rec.metadata.get("lens_distortion") and options.intrinsics is None:
+            print(f"warning: {path.name} states a lens distortion {rec.metadata['lens_distortion']}, which "
+                  "the pinhole model does not undo; undistort the recording first for the best fit",
+                  file=sys.stderr)
     if start_s or duration_s is not None:
         rec = cut(rec, start_s=start_s, duration_s=duration_s)
     if not frames:

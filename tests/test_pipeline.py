@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from edmcgs.cli import main
-from edmcgs.errors import InvalidInputError
+from edmcgs.errors import InvalidInputError, ReplayFormatError
 from edmcgs.model.eval.baselines import BASELINES, baseline_image, score_baselines
 from edmcgs.model.eval.compare import Comparison
 from edmcgs.model.eval.evaluation import FrameScore
@@ -171,9 +171,10 @@ def test_tum_poses_become_the_trajectory(tmp_path):
 
 def test_unreadable_formats_name_what_was_found_and_what_is_read(tmp_path):
     (tmp_path / "notes.txt").write_text("hello")
-    with pytest.raises(InvalidInputError, match=r"a \.txt file\); expected AEDAT4 .*DSEC"):
+    with pytest.raises(ReplayFormatError, match=r"notes.txt: not a recording read here .*AEDAT4.*AEDAT 2\.0 "
+                       r"/ 3\.1.*Prophesee RAW.*DSEC.*ROS 1 bag.*RPG text layout"):
         open_recording(tmp_path / "notes.txt")
-    with pytest.raises(InvalidInputError, match="no such file"):
+    with pytest.raises(ReplayFormatError, match="no such file"):
         open_recording(tmp_path / "missing.aedat4")
 
 

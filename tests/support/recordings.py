@@ -9,6 +9,10 @@ from edmcgs.sensor.events import Events
 from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.sources.dv_bridge import event_store, image_frame
 
+DATA = Path(__file__).resolve().parent.parent / "data"
+"""Real recordings from public packages' test data, each folder with its licence and a README saying where
+it came from and how it was cut."""
+
 # A DVXplorer recording as iniVation's DV software writes one: 320x240, Unix-epoch µs, events, IMU and an
 # empty trigger stream, no frames.
 DVX_SENSOR, DVX_SIZE = "DVXplorer_DXB00010", (320, 240)
