@@ -28,9 +28,9 @@ from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.motion.leanness import events_decision
 from edmcgs.options import RecordingOptions
 from edmcgs.sensor.event_map import accumulate
-from edmcgs.sensor.files.record import read_source
 from edmcgs.sensor.files.recording import FORMAT_NAME, Recording, read_recording
 from edmcgs.sensor.frames import Frames
+from edmcgs.sensor.record import read_source
 from edmcgs.sensor.sources.open import detect_format, open_source, parse_resolution
 from edmcgs.sensor.sources.pacing import Pacing
 

@@ -1,4 +1,4 @@
-"""``edmcgs record``: ``edmcgs.sensor.files.record`` (copy a camera or replay to AEDAT4 / HDF5), plus,
+"""``edmcgs record``: ``edmcgs.sensor.record`` (copy a camera or replay to AEDAT4 / HDF5), plus,
 for a file, the application layer's choices: ``--anchor-fps`` / ``--anchor-every`` store the anchor split
 (the other frames held out), ``--intrinsics`` and ``--poses`` the camera, in the HDF5 written. With those,
 ``--start``, ``--duration`` and ``--no-frames`` cut the recording as a plain copy does; ``--factor``
@@ -10,7 +10,7 @@ import sys
 
 from edmcgs.errors import EdmcgsError
 from edmcgs.options import RecordingOptions, add_recording_arguments
-from edmcgs.sensor.files import record
+from edmcgs.sensor import record
 from edmcgs.sensor.files.recording import write_recording
 from edmcgs.sensor.sources.open import HDF5_SUFFIXES
 

@@ -1,1 +1,1 @@
-"""Files: our HDF5 recording format, atomic writes and ``edmcgs record``."""
+"""Files: our HDF5 recording format (``recording``)."""

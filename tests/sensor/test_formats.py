@@ -11,9 +11,9 @@ import pytest
 from edmcgs.errors import ReplayFormatError, TrainingError
 from edmcgs.pipeline import open_recording, training_data
 from edmcgs.sensor.events import Events
-from edmcgs.sensor.files.record import main as record_main
 from edmcgs.sensor.files.recording import read_recording
 from edmcgs.sensor.frames import Frames
+from edmcgs.sensor.record import main as record_main
 from edmcgs.sensor.sources.open import detect_format, open_source
 from edmcgs.sensor.sources.pacing import Pacing
 from tests.support.recordings import DATA

@@ -3,9 +3,9 @@ import pytest
 
 from edmcgs.cli import main as edmcgs_main
 from edmcgs.sensor.events import Events
-from edmcgs.sensor.files.record import main, record
 from edmcgs.sensor.files.recording import read_recording, write_recording
 from edmcgs.sensor.frames import Frames
+from edmcgs.sensor.record import main, record
 from edmcgs.sensor.sources.aedat import AedatReplay
 from edmcgs.sensor.sources.hdf5 import Hdf5Replay
 from edmcgs.sensor.sources.pacing import Pacing
