@@ -1,19 +1,24 @@
 """Gaussians at one time as a 3DGS PLY file, the layout Inria's 3DGS, SuperSplat, gsplat's viewer and SIBR
-read: binary little-endian float32 ``x y z nx ny nz f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3``.
+read: binary little-endian float32 ``x y z nx ny nz f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3``,
+written with ``plyfile``.
 
 Stored as 3DGS stores its parameters: opacity as a logit, scales as logs, rotation as a unit quaternion
-(w, x, y, z), colour as SH coefficients whose DC term gives colour = 0.5 + C0 * f_dc. A degree-0 model
-(plain colours) is written as its DC term; a grey model's channel is written to R, G and B. Gaussians of
-exactly zero opacity (those of other anchor windows) are left out.
+(w, x, y, z), colour as SH coefficients whose DC term gives colour = 0.5 + C0 * f_dc. The SH degree is
+the model's: degree d has 3 ((d + 1)^2 - 1) ``f_rest`` columns, channel-major as 3DGS's ``save_ply``
+flattens its [N, 3, K - 1] ``features_rest`` (every R coefficient of degrees 1..d, then G's, then B's).
+A degree-0 model (plain colours) is written as its DC term; a grey model's channel is written to R, G
+and B. Gaussians of exactly zero opacity (those of other anchor windows) are left out.
 """
 
 from __future__ import annotations
 
+import io
 import os
 from pathlib import Path
 
 import numpy as np
 import torch
+from plyfile import PlyData, PlyElement
 
 from edmcgs.atomic import atomic_output
 from edmcgs.errors import InvalidInputError
@@ -52,22 +57,27 @@ def ply_fields(state: GaussianState) -> dict[str, np.ndarray]:
     return fields
 
 
-def ply_bytes(state: GaussianState) -> bytes:
-    """The PLY file of ``state`` (header and binary table) in memory."""
+def ply_data(state: GaussianState) -> PlyData:
+    """The PLY of ``state``: one ``vertex`` element of float32 columns, binary little-endian."""
     fields = ply_fields(state)
     n = len(next(iter(fields.values())))
     table = np.empty(n, dtype=[(k, "<f4") for k in fields])
     for k, v in fields.items():
         table[k] = v
-    header = "\n".join(["ply", "format binary_little_endian 1.0", f"element vertex {n}",
-                        *(f"property float {k}" for k in fields), "end_header"]) + "\n"
-    return header.encode("ascii") + table.tobytes()
+    return PlyData([PlyElement.describe(table, "vertex")], text=False, byte_order="<")
+
+
+def ply_bytes(state: GaussianState) -> bytes:
+    """The PLY file of ``state`` (header and binary table) in memory."""
+    buf = io.BytesIO()
+    ply_data(state).write(buf)
+    return buf.getvalue()
 
 
 def write_ply(state: GaussianState, path: str | os.PathLike) -> Path:
     """Write ``state`` to ``path`` (atomically); returns the path."""
-    data = ply_bytes(state)
+    data = ply_data(state)
     path = Path(path)
     with atomic_output(path, InvalidInputError) as tmp, open(tmp, "wb") as fh:
-        fh.write(data)
+        data.write(fh)
     return path
