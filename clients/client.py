@@ -6,6 +6,8 @@ Imports nothing of the project but the wire schema (``edmcgs.protocol``)::
         scene = c.scene()
         image, meta = c.render(t=0.5)                          # uint8 [H, W, C] and RenderMeta
         png, meta = c.render(t=0.5, pose=[...16...], format="png")
+        depth, meta = c.render(t=0.5, mode="depth")            # grey [H, W, 1], meta.depth_near / _far
+        z = depth_metres(depth, meta)                          # camera z in m [H, W]; NaN: no splat
         emap, meta = c.events(t=0.5)                           # I_E of its window: int32 [H, W], EventMapMeta
         with c.stream({"mode": "sweep", "t0": 0, "t1": 1, "fps": 30}) as frames:
             for frame in frames:                               # Frame, newest first when slow
@@ -132,6 +134,22 @@ def decode_image(data: bytes, fmt: str, width: int, height: int, channels: int) 
     return arr[..., None] if arr.ndim == 2 else arr
 
 
+def depth_metres(grey: np.ndarray, meta: protocol.FrameMeta) -> np.ndarray:
+    """A depth render's grey pixels [H, W] or [H, W, 1] -> camera z in m, float64 [H, W]: linear from
+    ``meta.depth_near`` (grey 255) to ``meta.depth_far`` (grey 1), NaN where no splat covers the pixel
+    (grey 0); the server's mapping (``protocol.DEPTH_GREY_NEAR``) undone, to within a grey step."""
+    if meta.render_mode != "depth":
+        raise ValueError(f"not a depth render (render_mode {meta.render_mode!r})")
+    grey = np.asarray(grey)
+    grey = grey[..., 0] if grey.ndim == 3 else grey
+    if meta.depth_near is None or meta.depth_far is None:
+        return np.full(grey.shape, np.nan)
+    lo, hi = protocol.DEPTH_GREY_FAR, protocol.DEPTH_GREY_NEAR
+    near, far = meta.depth_near, meta.depth_far
+    z = far - (grey.astype(np.float64) - lo) / (hi - lo) * (far - near)
+    return np.where(grey != protocol.DEPTH_GREY_NONE, z, np.nan)
+
+
 def _frame(message: dict) -> Frame:
     return Frame(**{k: message.get(k) for k in Frame.__dataclass_fields__})
 
@@ -165,15 +183,21 @@ class Client:
 
     def render(self, t: float | None = None, *, t_us: int | None = None, pose=None,
                width: int | None = None, height: int | None = None,
-               format: str = "msgpack") -> tuple[np.ndarray | bytes, RenderMeta]:
+               format: str = "msgpack", mode: str = "rgb") -> tuple[np.ndarray | bytes, RenderMeta]:
         """GET /render. ``t`` seconds from the scene's start, or ``t_us`` absolute (neither: the live head).
 
-        pose: 16 numbers (row-major c2w), 7 (tx,ty,tz,qw,qx,qy,qz), a 4x4 array, or None (the event
-        camera's own pose). format "msgpack" returns uint8 pixels [H, W, C]; "png" / "jpeg" the bytes.
+        pose: camera-to-world, 16 numbers (row-major), 7 (tx,ty,tz,qw,qx,qy,qz: the quaternion's w
+        first, where TUM files put it last), a 4x4 array, or None (the event camera's own pose).
+        format "msgpack" returns uint8 pixels [H, W, C]; "png" / "jpeg" the bytes.
+        mode (``protocol.RENDER_MODES``): "rgb"; "depth", the expected camera z as grey [H, W, 1] with
+        the meta's ``depth_near`` / ``depth_far`` (``depth_metres`` reads it back; take png or msgpack:
+        jpeg blurs the grey); "alpha", the splats' accumulated opacity as grey.
         """
         if format not in protocol.RENDER_FORMATS:
             raise ValueError(f"format must be one of {protocol.RENDER_FORMATS}, got {format!r}")
-        params: dict = {"format": format}
+        if mode not in protocol.RENDER_MODES:
+            raise ValueError(f"mode must be one of {protocol.RENDER_MODES}, got {mode!r}")
+        params: dict = {"format": format, "mode": mode}
         if t is not None:
             params["t"] = repr(float(t))
         if t_us is not None:

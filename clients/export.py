@@ -190,8 +190,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=float, default=15.0, help="frames per second of the output (default: 15)")
     p.add_argument("--speed", type=float, default=1.0,
                    help="scene seconds per output second; < 1 is slow motion (default: 1)")
-    p.add_argument("--pose", help="camera-to-world: 16 numbers row-major or 7 (tx,ty,tz,qw,qx,qy,qz), "
-                                  "comma-separated (default: the event camera's own pose)")
+    p.add_argument("--pose", help="camera-to-world (OpenCV axes): 16 numbers row-major or 7 "
+                                  "(tx,ty,tz,qw,qx,qy,qz: the quaternion's w FIRST, where TUM files put it "
+                                  "last), comma-separated (default: the event camera's own pose)")
     p.add_argument("--width", type=int, help="frame width (default: the event camera's)")
     p.add_argument("--height", type=int, help="frame height (default: the event camera's)")
     p.add_argument("--jobs", type=int, default=2, help="renders in flight (default: 2)")

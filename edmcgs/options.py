@@ -19,7 +19,8 @@ class RecordingOptions:
     intrinsics: str | None = None
     """``fx,fy,cx,cy`` in pixels, or a DV camera-calibration file (.json, or legacy .xml)."""
     poses: str | None = None
-    """A TUM trajectory file (``t tx ty tz qx qy qz qw``, t in seconds on the recording's clock)."""
+    """A TUM trajectory file (``t tx ty tz qx qy qz qw``: the quaternion's w last, where the server's
+    ``pose=`` puts it first; t in seconds on the recording's clock)."""
     resolution: str | None = None
     """``WIDTHxHEIGHT`` for HDF5 layouts that do not store it (DSEC, v2e)."""
 
@@ -42,8 +43,9 @@ def add_recording_arguments(parser: argparse.ArgumentParser, *, split: bool = Tr
     parser.add_argument("--intrinsics", metavar="FX,FY,CX,CY|CALIB.json",
                         help="the camera: pixels, or a DV camera-calibration file (default: the recording's)")
     parser.add_argument("--poses", metavar="TRAJ.txt",
-                        help="camera poses, TUM format: t tx ty tz qx qy qz qw (default: the recording's, "
-                             "else a static camera)")
+                        help="camera-to-world poses (OpenCV axes), TUM format: t tx ty tz qx qy qz qw, the "
+                             "quaternion's w LAST (GET /render's pose= and --pose take it first) "
+                             "(default: the recording's, else a static camera)")
     if resolution:
         parser.add_argument("--resolution", metavar="WxH",
                             help="HDF5 layouts without one (DSEC, v2e), e.g. 640x480")

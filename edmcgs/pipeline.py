@@ -270,8 +270,8 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         except ValueError:
             values = []
         if len(values) != 8 or not all(math.isfinite(v) for v in values):
-            raise InvalidInputError(f"{path}:{number}: expected 8 numbers 't tx ty tz qx qy qz qw', "
-                                    f"got {line!r}")
+            raise InvalidInputError(f"{path}:{number}: expected 8 numbers 't tx ty tz qx qy qz qw' (TUM: "
+                                    f"the quaternion's w last), got {line!r}")
         rows.append(values)
     if not rows:
         raise InvalidInputError(f"{path}: no poses in the trajectory file")

@@ -12,9 +12,16 @@ HTTP ``GET /render``
     Query: ``t`` | ``t_us`` (neither: the live head), ``pose`` (16 numbers row-major camera-to-world,
     or 7 numbers ``tx,ty,tz,qw,qx,qy,qz``, comma-separated or a JSON array; absent: the event
     camera's own pose at t), ``width``, ``height`` (one alone keeps the aspect ratio), ``format``
-    (``png`` | ``jpeg`` | ``msgpack``; absent: negotiated from ``Accept``, default png). The headers
-    ``HEADERS`` describe the render (``FrameMeta.headers`` / ``from_headers``). ``msgpack`` bodies
-    are a frame map (below) without ``seq`` and ``dropped``.
+    (``png`` | ``jpeg`` | ``msgpack``; absent: negotiated from ``Accept``, default png), ``mode``
+    (``RENDER_MODES``: ``rgb``, the default; ``depth``, the expected camera z of each pixel, grey:
+    ``DEPTH_GREY_NEAR``; ``alpha``, the splats' accumulated opacity 1 - T, grey). The headers ``HEADERS``
+    describe the render (``FrameMeta.headers`` / ``from_headers``). ``msgpack`` bodies are a frame map
+    (below) without ``seq`` and ``dropped``.
+
+Poses on the wire
+    Camera-to-world, OpenCV convention (x right, y down, z forward), in one of two forms: 16 numbers,
+    the 4x4 matrix row-major; or 7, ``tx,ty,tz,qw,qx,qy,qz``: the quaternion's w FIRST. (TUM trajectory
+    files, which ``--poses`` reads, put it last: ``t tx ty tz qx qy qz qw``.)
 
 HTTP ``GET /scene``
     A JSON map of the scene (span, anchors, camera, trajectory, what can be rendered now). Its
@@ -60,7 +67,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from enum import StrEnum
 from typing import Any, Literal
 
@@ -90,8 +97,27 @@ HEADER_HEIGHT = "X-Edmcgs-Height"  # image height, px
 HEADER_CHANNELS = "X-Edmcgs-Channels"  # 1 (grey) or 3 (RGB)
 HEADER_ANCHOR = "X-Edmcgs-Anchor"  # what the anchor is: checkpoint | predicted | corrected (ANCHOR_KINDS)
 HEADER_PROJECTED = "X-Edmcgs-Projected"  # true | false: projected onto the events since the anchor's frame
+HEADER_MODE = "X-Edmcgs-Mode"  # what the pixels are: rgb | depth | alpha (RENDER_MODES)
+HEADER_DEPTH_NEAR = "X-Edmcgs-Depth-Near"  # depth mode: the camera z (m) grey 255 stands for; else absent
+HEADER_DEPTH_FAR = "X-Edmcgs-Depth-Far"  # depth mode: the camera z (m) grey 1 stands for; else absent
 HEADERS = (HEADER_T_US, HEADER_T, HEADER_ANCHOR_US, HEADER_EVENTS, HEADER_RENDER_MS, HEADER_WIDTH,
-           HEADER_HEIGHT, HEADER_CHANNELS, HEADER_ANCHOR, HEADER_PROJECTED)
+           HEADER_HEIGHT, HEADER_CHANNELS, HEADER_ANCHOR, HEADER_PROJECTED, HEADER_MODE)
+"""The headers of every GET /render response (a depth render adds ``HEADER_DEPTH_NEAR`` / ``_FAR``)."""
+
+RENDER_MODES = ("rgb", "depth", "alpha")
+"""What a render's pixels show: the colour; the expected depth along the camera's z of each pixel,
+sum_i w_i z_i / sum_i w_i over the splats blended into it (w_i = alpha_i T_i; normalised by the pixel's
+opacity, so a faint edge has its surface's depth), grey (``DEPTH_GREY_NEAR``); the accumulated opacity
+of the splats 1 - T (T the transmittance left behind the last one), grey 0..255. Depth and alpha leave
+out a checkpoint's background layer (not Gaussians) and are never projected onto the events."""
+
+DEPTH_GREY_NEAR = 255
+"""A depth render's grey at its near (``HEADER_DEPTH_NEAR``, the frame map's ``depth_near``)."""
+DEPTH_GREY_FAR = 1
+"""... at its far (``HEADER_DEPTH_FAR``, ``depth_far``); linear in camera z between, depths beyond clipped:
+z = far - (grey - 1) / 254 * (far - near)."""
+DEPTH_GREY_NONE = 0
+"""... where no splat covers the pixel."""
 
 RENDER_FORMATS = ("png", "jpeg", "msgpack")
 STREAM_FORMATS = ("jpeg", "png", "raw")
@@ -120,6 +146,9 @@ FRAME_KEYS = (
     "format",  # "jpeg" | "png" | "raw" (msgpack body of /render: "raw")
     "anchor",  # what the anchor is: "checkpoint" | "predicted" | "corrected" (ANCHOR_KINDS)
     "projected",  # true: the event camera's view projected onto the events since the anchor's frame
+    "render_mode",  # what the pixels show: "rgb" | "depth" | "alpha" (RENDER_MODES)
+    "depth_near",  # depth: the camera z (m) grey 255 stands for (DEPTH_GREY_NEAR); else null
+    "depth_far",  # depth: the camera z (m) grey 1 stands for; else null
     "data",  # bytes: the encoded image, or for "raw" uint8 pixels [height, width, channels] row-major
 )
 LIVE_KEYS = ("arrived_unix_us", "head_arrived_unix_us")
@@ -188,14 +217,15 @@ def parse_pose_text(text: str) -> list[float]:
 
 
 def check_pose_numbers(values: Any) -> list[float]:
-    """Check a pose given as a sequence of 16 (row-major c2w) or 7 (tx,ty,tz,qw,qx,qy,qz) numbers."""
+    """Check a pose given as a sequence of 16 (row-major c2w) or 7 (tx,ty,tz,qw,qx,qy,qz: w first)
+    numbers."""
     if isinstance(values, (str, bytes)) or not hasattr(values, "__len__"):
         raise ProtocolError("pose", "pose must be a list of 16 or 7 numbers")
     if len(values) == 4 and all(hasattr(row, "__len__") and len(row) == 4 for row in values):
         values = [v for row in values for v in row]  # a nested 4x4 matrix
     if len(values) not in (16, 7):
-        raise ProtocolError("pose", f"pose must have 16 (4x4 row-major c2w) or 7 (tx,ty,tz,qw,qx,qy,qz) "
-                                    f"numbers, got {len(values)}")
+        raise ProtocolError("pose", f"pose must have 16 (4x4 row-major c2w) or 7 (tx,ty,tz,qw,qx,qy,qz: the "
+                                    f"quaternion's w first) numbers, got {len(values)}")
     out = []
     for i, v in enumerate(values):
         try:
@@ -253,14 +283,19 @@ class Subscription:
     loop: bool = False
     """Sweep only: start over at t1 instead of ending."""
     pose: list[float] | None = None
-    """Camera-to-world, 16 numbers (row-major 4x4, OpenCV convention) or 7 (tx,ty,tz,qw,qx,qy,qz), or a
-    nested 4x4 (see ``check_pose_numbers``); ``None``: the event camera's own pose."""
+    """Camera-to-world, OpenCV convention: 16 numbers (the 4x4 row-major) or 7 (tx,ty,tz,qw,qx,qy,qz: the
+    quaternion's w first, where TUM files put it last), or a nested 4x4 (see ``check_pose_numbers``);
+    ``None``: the event camera's own pose."""
     width: int | None = None
     """Output width in pixels (``None``: the event camera's; one side alone keeps the aspect ratio)."""
     height: int | None = None
     """Output height in pixels (``None``: the event camera's; one side alone keeps the aspect ratio)."""
     format: Literal["jpeg", "png", "raw"] = "jpeg"
     """``"jpeg"`` | ``"png"`` | ``"raw"`` (uint8 pixels [height, width, channels], row-major)."""
+    render_mode: Literal["rgb", "depth", "alpha"] = "rgb"
+    """What the frames show (``RENDER_MODES``; GET /render's ``mode``): ``"rgb"``, ``"depth"`` (the expected
+    camera z, grey: 255 at the frame's ``depth_near``, 1 at its ``depth_far``, 0 where no splat is) or
+    ``"alpha"`` (the splats' accumulated opacity, grey)."""
 
     def to_message(self) -> dict:
         """The map to send (``None`` fields left out)."""
@@ -321,10 +356,13 @@ def _validated(values: dict) -> Subscription:
         raise ProtocolError("mode", f"mode must be one of {STREAM_MODES}, got {values['mode']!r}")
     if values["format"] not in STREAM_FORMATS:
         raise ProtocolError("format", f"format must be one of {STREAM_FORMATS}, got {values['format']!r}")
+    if values["render_mode"] not in RENDER_MODES:
+        raise ProtocolError("render_mode", f"render_mode must be one of {RENDER_MODES}, got "
+                                           f"{values['render_mode']!r}")
     if not isinstance(values["loop"], bool):
         raise ProtocolError("loop", f"loop must be true or false, got {values['loop']!r}")
     out = dict(
-        mode=values["mode"], format=values["format"], loop=values["loop"],
+        mode=values["mode"], format=values["format"], loop=values["loop"], render_mode=values["render_mode"],
         t0=_number(values, "t0"), t1=_number(values, "t1"),
         t0_us=_number(values, "t0_us", integer=True), t1_us=_number(values, "t1_us", integer=True),
         fps=_number(values, "fps", positive=True, optional=False),
@@ -570,22 +608,36 @@ class FrameMeta:
     """The event camera's own view from an online anchor, clipped into the bounds its frame and the events
     since it put on each pixel (one contrast threshold either side of the frame moved by the events); the
     model renders what they leave open. False: the model's render alone."""
+    render_mode: str = field(default="rgb", kw_only=True)
+    """What the pixels show (``RENDER_MODES``): rgb, depth (grey, ``DEPTH_GREY_NEAR``) or alpha (grey)."""
+    depth_near: float | None = field(default=None, kw_only=True)
+    """Depth: the camera z (m) grey 255 stands for (the 1st percentile of the covered pixels' depths);
+    else ``None``."""
+    depth_far: float | None = field(default=None, kw_only=True)
+    """Depth: the camera z (m) grey 1 stands for (the 99th percentile); else ``None``."""
 
     def headers(self) -> dict[str, str]:
-        """The ``HEADERS`` of a GET /render response."""
-        return {HEADER_T_US: str(self.t_us), HEADER_T: repr(self.t), HEADER_ANCHOR_US: str(self.anchor_us),
-                HEADER_EVENTS: str(self.events), HEADER_RENDER_MS: f"{self.render_ms:.3f}",
-                HEADER_WIDTH: str(self.width), HEADER_HEIGHT: str(self.height),
-                HEADER_CHANNELS: str(self.channels), HEADER_ANCHOR: self.anchor,
-                HEADER_PROJECTED: "true" if self.projected else "false"}
+        """The ``HEADERS`` of a GET /render response, and a depth render's near and far."""
+        out = {HEADER_T_US: str(self.t_us), HEADER_T: repr(self.t), HEADER_ANCHOR_US: str(self.anchor_us),
+               HEADER_EVENTS: str(self.events), HEADER_RENDER_MS: f"{self.render_ms:.3f}",
+               HEADER_WIDTH: str(self.width), HEADER_HEIGHT: str(self.height),
+               HEADER_CHANNELS: str(self.channels), HEADER_ANCHOR: self.anchor,
+               HEADER_PROJECTED: "true" if self.projected else "false", HEADER_MODE: self.render_mode}
+        if self.depth_near is not None and self.depth_far is not None:
+            out |= {HEADER_DEPTH_NEAR: repr(self.depth_near), HEADER_DEPTH_FAR: repr(self.depth_far)}
+        return out
 
     @classmethod
     def from_headers(cls, headers, format: str) -> FrameMeta:
         """Read the ``HEADERS`` of a GET /render response (any case-insensitive mapping)."""
+        near, far = headers.get(HEADER_DEPTH_NEAR), headers.get(HEADER_DEPTH_FAR)
         return cls(int(headers[HEADER_T_US]), float(headers[HEADER_T]), int(headers[HEADER_ANCHOR_US]),
                    int(headers[HEADER_EVENTS]), float(headers[HEADER_RENDER_MS]), int(headers[HEADER_WIDTH]),
                    int(headers[HEADER_HEIGHT]), int(headers[HEADER_CHANNELS]), format,
-                   headers.get(HEADER_ANCHOR, "checkpoint"), headers.get(HEADER_PROJECTED, "false") == "true")
+                   headers.get(HEADER_ANCHOR, "checkpoint"), headers.get(HEADER_PROJECTED, "false") == "true",
+                   render_mode=headers.get(HEADER_MODE, "rgb"),
+                   depth_near=None if near is None else float(near),
+                   depth_far=None if far is None else float(far))
 
     def to_message(self, data: bytes, **stream: Any) -> dict:
         """A frame map (``FRAME_KEYS``): these fields and the image ``data``, plus the websocket's
@@ -598,10 +650,14 @@ class FrameMeta:
     @classmethod
     def from_message(cls, message: dict, format: str | None = None) -> FrameMeta:
         """Read a frame map (the ``data`` and stream keys are left to the caller)."""
+        near, far = message.get("depth_near"), message.get("depth_far")
         return cls(int(message["t_us"]), float(message["t"]), int(message["anchor_us"]),
                    int(message["events"]), float(message["render_ms"]), int(message["width"]),
                    int(message["height"]), int(message["channels"]), format or message["format"],
-                   message.get("anchor", "checkpoint"), bool(message.get("projected", False)))
+                   message.get("anchor", "checkpoint"), bool(message.get("projected", False)),
+                   render_mode=message.get("render_mode", "rgb"),
+                   depth_near=None if near is None else float(near),
+                   depth_far=None if far is None else float(far))
 
 
 # The OpenAPI and AsyncAPI documents are generated from these types (server/wire_schema.py, by pydantic):

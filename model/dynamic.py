@@ -393,21 +393,9 @@ class EdMCGS(nn.Module):
         w2c = world_to_camera(c2w)
         layer = self.bg_layer if background is None else None
         bg = np.zeros(self.meta.channels, np.float32) if layer is not None else self._background(background)
-        with translated((RuntimeError, ValueError), lambda exc: RenderError(f"rendering failed: {exc}"),
-                        keep=InvalidInputError):
+        with _render_errors():
             if fast:
-                # Imported here: the forward-only numba renderer is for serving.
-                from edmcgs.model.render.rasterize_fast import rasterize_fast
-
-                arrays = [t.detach().cpu().numpy() for t in state.tensors()]
-                torch_threads = torch.get_num_threads()
-                try:
-                    out = rasterize_fast(*arrays, w2c.astype(np.float32), intrinsics, background=bg,
-                                         threads=threads, return_alpha=layer is not None)
-                finally:
-                    # numba's OpenMP layer sets the process-wide OpenMP thread count, which is also
-                    # torch's; put back what the caller chose.
-                    torch.set_num_threads(torch_threads)
+                out = _rasterize_fast(state, w2c, intrinsics, bg, threads, alpha=layer is not None)
                 image = out.image
                 if layer is not None:
                     behind = layer.image(c2w[:3, :3], intrinsics).detach().cpu().numpy()
@@ -422,6 +410,31 @@ class EdMCGS(nn.Module):
             image = np.nan_to_num(image, nan=0.0, posinf=1.0, neginf=0.0)
         return np.clip(image, 0.0, 1.0, out=image)
 
+    @torch.no_grad()
+    def render_depth_alpha(self, state: GaussianState, c2w: np.ndarray, intrinsics: Intrinsics, *,
+                           fast: bool = True, threads: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The splats of ``state`` seen from ``c2w`` as two float32 [H, W] maps: the expected depth along
+        the camera's z, sum_i w_i z_i / sum_i w_i over the splats blended into each pixel (w_i = alpha_i
+        T_i; 0 where none is), and the accumulated opacity 1 - T. A background layer is not in them (it
+        is no set of Gaussians). fast, threads: as ``render``."""
+        c2w = np.asarray(c2w, dtype=np.float64)
+        validate_pose(c2w)
+        w2c = world_to_camera(c2w)
+        bg = np.zeros(self.meta.channels, np.float32)
+        with _render_errors():
+            if fast:
+                out = _rasterize_fast(state, w2c, intrinsics, bg, threads, alpha=True, depth=True)
+                depth, alpha = out.depth, out.alpha
+            else:
+                dev = state.means.device
+                out = rasterize(*state.tensors(), torch.as_tensor(w2c, dtype=torch.float32, device=dev),
+                                intrinsics, background=torch.as_tensor(bg, device=dev), return_depth=True,
+                                return_alpha=True)
+                depth, alpha = out.depth.cpu().numpy(), out.alpha.cpu().numpy()
+        depth = np.nan_to_num(depth.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+        alpha = np.nan_to_num(alpha.astype(np.float32), nan=0.0, posinf=1.0, neginf=0.0)
+        return np.maximum(depth, 0.0, out=depth), np.clip(alpha, 0.0, 1.0, out=alpha)
+
     def _background(self, background) -> np.ndarray:
         c = self.meta.channels
         if background is None:
@@ -432,6 +445,29 @@ class EdMCGS(nn.Module):
         if bg.size != c or not np.all(np.isfinite(bg)):
             raise InvalidInputError(f"background must be a number or {c} finite numbers, got {background!r}")
         return bg
+
+
+def _render_errors():
+    """A rasterizer's RuntimeError / ValueError as a RenderError (our InvalidInputError kept)."""
+    return translated((RuntimeError, ValueError), lambda exc: RenderError(f"rendering failed: {exc}"),
+                      keep=InvalidInputError)
+
+
+def _rasterize_fast(state: GaussianState, w2c: np.ndarray, intrinsics: Intrinsics, background: np.ndarray,
+                    threads: int | None, *, alpha: bool = False, depth: bool = False):
+    """``rasterize_fast`` of ``state`` (numpy RenderOutput), torch's thread count kept."""
+    # Imported here: the forward-only numba renderer is for serving.
+    from edmcgs.model.render.rasterize_fast import rasterize_fast
+
+    arrays = [t.detach().cpu().numpy() for t in state.tensors()]
+    torch_threads = torch.get_num_threads()
+    try:
+        return rasterize_fast(*arrays, w2c.astype(np.float32), intrinsics, background=background,
+                              threads=threads, return_alpha=alpha, return_depth=depth)
+    finally:
+        # numba's OpenMP layer sets the process-wide OpenMP thread count, which is also torch's; put
+        # back what the caller chose.
+        torch.set_num_threads(torch_threads)
 
 
 def background_color(config: EdmcgsConfig, channels: int) -> Tensor:

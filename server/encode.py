@@ -1,4 +1,5 @@
-"""Rendered float images -> bytes on the wire (PNG, JPEG, raw uint8); event maps -> DV-style RGBA."""
+"""Rendered float images -> bytes on the wire (PNG, JPEG, raw uint8); depth maps -> grey with their
+near and far; event maps -> DV-style RGBA."""
 
 from __future__ import annotations
 
@@ -52,3 +53,27 @@ def event_rgba(emap: np.ndarray) -> np.ndarray:
     out[emap > 0] = (*protocol.EVENT_ON_RGB, 255)
     out[emap < 0] = (*protocol.EVENT_OFF_RGB, 255)
     return out
+
+
+COVERED = 1 / 255
+"""A pixel is covered by splats where their accumulated opacity reaches this (a non-zero alpha grey)."""
+DEPTH_PERCENTILES = (1.0, 99.0)
+"""A depth render's near and far: these percentiles of its covered pixels' depths (a stray splat right in
+front of the camera or far behind the scene does not flatten the rest)."""
+
+
+def depth_grey(depth: np.ndarray, alpha: np.ndarray) -> tuple[np.ndarray, float | None, float | None]:
+    """Expected depth [H, W] and the splats' opacity [H, W] -> (uint8 [H, W, 1], near, far): grey
+    ``protocol.DEPTH_GREY_NEAR`` (255) at ``near``, ``DEPTH_GREY_FAR`` (1) at ``far`` and linear between
+    (nearer brighter; depths beyond them clipped), ``DEPTH_GREY_NONE`` (0) where no splat covers the
+    pixel. near and far are None, and every pixel 0, when none is covered."""
+    covered = alpha >= COVERED
+    out = np.full((*depth.shape, 1), protocol.DEPTH_GREY_NONE, np.uint8)
+    if not covered.any():
+        return out, None, None
+    near, far = (float(v) for v in np.percentile(depth[covered], DEPTH_PERCENTILES))
+    far = max(far, near + max(1e-6, 1e-6 * abs(near)))  # a flat view: every covered pixel at 255
+    lo, hi = protocol.DEPTH_GREY_FAR, protocol.DEPTH_GREY_NEAR
+    grey = lo + (hi - lo) * (far - depth[covered].astype(np.float64)) / (far - near)
+    out[covered, 0] = np.rint(np.clip(grey, lo, hi)).astype(np.uint8)
+    return out, near, far

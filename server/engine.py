@@ -25,7 +25,7 @@ from edmcgs.model.online import bounds as event_bounds
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.events import Events
-from edmcgs.server.encode import to_uint8
+from edmcgs.server.encode import depth_grey, to_uint8
 from edmcgs.server.live.clock import Instant, Timeline, TimeNotRenderable, fmt
 from edmcgs.server.live.playback import Playback
 from edmcgs.server.live.timebase import Start, Timebase
@@ -49,6 +49,11 @@ class Rendered:
     "project"."""
     projected: bool = False
     """Projected onto the events since the anchor's frame (``Start.frame``)."""
+    mode: str = "rgb"
+    """What the pixels show (protocol.RENDER_MODES)."""
+    depth_range: tuple[float, float] | None = None
+    """Depth mode: the (near, far) camera z of grey 255 and 1 (encode.depth_grey); None: nothing covered,
+    or another mode."""
 
 
 class Engine:
@@ -198,12 +203,16 @@ class Engine:
         return native.scaled(width, height)
 
     def render(self, t_us: int | None, pose: np.ndarray | None, width: int, height: int, *,
-               camera_view: bool | None = None) -> Rendered:
+               camera_view: bool | None = None, mode: str = "rgb") -> Rendered:
         """Pixels of the scene at ``t_us`` (None: the head) from ``pose`` (None: the event camera's).
 
         camera_view: whether ``pose`` is the event camera's own at that time (default: when ``pose`` is
         None or equals it, ``CAMERA_POSE_ATOL``). Its view from an anchor whose frame the stream gave
-        (past the span) is projected onto the events since that frame (``Start.frame``)."""
+        (past the span) is projected onto the events since that frame (``Start.frame``).
+        mode: protocol.RENDER_MODES; depth and alpha are grey [H, W, 1] (encode.depth_grey, to_uint8),
+        the splats' alone, never projected."""
+        if mode not in protocol.RENDER_MODES:
+            raise InvalidInputError(f"mode must be one of {', '.join(protocol.RENDER_MODES)}, got {mode!r}")
         instant = self.resolve(t_us)
         own = functools.cache(lambda: self.timebase.pose(instant.t_us))  # looked up once, where needed
         t0 = time.perf_counter()
@@ -212,8 +221,19 @@ class Engine:
         c2w = own() if pose is None else pose
         if c2w is None:
             raise InvalidInputError(NO_POSE)
-        image = self.model.render(state, c2w, self.intrinsics(width, height), fast=self.fast,
-                                  threads=self.raster_threads)
+        intr = self.intrinsics(width, height)
+        if mode != "rgb":
+            depth, alpha = self.model.render_depth_alpha(state, c2w, intr, fast=self.fast,
+                                                         threads=self.raster_threads)
+            depth_range = None
+            if mode == "depth":
+                pixels, near, far = depth_grey(depth, alpha)
+                depth_range = None if near is None else (near, far)
+            else:
+                pixels = to_uint8(alpha[..., None])
+            stages = {"state": t1 - t0, "raster": time.perf_counter() - t1}
+            return Rendered(pixels, instant, n_events, start.kind, stages, mode=mode, depth_range=depth_range)
+        image = self.model.render(state, c2w, intr, fast=self.fast, threads=self.raster_threads)
         if camera_view is None:  # a pose given is the camera's view when it is its own (checked where it can)
             camera_view = pose is None or (start.frame is not None and own() is not None
                                            and np.allclose(pose, own(), rtol=0.0, atol=CAMERA_POSE_ATOL))

@@ -191,6 +191,9 @@ class Scene(_Body):
     """GET /render's formats."""
     stream_formats: list[Literal["jpeg", "png", "raw"]]
     """The websocket's frame formats."""
+    render_modes: list[Literal["rgb", "depth", "alpha"]]
+    """What a render can show (GET /render's ``mode``, a subscription's ``render_mode``): the colour, the
+    expected camera z as grey, the splats' accumulated opacity as grey."""
 
 
 class Health(_Body):

@@ -251,11 +251,12 @@ class Service:
         return int(width), int(height)
 
     def render_frame(self, t_us: int | None, pose: np.ndarray | None, width: int, height: int,
-                     fmt: str) -> RenderedFrame:
-        """Blocking (run on the pool): one render, ``data`` encoded in ``fmt`` (png | jpeg | raw)."""
+                     fmt: str, mode: str = "rgb") -> RenderedFrame:
+        """Blocking (run on the pool): one render, ``data`` encoded in ``fmt`` (png | jpeg | raw); ``mode``
+        what it shows (protocol.RENDER_MODES)."""
         t0 = time.perf_counter()
         try:
-            rendered = self.engine.render(t_us, pose, width, height)
+            rendered = self.engine.render(t_us, pose, width, height, mode=mode)
             t1 = time.perf_counter()
             data = encode(rendered.pixels, fmt, jpeg_quality=self.settings.jpeg_quality,
                           png_compress_level=self.settings.png_compress_level)
@@ -267,10 +268,12 @@ class Service:
             raise RenderError(f"render failed: {type(exc).__name__}: {exc}") from exc
         ms = (time.perf_counter() - t0) * 1e3
         inst = rendered.instant
+        near, far = (None, None) if rendered.depth_range is None else rendered.depth_range
         meta = protocol.FrameMeta(t_us=inst.t_us, t=self.engine.seconds_of(inst.t_us),
                                   anchor_us=inst.anchor_us, events=rendered.events, render_ms=round(ms, 3),
                                   width=width, height=height, channels=int(rendered.pixels.shape[2]),
-                                  format=fmt, anchor=rendered.anchor, projected=rendered.projected)
+                                  format=fmt, anchor=rendered.anchor, projected=rendered.projected,
+                                  render_mode=rendered.mode, depth_near=near, depth_far=far)
         return RenderedFrame(meta, data, inst.window)
 
     def event_map(self, t_us: int | None, fmt: str) -> tuple[protocol.EventMapMeta, bytes]:
@@ -330,6 +333,7 @@ class Service:
                        "stream_max_fps": self.settings.stream_max_fps},
             "formats": list(protocol.RENDER_FORMATS),
             "stream_formats": list(protocol.STREAM_FORMATS),
+            "render_modes": list(protocol.RENDER_MODES),
         }
 
     def online_info(self) -> dict | None:

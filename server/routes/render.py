@@ -22,10 +22,17 @@ T_DOC = ("Scene time in seconds from the scene's start (`t_start_us` of GET /sce
 T_US_DOC = ("Scene time in absolute microseconds, on the checkpoint's clock (Unix-epoch µs for a real "
             "camera): `t_us = t_start_us + round(t * 1e6)`.")
 POSE_DOC = ("Camera-to-world pose, OpenCV convention (x right, y down, z forward): 16 numbers (row-major "
-            "4x4) or 7 (tx,ty,tz,qw,qx,qy,qz), comma-separated or a JSON array. Default: the event "
-            "camera's own pose at t (the checkpoint's trajectory).")
+            "4x4) or 7 (tx,ty,tz,qw,qx,qy,qz: the quaternion's w FIRST; TUM trajectory files put it last, "
+            "qx qy qz qw), comma-separated or a JSON array. Default: the event camera's own pose at t (the "
+            "checkpoint's trajectory).")
 SIZE_DOC = "Output {} in pixels (default: the camera's; one side alone keeps the aspect ratio; capped)."
 FORMAT_DOC = "png (default), jpeg, or msgpack (a frame map with raw uint8 pixels); else from Accept."
+MODE_DOC = (f"What the image shows: rgb (default); depth, the expected depth along the camera's z of each "
+            f"pixel (sum w_i z_i / sum w_i over the splats blended into it), one grey channel, 255 at "
+            f"{protocol.HEADER_DEPTH_NEAR} and 1 at {protocol.HEADER_DEPTH_FAR} (camera z in m: the 1st and "
+            f"99th percentiles of the covered pixels; nearer is brighter), 0 where no splat is; alpha, the "
+            f"splats' accumulated opacity 1 - T, one grey channel. Depth and alpha leave out a background "
+            f"layer and are never projected onto the events.")
 
 ERROR_REF = {"$ref": "#/components/schemas/ErrorBody"}
 """The error body of every route, ``protocol.ErrorBody`` (its schema is added by ``server/openapi.py``)."""
@@ -99,7 +106,9 @@ async def pose_query(pose: Annotated[str | None, Query(description=POSE_DOC,
     "/render", response_class=Response, summary="Render the scene at time t from a pose",
     responses={200: {"content": {media: {"schema": {"type": "string", "format": "binary"}}
                                  for media in protocol.MEDIA_TYPES.values()},
-                     "description": "the image; headers " + ", ".join(protocol.HEADERS)}, **ERRORS})
+                     "description": "the image; headers " + ", ".join(protocol.HEADERS) + " (and for "
+                                    f"mode=depth {protocol.HEADER_DEPTH_NEAR}, {protocol.HEADER_DEPTH_FAR})"},
+                **ERRORS})
 async def render(
     service: ServiceDep,
     scene_t: Annotated[int | None, Depends(scene_time)],
@@ -107,12 +116,13 @@ async def render(
     width: Annotated[int | None, Query(description=SIZE_DOC.format("width"), ge=1)] = None,
     height: Annotated[int | None, Query(description=SIZE_DOC.format("height"), ge=1)] = None,
     format: Annotated[Literal["png", "jpeg", "msgpack"] | None, Query(description=FORMAT_DOC)] = None,
+    mode: Annotated[Literal["rgb", "depth", "alpha"], Query(description=MODE_DOC)] = "rgb",
     accept: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> Response:
     w, h = service.size(width, height)
     fmt = format or protocol.negotiate_format(accept)
     frame = await service.pool.run(partial(service.render_frame, scene_t, c2w, w, h,
-                                           "raw" if fmt == "msgpack" else fmt))
+                                           "raw" if fmt == "msgpack" else fmt, mode))
     service.metrics.render.labels("http").observe(frame.meta.render_ms / 1e3)
     headers = {**frame.meta.headers(), "Cache-Control": "no-store"}
     body = protocol.pack(frame.meta.to_message(frame.data)) if fmt == "msgpack" else frame.data

@@ -190,7 +190,7 @@ class StreamSession:
                 continue  # a new subscription while waiting: render what is asked now
             try:
                 frame = await self.service.pool.run_stream(partial(
-                    self.service.render_frame, t_us, self.pose, *self.size, sub.format))
+                    self.service.render_frame, t_us, self.pose, *self.size, sub.format, sub.render_mode))
             except WindowUnavailable as exc:
                 if sub.mode == "live":
                     # The head is outside the trained span, or before this pass's first anchor: wait

@@ -95,6 +95,10 @@ def test_every_route_has_response_schemas_and_the_bearer_scheme(client):
     assert scene == {"$ref": "#/components/schemas/Scene"}
     assert doc["components"]["schemas"]["Scene"]["properties"]["tau_sources"]["items"] == {
         "$ref": "#/components/schemas/TauRange"}
+    params = {p["name"]: p for p in doc["paths"]["/render"]["get"]["parameters"]}
+    assert params["mode"]["schema"]["enum"] == list(protocol.RENDER_MODES)
+    assert params["mode"]["schema"]["default"] == "rgb"
+    assert "w FIRST" in params["pose"]["description"] and "qx qy qz qw" in params["pose"]["description"]
     bearer = doc["components"]["securitySchemes"]["bearer"]
     assert (bearer["type"], bearer["scheme"]) == ("http", "bearer")
     assert "EDMCGS_TOKEN" in bearer["description"]
@@ -130,6 +134,8 @@ def test_the_asyncapi_document_follows_the_protocol(client):
     assert all(p.get("description") for p in sub["properties"].values())  # every field documented
     assert sub["properties"]["format"]["enum"] == list(protocol.STREAM_FORMATS)
     assert sub["properties"]["mode"]["enum"] == list(protocol.STREAM_MODES)
+    assert sub["properties"]["render_mode"]["enum"] == list(protocol.RENDER_MODES)
+    assert "w first" in sub["properties"]["pose"]["description"]  # the quaternion's order, stated
     frame = schemas["Frame"]
     meta = protocol.FrameMeta(1, 0.0, 1, 0, 1.0, 8, 8, 3, "jpeg", "checkpoint", False)
     sent = meta.to_message(b"x", seq=0, dropped=0, arrived_unix_us=1, head_arrived_unix_us=2)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from edmcgs.errors import InvalidInputError
 from edmcgs.model.checkpoint import load_checkpoint
 from edmcgs.sensor.buffer.anchors import AnchorStore
 from edmcgs.sensor.buffer.ring import EventRingBuffer
@@ -96,3 +97,51 @@ def test_at_a_pass_boundary_the_first_anchor_comes_from_the_pass_that_has_it(sce
     inst = engine.resolve(t0)
     assert inst.window == (t0, t0) and inst.anchor_us == t0
     assert engine.resolve(None).t_us == engine.end_us
+
+
+def test_depth_and_alpha_modes_are_the_reference_renderers(scene):
+    """A depth render decodes (near, far from its range) to the float64 reference renderer's expected
+    depth, sum w_i z_i / sum w_i, within a grey step; an alpha render is its 1 - T; both grey, the splats'
+    alone."""
+    from edmcgs import protocol
+    from edmcgs.clients.client import depth_metres
+    from edmcgs.geometry import world_to_camera
+    from edmcgs.model.render import reference
+
+    engine, events = _engine(scene, capacity=10**6, loop=False)
+    t0 = engine.first_us
+    engine.ring.push(events.time_slice(t0, t0 + 600_000), complete_until_us=t0 + 600_000)
+    t = t0 + 400_000
+    pose = np.array([[0.995, 0.0, 0.0998, 0.05], [0.0, 1.0, 0.0, 0.0], [-0.0998, 0.0, 0.995, 0.0],
+                     [0.0, 0.0, 0.0, 1.0]])  # 5 cm to the right, turned ~6 degrees: not the camera's view
+    width, height = 80, 60
+    state, _ = engine.state(engine.resolve(t))
+    arrays = [a.detach().numpy() for a in state.tensors()]
+    _, ref_alpha, ref_depth = reference.render_camera(arrays, world_to_camera(pose),
+                                                      engine.intrinsics(width, height))
+
+    alpha = engine.render(t, pose, width, height, mode="alpha")
+    assert alpha.pixels.shape == (height, width, 1) and alpha.mode == "alpha" and alpha.depth_range is None
+    np.testing.assert_allclose(alpha.pixels[..., 0], ref_alpha * 255, atol=0.51 + 255e-4)
+    assert 0.2 < ref_alpha.mean() < 0.99  # covered in places, open in others
+
+    depth = engine.render(t, pose, width, height, mode="depth")
+    assert depth.pixels.shape == (height, width, 1) and depth.mode == "depth" and not depth.projected
+    near, far = depth.depth_range
+    covered = ref_alpha >= 1 / 255
+    np.testing.assert_allclose((near, far), np.percentile(ref_depth[covered], (1, 99)), rtol=1e-3)
+    meta = protocol.FrameMeta(t, 0.0, t0, 0, 0.0, width, height, 1, "raw", "checkpoint", False,
+                              render_mode="depth", depth_near=near, depth_far=far)
+    z = depth_metres(depth.pixels, meta)
+    clear = (ref_alpha > 1.5 / 255) | (ref_alpha < 0.5 / 255)  # off the coverage threshold's rounding
+    assert np.isnan(z[clear & ~covered]).all() and not np.isnan(z[clear & covered]).any()
+    step = (far - near) / 254
+    np.testing.assert_allclose(z[clear & covered], np.clip(ref_depth, near, far)[clear & covered],
+                               atol=0.5 * step + 1e-4 * far)
+    inside = clear & covered & (ref_depth > near) & (ref_depth < far)
+    assert inside.mean() > 0.15 and np.ptp(z[inside]) > 50 * step  # a range of depths, not one grey
+
+    rgb = engine.render(t, pose, width, height)
+    assert rgb.mode == "rgb" and rgb.pixels.shape == (height, width, 3) and rgb.depth_range is None
+    with pytest.raises(InvalidInputError, match="mode must be one of rgb, depth, alpha"):
+        engine.render(t, pose, width, height, mode="normals")

@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from edmcgs import protocol
-from edmcgs.clients.client import Client, InvalidRequest, TimeUnavailable, Unauthorized
+from edmcgs.clients.client import Client, InvalidRequest, TimeUnavailable, Unauthorized, depth_metres
 from edmcgs.sensor.files.recording import read_recording
 from tests.support.server import HEIGHT, TOKEN, WIDTH, metric_values
 
@@ -195,3 +195,46 @@ def test_healthz_and_metrics(client):
         values.get('edmcgs_render_seconds_sum{path="stream"}', 0.0)
     assert "edmcgs_stream_frames_dropped_total" in values
     assert "# TYPE edmcgs_render_seconds histogram" in text
+
+
+def test_depth_and_alpha_modes_over_http_and_the_stream(client, server):
+    """mode=depth: one grey channel with its near and far in the headers (the msgpack map's depth_near /
+    depth_far), nearer brighter; mode=alpha: one grey channel; a stream's render_mode the same frames."""
+    assert client.scene()["render_modes"] == list(protocol.RENDER_MODES)
+    depth, meta = client.render(t=0.3, mode="depth")
+    assert depth.shape == (HEIGHT, WIDTH, 1) and meta.render_mode == "depth" and meta.channels == 1
+    assert 0 < meta.depth_near < meta.depth_far and not meta.projected
+    z = depth_metres(depth, meta)
+    covered = ~np.isnan(z)
+    assert 0.2 < covered.mean() and (z[covered] >= meta.depth_near - 1e-9).all()
+    png, png_meta = client.render(t=0.3, mode="depth", format="png")
+    np.testing.assert_array_equal(np.asarray(Image.open(io.BytesIO(png)))[..., None], depth)
+    assert (png_meta.depth_near, png_meta.depth_far) == (meta.depth_near, meta.depth_far)  # the headers
+    r = httpx.get(server.url + "/render", params={"t": 0.3, "mode": "depth"}, headers=AUTH, timeout=20)
+    assert r.headers[protocol.HEADER_MODE] == "depth"
+    assert float(r.headers[protocol.HEADER_DEPTH_NEAR]) == meta.depth_near
+
+    alpha, alpha_meta = client.render(t=0.3, mode="alpha")
+    assert alpha.shape == (HEIGHT, WIDTH, 1) and alpha_meta.render_mode == "alpha"
+    assert alpha_meta.depth_near is None and alpha_meta.depth_far is None
+    np.testing.assert_array_equal(alpha[..., 0] > 0, covered)  # the same pixels covered
+    rgb, rgb_meta = client.render(t=0.3)
+    assert rgb_meta.render_mode == "rgb" and rgb_meta.depth_near is None and rgb.shape[2] == 3
+    r = httpx.get(server.url + "/render", params={"t": 0.3}, headers=AUTH, timeout=20)
+    assert r.headers[protocol.HEADER_MODE] == "rgb" and protocol.HEADER_DEPTH_NEAR not in r.headers
+
+    sub = {"mode": "sweep", "t0": 0.3, "t1": 0.3, "fps": 10, "format": "raw", "render_mode": "depth"}
+    with client.stream(sub) as stream:
+        frames = list(stream)
+        assert stream.subscription["render_mode"] == "depth"
+    assert len(frames) == 1 and frames[0].render_mode == "depth"
+    np.testing.assert_array_equal(frames[0].image(), depth)
+    assert (frames[0].depth_near, frames[0].depth_far) == (meta.depth_near, meta.depth_far)
+
+    r = httpx.get(server.url + "/render", params={"t": 0.3, "mode": "normals"}, headers=AUTH, timeout=20)
+    assert r.status_code == 422 and r.json()["param"] == "mode"
+    with pytest.raises(ValueError, match="mode must be one of"):
+        client.render(t=0.3, mode="normals")
+    with pytest.raises(InvalidRequest) as info:
+        client.stream({"render_mode": "normals"})
+    assert info.value.param == "render_mode"
