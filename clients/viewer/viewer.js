@@ -239,6 +239,150 @@ function nearestTrainingView(views, c2w) {
   return best;
 }
 
+// ---------------------------------------------------------------- a pose typed or pasted
+// Camera-to-world, OpenCV convention, as the server's pose= takes it: 16 numbers (the 4x4 row-major) or
+// 7, tx,ty,tz,qw,qx,qy,qz with the quaternion's w FIRST (a TUM trajectory file's line puts it last:
+// t tx ty tz qx qy qz qw). Numbers are separated by commas, spaces, semicolons or brackets (a JSON array,
+// nested or not, or numpy's print of a 4x4 pastes as it is).
+
+const ROTATION_ATOL = 1e-3;  // as the server's pose check (edmcgs.geometry.ROTATION_ATOL)
+
+// The 16 numbers (row-major c2w, its rotation made exactly orthonormal) of a pose's text; throws an Error
+// whose message says what is wrong, for a person.
+function parsePose(text) {
+  const parts = String(text).split(/[\s,;[\]()]+/).filter((p) => p !== "");
+  if (parts.length === 0) throw new Error("type 16 numbers (a 4x4 camera-to-world matrix, row-major) or 7 (tx,ty,tz,qw,qx,qy,qz)");
+  const nums = parts.map((p, i) => {
+    const v = Number(p);
+    if (!Number.isFinite(v)) throw new Error(`number ${i + 1}, ${JSON.stringify(p.slice(0, 20))}, is not a finite number`);
+    return v;
+  });
+  let R, C;
+  if (nums.length === 7) {
+    const q = nums.slice(3);
+    const n = Math.hypot(...q);
+    if (!(n > 1e-12)) throw new Error("the quaternion (qw,qx,qy,qz) is zero: it describes no rotation");
+    R = rotFromQuat(q.map((v) => v / n));
+    C = nums.slice(0, 3);
+  } else if (nums.length === 16) {
+    const bottom = nums.slice(12);
+    if (Math.max(...bottom.map((v, i) => Math.abs(v - (i === 3 ? 1 : 0)))) > 1e-6) {
+      throw new Error(`the matrix's bottom row must be 0,0,0,1, got ${bottom.join(",")}`);
+    }
+    ({ R, C } = splitPose(nums));
+    let err = 0;
+    for (let i = 0; i < 3; i++) {
+      for (let j = 0; j < 3; j++) err = Math.max(err, Math.abs(dot(col(R, i), col(R, j)) - (i === j ? 1 : 0)));
+    }
+    if (err > ROTATION_ATOL) {
+      throw new Error(`the 3x3 rotation is not orthonormal (max |RᵀR − I| = ${err.toPrecision(3)} > ${ROTATION_ATOL})`);
+    }
+    const det = dot(col(R, 0), [R[1][1] * R[2][2] - R[2][1] * R[1][2], R[2][1] * R[0][2] - R[0][1] * R[2][2],
+      R[0][1] * R[1][2] - R[1][1] * R[0][2]]);
+    if (det < 0) throw new Error("the 3x3 rotation has determinant −1: a reflection, not a rotation");
+    R = rotFromQuat(quatFromRot(R));  // exactly orthonormal
+  } else {
+    throw new Error(`got ${nums.length} numbers: give 16 (a 4x4 camera-to-world matrix, row-major) or 7 ` +
+      "(tx,ty,tz,qw,qx,qy,qz, the quaternion's w first)");
+  }
+  return joinPose(R, C);
+}
+
+// ---------------------------------------------------------------- the training cameras as frustums
+// The cameras of the frames the checkpoint was trained on (its anchors, posed on its trajectory) as
+// wireframe pyramids: the apex the camera's centre, the base its image rectangle FRUSTUM_DEPTH scene
+// scales in front of it, and a small triangle on the base's top edge (the camera's up, -y); and the path
+// of every training view (GET /scene's training_views) as a line through their centres. Drawn over the
+// render, projected with the camera the render was made from (the server's intrinsics, scaled as it
+// scales them to the render's size); lines are clipped at a near plane, and a camera whose centre is not
+// in front of that one is left out (the render's own camera among them).
+
+const FRUSTUM_DEPTH = 0.06;  // scene scales (the training cameras' median distance from the centre)
+
+// Projection of world points into a canvas of width x height from camera c2w (canvas coordinates: a
+// pixel's edges at integers): toCamera(X) -> camera coordinates; segment(a, b) -> [x0, y0, x1, y1] of
+// the part of camera-space segment a-b in front of the near plane, or null.
+function projector(c2w, intr, width, height, near) {
+  const { R, C } = splitPose(c2w);
+  const sx = width / intr.width, sy = height / intr.height;
+  const toCamera = (X) => { const d = add(X, scale(C, -1)); return [dot(col(R, 0), d), dot(col(R, 1), d), dot(col(R, 2), d)]; };
+  const toCanvas = (p) => [sx * (intr.fx * p[0] / p[2] + intr.cx + 0.5), sy * (intr.fy * p[1] / p[2] + intr.cy + 0.5)];
+  const segment = (a, b) => {
+    if (a[2] <= near && b[2] <= near) return null;
+    if (a[2] < near || b[2] < near) {
+      const f = (near - a[2]) / (b[2] - a[2]);
+      const m = [a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]), near];
+      if (a[2] < near) a = m; else b = m;
+    }
+    return [...toCanvas(a), ...toCanvas(b)];
+  };
+  return { toCamera, segment };
+}
+
+// The poses (16 numbers each) of the training frames: the trajectory at each anchor time.
+function anchorPoses(trajectory, anchorsUs) {
+  if (!trajectory || !anchorsUs) return [];
+  return anchorsUs.map((t) => poseAt(trajectory, t)).filter((p) => p !== null);
+}
+
+// [{index, segs: [[x0, y0, x1, y1], ...]}]: the 2D segments of each camera of ``poses`` (index: its place
+// in ``poses``), a scene of scale ``sceneScale``, drawn from c2w into a canvas of width x height.
+function frustumSegments(poses, sceneScale, c2w, intr, width, height) {
+  if (!poses || !(sceneScale > 0) || !c2w) return [];
+  const size = FRUSTUM_DEPTH * sceneScale;
+  const near = 1e-3 * sceneScale;
+  const { toCamera, segment } = projector(c2w, intr, width, height, near);
+  // The base's corners through the image's edges (pixel centres at integers: edges at -0.5, W - 0.5).
+  const ray = (u, v) => [(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, 1];
+  const l = -0.5, r = intr.width - 0.5, t = -0.5, b = intr.height - 0.5;
+  const base = [ray(l, t), ray(r, t), ray(r, b), ray(l, b)];
+  const halfW = (base[1][0] - base[0][0]) / 2, halfH = (base[3][1] - base[0][1]) / 2;
+  const mid = (base[0][0] + base[1][0]) / 2;
+  const up = [[base[0][0] + 0.5 * halfW, base[0][1], 1], [mid, base[0][1] - 0.45 * halfH, 1],
+    [base[1][0] - 0.5 * halfW, base[0][1], 1]];
+  const out = [];
+  poses.forEach((m, index) => {
+    const v = splitPose(m);
+    const apex = toCamera(v.C);
+    if (apex[2] <= near) return;
+    const world = (d) => add(v.C, [dot(v.R[0], d) * size, dot(v.R[1], d) * size, dot(v.R[2], d) * size]);
+    const corners = base.map((d) => toCamera(world(d)));
+    const tick = up.map((d) => toCamera(world(d)));
+    const pairs = [
+      ...corners.map((c) => [apex, c]),
+      ...corners.map((c, i) => [c, corners[(i + 1) % 4]]),
+      [tick[0], tick[1]], [tick[1], tick[2]],
+    ];
+    const segs = pairs.map(([p, q]) => segment(p, q)).filter((seg) => seg !== null);
+    if (segs.length) out.push({ index, segs });
+  });
+  return out;
+}
+
+// The camera path: segments between the centres of consecutive poses, drawn as frustumSegments draws.
+function pathSegments(poses, sceneScale, c2w, intr, width, height) {
+  if (!poses || poses.length < 2 || !(sceneScale > 0) || !c2w) return [];
+  const { toCamera, segment } = projector(c2w, intr, width, height, 1e-3 * sceneScale);
+  const centres = poses.map((m) => toCamera(splitPose(m).C));
+  return centres.slice(1).map((c, i) => segment(centres[i], c)).filter((seg) => seg !== null);
+}
+
+// The frustum of ``frustums`` (frustumSegments) passing nearest (x, y), within ``tolerance`` (canvas
+// pixels): its index into the training views, or -1.
+function pickFrustum(frustums, x, y, tolerance) {
+  let best = -1, bestD = tolerance;
+  for (const f of frustums) {
+    for (const [x0, y0, x1, y1] of f.segs) {
+      const dx = x1 - x0, dy = y1 - y0;
+      const len2 = dx * dx + dy * dy;
+      const a = len2 > 0 ? Math.max(0, Math.min(1, ((x - x0) * dx + (y - y0) * dy) / len2)) : 0;
+      const d = Math.hypot(x - (x0 + a * dx), y - (y0 + a * dy));
+      if (d <= bestD) { best = f.index; bestD = d; }
+    }
+  }
+  return best;
+}
+
 // ---------------------------------------------------------------- the viewer
 
 const $ = (id) => document.getElementById(id);
@@ -269,6 +413,15 @@ const state = {
   eventsWanted: null,     // the time whose event map is wanted next (newest wins)
   eventsFetching: false,
   drawing: false,
+  renderMode: "rgb",      // what the render shows: rgb, depth or alpha (GET /render's mode)
+  imageMode: "rgb",       // what the render on screen shows
+  depthRange: null,       // {near, far} of the depth render on screen
+  cameras: false,         // the training cameras drawn as frustums over the render
+  imagePose: null,        // the c2w the render on screen was made from (null: unknown)
+  streamPose: undefined,  // the pose of the subscription in force (null: the event camera's)
+  cameraPoses: [],        // the training frames' poses (the checkpoint's anchors on its trajectory)
+  frustums: [],           // frustumSegments of the render on screen, for picking
+  hover: -1,              // the training view under the pointer
 };
 
 function showError(message) {
@@ -415,6 +568,10 @@ async function drawFrame(frame) {
   }
   if (state.image instanceof ImageBitmap) state.image.close();
   state.image = image;
+  state.imagePose = frame.pose ?? poseAt(state.scene.trajectory, frame.t_us);
+  state.imageMode = frame.render_mode || "rgb";
+  state.depthRange = frame.depth_near === null || frame.depth_near === undefined ? null
+    : { near: frame.depth_near, far: frame.depth_far };
   paint();
   shown(frame);
   return true;
@@ -435,6 +592,7 @@ function paint() {
   else ctx.drawImage(image, 0, 0);
   const events = state.eventsLayer !== "off" ? state.events : null;
   if (events && state.eventsLayer === "over") overlayEvents(ctx, events.pixels);
+  drawFrustums(ctx);
   const side = $("events-view");
   side.hidden = state.eventsLayer !== "beside";
   if (!side.hidden) {
@@ -447,6 +605,70 @@ function paint() {
     sctx.fillRect(0, 0, side.width, side.height);
     if (events) overlayEvents(sctx, events.pixels);
   }
+}
+
+// The training cameras over the render, projected with the render's own camera: the path dim, the
+// frustums orange, the one under the pointer white and thicker. Lines about 1.5 screen pixels wide at any
+// render size.
+function drawFrustums(ctx) {
+  const scene = state.scene, views = scene && scene.training_views;
+  const on = state.cameras && views && state.imagePose;
+  const { width, height } = ctx.canvas;
+  state.frustums = on ? frustumSegments(state.cameraPoses, views.scale, state.imagePose, scene.intrinsics,
+    width, height) : [];
+  if (!on) return;
+  const path = pathSegments(views.c2w, views.scale, state.imagePose, scene.intrinsics, width, height);
+  const k = screenScale(ctx.canvas);
+  const stroke = (segs, style, lineWidth) => {
+    if (segs.length === 0) return;
+    ctx.beginPath();
+    for (const [x0, y0, x1, y1] of segs) { ctx.moveTo(x0, y0); ctx.lineTo(x1, y1); }
+    ctx.strokeStyle = style;
+    ctx.lineWidth = lineWidth / k;
+    ctx.stroke();
+  };
+  ctx.save();
+  ctx.lineCap = "round";
+  stroke(path, "rgba(255, 179, 71, 0.55)", 1);
+  stroke(state.frustums.filter((f) => f.index !== state.hover).flatMap((f) => f.segs), "rgba(255, 179, 71, 0.95)", 1.5);
+  stroke(state.frustums.filter((f) => f.index === state.hover).flatMap((f) => f.segs), "#ffffff", 2.5);
+  ctx.restore();
+}
+
+// Screen pixels per canvas pixel, and where the canvas' picture lies on the screen: the canvas keeps
+// its aspect ratio inside its box (object-fit: contain).
+function screenScale(canvas) {
+  const r = canvas.getBoundingClientRect();
+  return Math.min(r.width / canvas.width, r.height / canvas.height) || 1;
+}
+
+function canvasPoint(canvas, clientX, clientY) {
+  const r = canvas.getBoundingClientRect();
+  const k = screenScale(canvas);
+  return { x: (clientX - r.left - (r.width - canvas.width * k) / 2) / k,
+    y: (clientY - r.top - (r.height - canvas.height * k) / 2) / k, k };
+}
+
+// The training view under a pointer event (-1: none), within 6 screen pixels of its lines.
+function frustumAt(e) {
+  if (!state.cameras || state.frustums.length === 0) return -1;
+  const p = canvasPoint($("view"), e.clientX, e.clientY);
+  return pickFrustum(state.frustums, p.x, p.y, 6 / p.k);
+}
+
+// Jump to training camera ``index``: the free camera starts from its pose.
+function jumpToView(index) {
+  const c2w = state.cameraPoses[index];
+  state.orbit = new Orbit(c2w, orbitDepth(state.scene, c2w));
+  state.hover = -1;
+  viewChanged();
+}
+
+function setCameras(on) {
+  state.cameras = on;
+  $("cameras").checked = on;
+  if (!on) { state.hover = -1; $("view").style.cursor = ""; }
+  paint();
 }
 
 // The event map's coloured pixels over what ctx holds, scaled nearest-neighbour: each output pixel
@@ -623,9 +845,18 @@ function shown(frame) {
   if (frame.events !== undefined) $("events").textContent = String(frame.events);
   wantEvents(frame.t_us);
   if (frame.render_ms !== undefined) $("render-ms").textContent = `${frame.render_ms.toFixed(1)} ms`;
+  $("depth-range").textContent = depthText(state.depthRange, state.imageMode);
   if (frame.dropped !== undefined) $("dropped").textContent = String(frame.dropped);
   $("frames").textContent = String(state.frames);
   clearError();
+}
+
+// The depth render's range as the readout says it: bright is near, dark far, black nothing.
+function depthText(range, mode) {
+  if (mode !== "depth") return "–";
+  if (!range) return "nothing in view";
+  const digits = (v) => (Math.abs(v) >= 10 ? v.toFixed(1) : v.toFixed(3));
+  return `${digits(range.near)}–${digits(range.far)} m`;
 }
 
 // Past the span the anchor is an online one (predicted, or corrected against its frame), and the event
@@ -664,7 +895,8 @@ function subscribe() {
   const ws = state.ws;
   if (!ws || ws.readyState !== WebSocket.OPEN) return;
   const [width, height] = renderSize();
-  ws.send(JSON.stringify({ mode: "live", pose: currentPose(), width, height, format: "jpeg" }));
+  ws.send(JSON.stringify({ mode: "live", pose: currentPose(), width, height, format: "jpeg",
+    render_mode: state.renderMode }));
   state.sentAt.push(performance.now());
 }
 
@@ -679,6 +911,7 @@ function openStream() {
     setStatus("live");
     state.sentAt = [];
     state.acked = null;
+    state.streamPose = undefined;
     subscribe();
   };
   ws.onmessage = (event) => {
@@ -701,12 +934,15 @@ function openStream() {
       // subscription. Timing to it is exact while the stream is busy (the usual case), and at most
       // one frame interval long when the server was idle.
       state.acked = { sentAt: state.sentAt.shift(), framesLeft: 2 };
+      const pose = msg.subscription && msg.subscription.pose;
+      state.streamPose = Array.isArray(pose) && pose.length === 16 ? pose : null;
     } else if (msg.type === "frame") {
       if (state.acked && state.acked.sentAt !== undefined && --state.acked.framesLeft === 0) {
         msg.requestedAt = state.acked.sentAt;
         state.acked = null;
       }
       msg.generation = generation;
+      if (state.streamPose !== undefined) msg.pose = state.streamPose;
       queueFrame(msg);
     }
   };
@@ -748,6 +984,7 @@ async function renderStill() {
       url.searchParams.set("width", String(width));
       url.searchParams.set("height", String(height));
       url.searchParams.set("format", "jpeg");
+      url.searchParams.set("mode", state.renderMode);
       const pose = currentPose();
       if (pose) url.searchParams.set("pose", pose.map((v) => v.toPrecision(9)).join(","));
       const sent = performance.now();
@@ -766,6 +1003,10 @@ async function renderStill() {
         render_ms: Number(header("X-Edmcgs-Render-Ms")),
         anchor: header("X-Edmcgs-Anchor"),
         projected: header("X-Edmcgs-Projected") === "true",
+        render_mode: header("X-Edmcgs-Mode"),
+        depth_near: header("X-Edmcgs-Depth-Near") === null ? null : Number(header("X-Edmcgs-Depth-Near")),
+        depth_far: header("X-Edmcgs-Depth-Far") === null ? null : Number(header("X-Edmcgs-Depth-Far")),
+        pose,
       };
       frame.requestedAt = sent;
       await drawFrame(frame);
@@ -812,21 +1053,35 @@ function ensureOrbit() {
   return state.orbit;
 }
 
+const CLICK_SLOP = 4;  // screen pixels a press may wander and still be a click
+
 function bindMouse() {
   const canvas = $("view");
   let drag = null;
   canvas.addEventListener("contextmenu", (e) => e.preventDefault());
   canvas.addEventListener("pointerdown", (e) => {
-    drag = { x: e.clientX, y: e.clientY, pan: e.button === 2 || e.shiftKey };
+    // a press on a training camera's frustum jumps there when released without a drag
+    drag = { x: e.clientX, y: e.clientY, pan: e.button === 2 || e.shiftKey, moved: 0,
+      view: e.button === 0 ? frustumAt(e) : -1 };
     canvas.setPointerCapture(e.pointerId);
     canvas.focus();
   });
   canvas.addEventListener("pointermove", (e) => {
-    if (!drag) return;
+    if (!drag) {
+      const hover = frustumAt(e);
+      if (hover !== state.hover) {
+        state.hover = hover;
+        canvas.style.cursor = hover >= 0 ? "pointer" : "";
+        paint();
+      }
+      return;
+    }
     const dx = e.clientX - drag.x, dy = e.clientY - drag.y;
     if (dx === 0 && dy === 0) return;
     drag.x = e.clientX;
     drag.y = e.clientY;
+    drag.moved += Math.abs(dx) + Math.abs(dy);
+    if (drag.view >= 0 && drag.moved <= CLICK_SLOP) return;  // still a click on the frustum
     const orbit = ensureOrbit();
     if (drag.pan) {
       // Pointer pixels to world units at the target's depth: the scene under the pointer follows it.
@@ -838,14 +1093,40 @@ function bindMouse() {
     }
     viewChanged();
   });
-  const end = () => { drag = null; };
-  canvas.addEventListener("pointerup", end);
-  canvas.addEventListener("pointercancel", end);
+  canvas.addEventListener("pointerup", () => {
+    if (drag && drag.view >= 0 && drag.moved <= CLICK_SLOP) jumpToView(drag.view);
+    drag = null;
+  });
+  canvas.addEventListener("pointercancel", () => { drag = null; });
   canvas.addEventListener("wheel", (e) => {
     e.preventDefault();
     ensureOrbit().zoom(Math.exp(e.deltaY * 0.001));
     viewChanged();
   }, { passive: false });
+}
+
+function setRenderMode(mode) {
+  state.renderMode = mode;
+  $("render-mode").value = mode;
+  document.querySelector("#depth-range").parentElement.hidden = mode !== "depth";
+  viewChanged();
+}
+
+// The pose field: go to the pose typed or pasted, or say what is wrong with it.
+function goToTypedPose() {
+  const input = $("pose-input");
+  let c2w;
+  try {
+    c2w = parsePose(input.value);
+  } catch (err) {
+    input.setAttribute("aria-invalid", "true");
+    showError(`pose: ${err.message}`);
+    return;
+  }
+  input.removeAttribute("aria-invalid");
+  $("error").hidden = true;
+  state.orbit = new Orbit(c2w, orbitDepth(state.scene, c2w));
+  viewChanged();
 }
 
 function bindControls() {
@@ -854,6 +1135,10 @@ function bindControls() {
   $("scale").addEventListener("change", viewChanged);
   $("events-layer").addEventListener("change", () => setEventsLayer($("events-layer").value));
   $("screenshot").addEventListener("click", saveScreenshot);
+  $("render-mode").addEventListener("change", () => setRenderMode($("render-mode").value));
+  $("cameras").addEventListener("change", () => setCameras($("cameras").checked));
+  $("pose-form").addEventListener("submit", (e) => { e.preventDefault(); goToTypedPose(); });
+  $("pose-input").addEventListener("input", () => $("pose-input").removeAttribute("aria-invalid"));
   $("ply").addEventListener("click", savePly);
   // A new window size is a new render size in "fit"; the observer fires for every step of a drag.
   let lastSize = "";
@@ -873,6 +1158,7 @@ function bindControls() {
     if (e.key === " ") { e.preventDefault(); setPlaying(!state.playing); }
     if (e.key === "r") { state.orbit = null; viewChanged(); }
     if (e.key === "e") setEventsLayer(state.eventsLayer === "off" ? "over" : "off");
+    if (e.key === "c") setCameras(!state.cameras);
   });
 }
 
@@ -925,6 +1211,8 @@ async function start() {
     setStatus("no scene");
     return;
   }
+  // the checkpoint's own anchors, before a live source's new ones join the list
+  state.cameraPoses = anchorPoses(state.scene.trajectory, state.scene.anchors_us);
   layoutSlider();
   moveSlider(state.scene.head_us ?? state.scene.t_start_us);
   setPlaying(true);
@@ -933,7 +1221,8 @@ async function start() {
 // The pure parts, for a console or a test page.
 window.edmcgsViewer = {
   state, unpack, poseAt, Orbit, quatFromRot, rotFromQuat, currentPose, renderSize, nearestTrainingView,
-  anchorNote, FAR_ANGLE_DEG, FAR_DISTANCE, MAX_FIT_SCALE,
+  anchorNote, parsePose, anchorPoses, frustumSegments, pathSegments, pickFrustum, depthText, canvasPoint,
+  FAR_ANGLE_DEG, FAR_DISTANCE, MAX_FIT_SCALE, FRUSTUM_DEPTH,
 };
 
 // index.html inserts this script from <head>: wait for the page's elements.

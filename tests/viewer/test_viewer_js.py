@@ -293,3 +293,132 @@ def test_the_anchor_readout_says_what_an_online_anchor_is_and_whether_the_view_i
     assert viewer.evaluate(note, {}) == ""  # a server that does not say
     assert viewer.evaluate(note, {"anchor": "predicted", "projected": False}) == " (predicted)"
     assert viewer.evaluate(note, {"anchor": "corrected", "projected": True}) == " (corrected, events-bounded)"
+
+
+def test_a_typed_pose_reads_both_forms_with_the_quaternion_w_first(viewer):
+    parse = "(text) => window.edmcgsViewer.parsePose(text)"
+    rng = np.random.default_rng(11)
+    for rot in Rotation.random(5, random_state=12):
+        t = rng.normal(size=3).tolist()
+        want = np.array(_c2w(rot, t)).reshape(4, 4)
+        x, y, z, w = rot.as_quat().tolist()  # scipy: scalar last
+        got = viewer.evaluate(parse, ",".join(map(repr, [*t, w, x, y, z])))
+        np.testing.assert_allclose(np.array(got).reshape(4, 4), want, atol=1e-12)
+        scaled = viewer.evaluate(parse, " ".join(map(repr, [*t, 2 * w, 2 * x, 2 * y, 2 * z])))
+        np.testing.assert_allclose(np.array(scaled).reshape(4, 4), want, atol=1e-12)  # any norm
+        # the 4x4 as 16 numbers, as a nested JSON array, and as numpy prints it
+        for text in (",".join(map(repr, want.reshape(-1).tolist())), json.dumps(want.tolist()), str(want)):
+            got = np.array(viewer.evaluate(parse, text)).reshape(4, 4)
+            np.testing.assert_allclose(got, want, atol=1e-7)
+            np.testing.assert_allclose(got[:3, :3] @ got[:3, :3].T, np.eye(3), atol=1e-12)  # orthonormal
+    # a TUM line's quaternion read as w first is another rotation: the order matters
+    rot = Rotation.from_euler("xyz", [0.4, -0.2, 0.9])
+    x, y, z, w = rot.as_quat()
+    tum_order = np.array(viewer.evaluate(parse, f"0,0,0,{x},{y},{z},{w}")).reshape(4, 4)
+    assert not np.allclose(tum_order[:3, :3], rot.as_matrix(), atol=1e-3)
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("", "type 16 numbers"),
+    ("1,2,3,4,5", "got 5 numbers: give 16 (a 4x4 camera-to-world matrix, row-major) or 7 "
+                  "(tx,ty,tz,qw,qx,qy,qz, the quaternion's w first)"),
+    ("0,0,0,1,0,0,x", 'number 7, "x", is not a finite number'),
+    ("0,0,0,1,0,0,Infinity", "is not a finite number"),
+    ("0,0,0,0,0,0,0", "the quaternion (qw,qx,qy,qz) is zero"),
+    ("2,0,0,0, 0,2,0,0, 0,0,2,0, 0,0,0,1", "not orthonormal"),
+    ("1,0,0,0, 0,1,0,0, 0,0,-1,0, 0,0,0,1", "determinant −1"),
+    ("1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,1,1", "bottom row must be 0,0,0,1"),
+])
+def test_a_typed_pose_that_is_wrong_says_what_is_wrong(viewer, text, message):
+    error = viewer.evaluate("""(text) => {
+        try { window.edmcgsViewer.parsePose(text); return null; } catch (err) { return err.message; }
+    }""", text)
+    assert error is not None and message in error, error
+
+
+def _project(c2w: np.ndarray, intr: dict, width: int, height: int, points: np.ndarray) -> np.ndarray:
+    """World points -> canvas coordinates of a render of ``width`` x ``height`` from ``c2w`` (pixel edges at
+    integers, the intrinsics scaled as the server scales them)."""
+    w2c = np.linalg.inv(c2w)
+    p = points @ w2c[:3, :3].T + w2c[:3, 3]
+    sx, sy = width / intr["width"], height / intr["height"]
+    return np.stack([sx * (intr["fx"] * p[:, 0] / p[:, 2] + intr["cx"] + 0.5),
+                     sy * (intr["fy"] * p[:, 1] / p[:, 2] + intr["cy"] + 0.5)], 1)
+
+
+FRUSTUMS = "([v, p, k, w, h]) => window.edmcgsViewer.frustumSegments(v.c2w, v.scale, p, k, w, h)"
+
+
+def test_frustums_are_the_training_cameras_projected_and_a_click_picks_one(viewer):
+    intr = {"fx": 80.0, "fy": 80.0, "cx": 39.5, "cy": 29.5, "width": 80, "height": 60}
+    center = np.array([0.0, 0.0, 3.0])
+    train = [np.array(_c2w(Rotation.from_euler("y", a, degrees=True), [x, 0.0, 0.0])).reshape(4, 4)
+             for x, a in ((-0.4, 8.0), (0.0, 0.0), (0.4, -8.0))]
+    views = {"center": center.tolist(), "scale": 3.0, "c2w": [m.reshape(-1).tolist() for m in train]}
+    # the view: stepped back and up from the middle camera, looking at the centre
+    eye = np.array([0.3, -0.8, -1.5])
+    zaxis = (center - eye) / np.linalg.norm(center - eye)
+    xaxis = np.cross([0.0, 1.0, 0.0], zaxis)
+    xaxis /= np.linalg.norm(xaxis)
+    view = np.eye(4)
+    view[:3, :3] = np.stack([xaxis, np.cross(zaxis, xaxis), zaxis], 1)
+    view[:3, 3] = eye
+    width, height = 320, 240
+    got = viewer.evaluate(FRUSTUMS, [views, view.reshape(-1).tolist(), intr, width, height])
+    depth = viewer.evaluate("window.edmcgsViewer.FRUSTUM_DEPTH") * views["scale"]
+    assert [f["index"] for f in got] == [0, 1, 2]
+    for f, m in zip(got, train, strict=True):
+        segs = np.array(f["segs"])
+        assert segs.shape == (10, 4)  # 4 edges from the apex, the base's 4 sides, the up mark's 2
+        corners = np.array([[(u - intr["cx"]) / intr["fx"], (v - intr["cy"]) / intr["fy"], 1.0]
+                            for u, v in ((-0.5, -0.5), (79.5, -0.5), (79.5, 59.5), (-0.5, 59.5))])
+        world = m[:3, 3] + depth * corners @ m[:3, :3].T
+        apex, base = _project(view, intr, width, height, np.vstack([m[:3, 3], world]))[[0]], \
+            _project(view, intr, width, height, world)
+        np.testing.assert_allclose(segs[:4, :2], np.repeat(apex, 4, 0), atol=1e-9)
+        np.testing.assert_allclose(segs[:4, 2:], base, atol=1e-9)
+        np.testing.assert_allclose(segs[4:8, :2], base, atol=1e-9)
+        np.testing.assert_allclose(segs[4:8, 2:], np.roll(base, -1, 0), atol=1e-9)
+        up = segs[8:, :].reshape(-1, 2)  # the up mark lies above the base's top edge on the screen
+        assert (up[:, 1] <= np.maximum(base[0, 1], base[1, 1]) + 1e-9).all()
+
+    # a click on the middle camera's base edge picks it; far from every line, none
+    pick = "([f, x, y]) => window.edmcgsViewer.pickFrustum(f, x, y, 4)"
+    x0, y0, x1, y1 = got[1]["segs"][6]
+    assert viewer.evaluate(pick, [got, (x0 + x1) / 2 + 1, (y0 + y1) / 2 - 1]) == 1
+    assert viewer.evaluate(pick, [got, -500, -500]) == -1
+
+    # seen from a training camera itself: its own frustum is not drawn (its centre is the camera's);
+    # a camera right beside it, turned away, is clipped at the near plane, never drawn from behind
+    own = viewer.evaluate(FRUSTUMS, [views, train[1].reshape(-1).tolist(), intr, 80, 60])
+    assert 1 not in [f["index"] for f in own]
+    side = np.array(_c2w(Rotation.from_euler("y", 95, degrees=True), [0.0, 0.0, 0.5])).reshape(4, 4)
+    one = {**views, "c2w": [side.reshape(-1).tolist()]}
+    clipped = viewer.evaluate(FRUSTUMS, [one, train[1].reshape(-1).tolist(), intr, 80, 60])
+    assert len(clipped) == 1 and all(np.isfinite(s).all() for s in clipped[0]["segs"])
+    assert viewer.evaluate("window.edmcgsViewer.frustumSegments(null, 1, [], {}, 1, 1)") == []
+
+    # the path: a segment between consecutive centres, clipped the same way
+    path = np.array(viewer.evaluate(
+        "([v, p, k, w, h]) => window.edmcgsViewer.pathSegments(v.c2w, v.scale, p, k, w, h)",
+        [views, view.reshape(-1).tolist(), intr, width, height]))
+    centres = _project(view, intr, width, height, np.array([m[:3, 3] for m in train]))
+    np.testing.assert_allclose(path, np.hstack([centres[:-1], centres[1:]]), atol=1e-9)
+
+
+def test_the_training_frames_cameras_are_the_trajectory_at_the_anchors(viewer):
+    rots = Rotation.random(3, random_state=13)
+    traj = {"t_us": [0, 100, 200], "c2w": [_c2w(rots[i], [0.1 * i, 0, 0]) for i in range(3)]}
+    got = viewer.evaluate("([t, a]) => window.edmcgsViewer.anchorPoses(t, a)", [traj, [0, 100, 150]])
+    want = viewer.evaluate("([t, a]) => a.map((x) => window.edmcgsViewer.poseAt(t, x))",
+                           [traj, [0, 100, 150]])
+    assert got == want
+    np.testing.assert_allclose(got[1], traj["c2w"][1], atol=1e-12)
+    assert viewer.evaluate("window.edmcgsViewer.anchorPoses(null, [1, 2])") == []
+
+
+def test_the_depth_readout(viewer):
+    text = "([r, m]) => window.edmcgsViewer.depthText(r, m)"
+    assert viewer.evaluate(text, [{"near": 1.2345, "far": 12.5}, "depth"]) == "1.234–12.5 m"
+    assert viewer.evaluate(text, [None, "depth"]) == "nothing in view"
+    assert viewer.evaluate(text, [None, "rgb"]) == "–"

@@ -9,6 +9,7 @@ import re
 
 import numpy as np
 from PIL import Image
+from scipy.spatial.transform import Rotation
 
 from edmcgs import protocol
 from edmcgs.clients.client import Client
@@ -255,3 +256,163 @@ def test_ply_button_downloads_the_gaussians_at_the_time_on_screen(page, served):
     with Client(served.url, served.token) as client:
         assert data == client.ply(t_us=t_us)  # what GET /ply gives for that time, byte for byte
     assert data.startswith(b"ply\n") and page.errors == []
+
+
+def _page_point(page, x: float, y: float) -> tuple[float, float]:
+    """Canvas coordinates of #view -> the page's (the canvas keeps its aspect ratio in its box)."""
+    box = page.locator("#view").bounding_box()
+    w, h = page.evaluate("[document.getElementById('view').width, document.getElementById('view').height]")
+    k = min(box["width"] / w, box["height"] / h)
+    return box["x"] + (box["width"] - w * k) / 2 + x * k, box["y"] + (box["height"] - h * k) / 2 + y * k
+
+
+def _segment_mask(frustums: list, shape: tuple[int, int], reach: float) -> np.ndarray:
+    """The canvas pixels whose centre lies within ``reach`` of a frustum's segment."""
+    h, w = shape
+    ys, xs = np.mgrid[0:h, 0:w] + 0.5
+    mask = np.zeros(shape, bool)
+    for f in frustums:
+        for x0, y0, x1, y1 in f["segs"]:
+            dx, dy = x1 - x0, y1 - y0
+            a = np.clip(((xs - x0) * dx + (ys - y0) * dy) / max(dx * dx + dy * dy, 1e-12), 0, 1)
+            mask |= np.hypot(xs - (x0 + a * dx), ys - (y0 + a * dy)) <= reach
+    return mask
+
+
+def test_training_cameras_are_drawn_as_frustums_and_a_click_goes_to_one(page, served):
+    _paused(page, served)
+    # the event camera slides along its own x axis: every training camera is beside it, none in front;
+    # zoomed out (the wheel backs the free camera away), they come into view
+    x, y = _page_point(page, *page.evaluate("[document.getElementById('view').width / 2, "
+                                            "document.getElementById('view').height / 2]"))
+    before = page.evaluate(FRAMES)
+    page.mouse.move(x, y)
+    page.mouse.wheel(0, 900)
+    page.wait_for_function(f"{IDLE} && {FRAMES} > {before} && edmcgsViewer.currentPose() !== null")
+    assert not page.locator("#cameras").is_checked() and page.evaluate("edmcgsViewer.state.frustums") == []
+    plain = _pixels(page, "#view").astype(int)
+
+    page.keyboard.press("c")
+    assert page.locator("#cameras").is_checked()
+    frustums = page.evaluate("edmcgsViewer.state.frustums")
+    cameras = page.evaluate("edmcgsViewer.state.cameraPoses")
+    assert len(cameras) == 9 and len(frustums) == 9 and page.evaluate(  # the 9 training frames
+        "JSON.stringify(edmcgsViewer.state.imagePose) === JSON.stringify(edmcgsViewer.currentPose())")
+    drawn = _pixels(page, "#view").astype(int)
+    changed = np.abs(drawn - plain).max(-1) > 40
+    assert changed.sum() > 30  # the lines are there ...
+    path = page.evaluate("""() => {
+        const s = edmcgsViewer.state, v = s.scene.training_views, c = document.getElementById('view');
+        return edmcgsViewer.pathSegments(v.c2w, v.scale, s.imagePose, s.scene.intrinsics, c.width, c.height);
+    }""")
+    lines = _segment_mask([*frustums, {"segs": path}], changed.shape, 2.5)
+    assert not (changed & ~lines).any()  # ... and only there
+    assert (drawn[changed][:, 0] > drawn[changed][:, 2] + 60).mean() > 0.8  # orange
+
+    # the pointer on a frustum's base edge: the pointer cursor, and a click goes to that camera's pose
+    f = frustums[len(frustums) // 2]
+    x0, y0, x1, y1 = f["segs"][5]
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    px, py = _page_point(page, cx, cy)
+    page.mouse.move(px, py)
+    page.wait_for_function("document.getElementById('view').style.cursor === 'pointer'", timeout=5000)
+    picked = page.evaluate(f"edmcgsViewer.pickFrustum(edmcgsViewer.state.frustums, {cx}, {cy}, 6)")
+    assert picked >= 0 and _segment_mask([frustums[[g["index"] for g in frustums].index(picked)]],
+                                         changed.shape, 6)[int(cy), int(cx)]
+    before = page.evaluate(FRAMES)
+    page.mouse.click(px, py)
+    page.wait_for_function(f"{IDLE} && {FRAMES} > {before}")
+    pose = page.evaluate("edmcgsViewer.currentPose()")
+    np.testing.assert_allclose(pose, cameras[picked], atol=1e-9)
+    # from a training camera the others lie beside it: none drawn, the canvas is the server's render
+    assert page.evaluate("edmcgsViewer.state.frustums") == []
+    shot = _pixels(page, "#view")
+    with Client(served.url, served.token) as client:
+        png, _ = client.render(t_us=page.evaluate("edmcgsViewer.state.tUs"), pose=pose, width=shot.shape[1],
+                               height=shot.shape[0], format="png")
+    reference = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))
+    assert np.abs(shot.astype(int) - reference).mean() < 3.0  # JPEG on the wire
+    page.keyboard.press("c")
+    assert not page.locator("#cameras").is_checked() and page.errors == []
+
+
+def test_depth_and_alpha_modes_show_the_servers_grey_renders(page, served):
+    _paused(page, served)
+    t_us = page.evaluate("edmcgsViewer.state.tUs")
+    assert page.locator("#depth-range").is_hidden()
+    with Client(served.url, served.token) as client:
+        for mode in ("depth", "alpha"):
+            page.select_option("#render-mode", mode)
+            page.wait_for_function(f"{IDLE} && edmcgsViewer.state.imageMode === '{mode}'")
+            shown = _pixels(page, "#view").astype(int)
+            assert np.ptp(shown, axis=-1).max() <= 6  # grey (JPEG's chroma aside)
+            grey, meta = client.render(t_us=t_us, width=shown.shape[1], height=shown.shape[0], mode=mode,
+                                       format="png")
+            reference = np.asarray(Image.open(io.BytesIO(grey))).astype(int)
+            assert reference.ndim == 2 and reference.std() > 10
+            assert np.abs(shown[..., 0] - reference).mean() < 3.0
+            if mode == "depth":
+                assert page.locator("#depth-range").is_visible()
+                assert page.evaluate("edmcgsViewer.state.depthRange") == {"near": meta.depth_near,
+                                                                          "far": meta.depth_far}
+                readout = page.evaluate("([near, far]) => edmcgsViewer.depthText({near, far}, 'depth')",
+                                        [meta.depth_near, meta.depth_far])
+                assert page.locator("#depth-range").inner_text() == readout
+            else:
+                assert page.locator("#depth-range").is_hidden()
+    # live: the stream's subscription carries the mode
+    page.select_option("#render-mode", "depth")
+    page.click("#play")
+    before = page.evaluate(FRAMES)
+    page.wait_for_function(f"{FRAMES} >= {before + 3} && /m$/.test(document.getElementById('depth-range')"
+                           ".textContent)", timeout=20_000)
+    assert np.ptp(_pixels(page, "#view").astype(int), axis=-1).max() <= 6
+    assert page.errors == []
+
+
+def test_a_typed_pose_is_rendered_and_a_wrong_one_is_refused(page, served):
+    _paused(page, served)
+    hint = page.locator(".hint").inner_text()
+    assert "w first" in hint and "qw,qx,qy,qz" in hint and "qx qy qz qw" in hint  # the order, stated
+    t_us = page.evaluate("edmcgsViewer.state.tUs")
+    own = np.array(page.evaluate(f"edmcgsViewer.poseAt(edmcgsViewer.state.scene.trajectory, {t_us})"))
+    own = own.reshape(4, 4)
+    turn = Rotation.from_euler("yx", [6.0, -3.0], degrees=True)
+    want = np.eye(4)
+    want[:3, :3] = turn.as_matrix() @ own[:3, :3]
+    want[:3, 3] = own[:3, 3] + [0.04, -0.02, 0.01]
+    qx, qy, qz, qw = Rotation.from_matrix(want[:3, :3]).as_quat().tolist()
+    before = page.evaluate(FRAMES)
+    page.fill("#pose-input", ", ".join(map(repr, [*want[:3, 3].tolist(), qw, qx, qy, qz])))
+    page.press("#pose-input", "Enter")
+    page.wait_for_function(f"{IDLE} && {FRAMES} > {before}")
+    pose = np.array(page.evaluate("edmcgsViewer.currentPose()")).reshape(4, 4)
+    np.testing.assert_allclose(pose, want, atol=1e-9)
+    shot = _pixels(page, "#view")
+    with Client(served.url, served.token) as client:
+        png, _ = client.render(t_us=t_us, pose=want, width=shot.shape[1], height=shot.shape[0], format="png")
+    assert np.abs(shot.astype(int) - np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))).mean() < 3.0
+
+    # the same pose as the 4x4, pasted as numpy prints it
+    page.click("#reset")
+    page.wait_for_function(f"{IDLE} && edmcgsViewer.currentPose() === null")
+    page.fill("#pose-input", str(want))
+    page.click("#pose-form button")
+    page.wait_for_function("edmcgsViewer.currentPose() !== null")
+    np.testing.assert_allclose(page.evaluate("edmcgsViewer.currentPose()"), want.reshape(-1), atol=1e-7)
+
+    # wrong: a clear message, the field marked, the view unchanged
+    for text, message in (("1, 2, 3", "got 3 numbers: give 16"),
+                          ("0,0,0, 0,0,0,0", "quaternion (qw,qx,qy,qz) is zero"),
+                          ("2,0,0,0,0,2,0,0,0,0,2,0,0,0,0,1", "not orthonormal")):
+        page.fill("#pose-input", text)
+        page.click("#pose-form button")
+        page.locator("#error").wait_for(state="visible", timeout=5000)
+        shown = page.locator("#error-text").inner_text()
+        assert shown.startswith("pose: ") and message in shown, shown
+        assert page.locator("#pose-input").get_attribute("aria-invalid") == "true"
+        np.testing.assert_allclose(page.evaluate("edmcgsViewer.currentPose()"), want.reshape(-1), atol=1e-7)
+        page.locator("#error-close").click()
+    page.fill("#pose-input", "0,0,0,1,0,0,0")
+    assert page.locator("#pose-input").get_attribute("aria-invalid") is None  # typing clears the mark
+    assert page.errors == []
