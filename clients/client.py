@@ -7,7 +7,7 @@ Imports nothing of the project but the wire schema (``edmcgs.protocol``)::
         image, meta = c.render(t=0.5)                          # uint8 [H, W, C] and RenderMeta
         png, meta = c.render(t=0.5, pose=[...16...], format="png")
         depth, meta = c.render(t=0.5, mode="depth")            # grey [H, W, 1], meta.depth_near / _far
-        z = depth_metres(depth, meta)                          # camera z in m [H, W]; NaN: no splat
+        z = depth_metres(depth, meta)                          # camera z in m [H, W]; NaN: no surface
         emap, meta = c.events(t=0.5)                           # I_E of its window: int32 [H, W], EventMapMeta
         with c.stream({"mode": "sweep", "t0": 0, "t1": 1, "fps": 30}) as frames:
             for frame in frames:                               # Frame, newest first when slow
@@ -136,8 +136,9 @@ def decode_image(data: bytes, fmt: str, width: int, height: int, channels: int) 
 
 def depth_metres(grey: np.ndarray, meta: protocol.FrameMeta) -> np.ndarray:
     """A depth render's grey pixels [H, W] or [H, W, 1] -> camera z in m, float64 [H, W]: linear from
-    ``meta.depth_near`` (grey 255) to ``meta.depth_far`` (grey 1), NaN where no splat covers the pixel
-    (grey 0); the server's mapping (``protocol.DEPTH_GREY_NEAR``) undone, to within a grey step."""
+    ``meta.depth_near`` (grey 255) to ``meta.depth_far`` (grey 1), NaN where the splats' opacity is below
+    ``protocol.DEPTH_MIN_ALPHA`` (grey 0); the server's mapping (``protocol.DEPTH_GREY_NEAR``) undone, to
+    within a grey step."""
     if meta.render_mode != "depth":
         raise ValueError(f"not a depth render (render_mode {meta.render_mode!r})")
     grey = np.asarray(grey)

@@ -117,7 +117,10 @@ DEPTH_GREY_FAR = 1
 """... at its far (``HEADER_DEPTH_FAR``, ``depth_far``); linear in camera z between, depths beyond clipped:
 z = far - (grey - 1) / 254 * (far - near)."""
 DEPTH_GREY_NONE = 0
-"""... where no splat covers the pixel."""
+"""... where the splats cover less than ``DEPTH_MIN_ALPHA`` of the pixel (nothing solid there)."""
+DEPTH_MIN_ALPHA = 0.5
+"""A depth render shows a pixel's depth where the splats' accumulated opacity reaches this: a faint haze
+of splats has a depth, but no surface to see; the near / far percentiles are of these pixels."""
 
 RENDER_FORMATS = ("png", "jpeg", "msgpack")
 STREAM_FORMATS = ("jpeg", "png", "raw")
@@ -294,7 +297,8 @@ class Subscription:
     """``"jpeg"`` | ``"png"`` | ``"raw"`` (uint8 pixels [height, width, channels], row-major)."""
     render_mode: Literal["rgb", "depth", "alpha"] = "rgb"
     """What the frames show (``RENDER_MODES``; GET /render's ``mode``): ``"rgb"``, ``"depth"`` (the expected
-    camera z, grey: 255 at the frame's ``depth_near``, 1 at its ``depth_far``, 0 where no splat is) or
+    camera z, grey: 255 at the frame's ``depth_near``, 1 at its ``depth_far``, 0 where the splats' opacity
+    is below ``DEPTH_MIN_ALPHA``) or
     ``"alpha"`` (the splats' accumulated opacity, grey)."""
 
     def to_message(self) -> dict:
@@ -611,8 +615,8 @@ class FrameMeta:
     render_mode: str = field(default="rgb", kw_only=True)
     """What the pixels show (``RENDER_MODES``): rgb, depth (grey, ``DEPTH_GREY_NEAR``) or alpha (grey)."""
     depth_near: float | None = field(default=None, kw_only=True)
-    """Depth: the camera z (m) grey 255 stands for (the 1st percentile of the covered pixels' depths);
-    else ``None``."""
+    """Depth: the camera z (m) grey 255 stands for (the 1st percentile of the depths shown); else
+    ``None``."""
     depth_far: float | None = field(default=None, kw_only=True)
     """Depth: the camera z (m) grey 1 stands for (the 99th percentile); else ``None``."""
 

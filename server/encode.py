@@ -55,19 +55,17 @@ def event_rgba(emap: np.ndarray) -> np.ndarray:
     return out
 
 
-COVERED = 1 / 255
-"""A pixel is covered by splats where their accumulated opacity reaches this (a non-zero alpha grey)."""
 DEPTH_PERCENTILES = (1.0, 99.0)
-"""A depth render's near and far: these percentiles of its covered pixels' depths (a stray splat right in
-front of the camera or far behind the scene does not flatten the rest)."""
+"""A depth render's near and far: these percentiles of the depths it shows (a stray splat right in front
+of the camera or far behind the scene does not flatten the rest)."""
 
 
 def depth_grey(depth: np.ndarray, alpha: np.ndarray) -> tuple[np.ndarray, float | None, float | None]:
     """Expected depth [H, W] and the splats' opacity [H, W] -> (uint8 [H, W, 1], near, far): grey
     ``protocol.DEPTH_GREY_NEAR`` (255) at ``near``, ``DEPTH_GREY_FAR`` (1) at ``far`` and linear between
-    (nearer brighter; depths beyond them clipped), ``DEPTH_GREY_NONE`` (0) where no splat covers the
-    pixel. near and far are None, and every pixel 0, when none is covered."""
-    covered = alpha >= COVERED
+    (nearer brighter; depths beyond them clipped), ``DEPTH_GREY_NONE`` (0) where the splats' opacity is
+    below ``protocol.DEPTH_MIN_ALPHA``. near and far are None, and every pixel 0, when none reaches it."""
+    covered = alpha >= protocol.DEPTH_MIN_ALPHA
     out = np.full((*depth.shape, 1), protocol.DEPTH_GREY_NONE, np.uint8)
     if not covered.any():
         return out, None, None

@@ -52,8 +52,8 @@ class Rendered:
     mode: str = "rgb"
     """What the pixels show (protocol.RENDER_MODES)."""
     depth_range: tuple[float, float] | None = None
-    """Depth mode: the (near, far) camera z of grey 255 and 1 (encode.depth_grey); None: nothing covered,
-    or another mode."""
+    """Depth mode: the (near, far) camera z of grey 255 and 1 (encode.depth_grey); None: no surface in
+    view, or another mode."""
 
 
 class Engine:

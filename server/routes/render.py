@@ -30,9 +30,9 @@ FORMAT_DOC = "png (default), jpeg, or msgpack (a frame map with raw uint8 pixels
 MODE_DOC = (f"What the image shows: rgb (default); depth, the expected depth along the camera's z of each "
             f"pixel (sum w_i z_i / sum w_i over the splats blended into it), one grey channel, 255 at "
             f"{protocol.HEADER_DEPTH_NEAR} and 1 at {protocol.HEADER_DEPTH_FAR} (camera z in m: the 1st and "
-            f"99th percentiles of the covered pixels; nearer is brighter), 0 where no splat is; alpha, the "
-            f"splats' accumulated opacity 1 - T, one grey channel. Depth and alpha leave out a background "
-            f"layer and are never projected onto the events.")
+            f"99th percentiles of the depths shown; nearer is brighter), 0 where the splats' opacity is "
+            f"below {protocol.DEPTH_MIN_ALPHA:g}; alpha, the splats' accumulated opacity 1 - T, one grey "
+            f"channel. Depth and alpha leave out a background layer and are never projected onto the events.")
 
 ERROR_REF = {"$ref": "#/components/schemas/ErrorBody"}
 """The error body of every route, ``protocol.ErrorBody`` (its schema is added by ``server/openapi.py``)."""

@@ -128,12 +128,12 @@ def test_depth_and_alpha_modes_are_the_reference_renderers(scene):
     depth = engine.render(t, pose, width, height, mode="depth")
     assert depth.pixels.shape == (height, width, 1) and depth.mode == "depth" and not depth.projected
     near, far = depth.depth_range
-    covered = ref_alpha >= 1 / 255
+    covered = ref_alpha >= protocol.DEPTH_MIN_ALPHA
     np.testing.assert_allclose((near, far), np.percentile(ref_depth[covered], (1, 99)), rtol=1e-3)
     meta = protocol.FrameMeta(t, 0.0, t0, 0, 0.0, width, height, 1, "raw", "checkpoint", False,
                               render_mode="depth", depth_near=near, depth_far=far)
     z = depth_metres(depth.pixels, meta)
-    clear = (ref_alpha > 1.5 / 255) | (ref_alpha < 0.5 / 255)  # off the coverage threshold's rounding
+    clear = np.abs(ref_alpha - protocol.DEPTH_MIN_ALPHA) > 1e-3  # off the threshold's float32 rounding
     assert np.isnan(z[clear & ~covered]).all() and not np.isnan(z[clear & covered]).any()
     step = (far - near) / 254
     np.testing.assert_allclose(z[clear & covered], np.clip(ref_depth, near, far)[clear & covered],
