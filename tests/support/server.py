@@ -171,6 +171,20 @@ class ServerProcess:
         self.stop()
         raise RuntimeError(f"edmcgs-serve not ready after {timeout} s:\n{self.log()}")
 
+    def wait_streamed(self, seconds: float, token: str | None = None, timeout: float = STARTUP_S) -> None:
+        """Until the renderable range reaches ``seconds`` from the scene's start (a replay in real time
+        on a loaded machine may take longer than that to stream it)."""
+        import httpx
+
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            renderable = httpx.get(self.url + "/scene", headers=headers, timeout=5).json()["renderable"]
+            if renderable is not None and renderable["t_max"] >= seconds:
+                return
+            time.sleep(0.1)
+        raise RuntimeError(f"edmcgs-serve has not streamed {seconds} s after {timeout} s:\n{self.log()}")
+
     def rss_mb(self) -> float:
         """Resident memory of the server process (MB)."""
         for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():

@@ -50,6 +50,7 @@ def served(tmp_path_factory):
                              "EDMCGS_MAX_HEIGHT": str(MAX_SIZE)})
     try:
         srv.wait_ready(TOKEN)
+        srv.wait_streamed(1.9, TOKEN)  # the tests render anywhere in the recording's 2 s
         srv.token = TOKEN
         yield srv
     finally:
