@@ -9,7 +9,7 @@ from edmcgs import __version__
 # subcommand -> (module, help). Imported lazily so that `edmcgs --help` is instant.
 COMMANDS = {
     "record": ("edmcgs.record_cli", "record a live camera or a replay to AEDAT4 or HDF5"),
-    "synth": ("edmcgs.synth.build", "build a synthetic dynamic scene with simulated events"),
+    "synth": ("edmcgs.synth.cli", "build a synthetic dynamic scene with simulated events"),
     "train": ("edmcgs.train_cli", "train EdMCGS on a recording"),
     "eval": ("edmcgs.eval_cli", "evaluate a checkpoint on a recording's held-out frames"),
     "distill": ("edmcgs.distill_cli", "learn the transition online anchors use past a checkpoint's span"),

@@ -208,11 +208,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] in ("traffic", "traffic-pan"):  # composited, not Gaussians: its own builder
-        from edmcgs.synth.traffic_build import main as traffic_main
-
-        return traffic_main(argv)
+    """``edmcgs synth`` for the scenes drawn as Gaussians (``synth/cli.py`` dispatches by scene)."""
     args = _parser().parse_args(argv)
     try:
         simulator = SimulatorConfig(contrast_threshold=args.contrast_threshold,

@@ -8,7 +8,7 @@ import pytest
 from edmcgs.errors import InvalidInputError
 from edmcgs.pipeline import training_data
 from edmcgs.sensor.files.recording import read_recording, write_recording
-from edmcgs.synth.build import main as synth_main
+from edmcgs.synth.cli import main as synth_main
 from edmcgs.synth.esim import AdaptiveSampling, SimulatorConfig
 from edmcgs.synth.traffic import TrafficScene
 from edmcgs.synth.traffic_build import TrafficConfig, aps_frame, build_traffic, read_out
