@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Set up .venv on a fresh machine, pinned by requirements/constraints.txt (refresh: make lock).
 #   scripts/bootstrap.sh          what serving needs
-#   scripts/bootstrap.sh --test   also the dev tools and the system packages the tests drive (Chromium)
+#   scripts/bootstrap.sh --test   also the dev tools, the ray and bench extras and the system packages the
+#                                 tests drive (Chromium)
 # PyTorch: the CPU build from PyTorch's own CPU index where it is reachable (PyPI's torch wheel for
 # Linux is the CUDA build, several GB), else the machine's own torch==2.13.0 wheel. EDMCGS_TORCH_SPEC
 # brings another build (e.g. EDMCGS_TORCH_SPEC=torch==2.13.0 EDMCGS_TORCH_INDEX= for CUDA from PyPI).
@@ -13,7 +14,7 @@ PYTHON=${PYTHON:-python3}
 TORCH_SPEC=${EDMCGS_TORCH_SPEC:-torch==2.13.0}
 TORCH_INDEX=${EDMCGS_TORCH_INDEX-https://download.pytorch.org/whl/cpu}
 mode=serve extras=""
-if [[ "${1:-}" == "--test" ]]; then mode=test extras="[dev,ray]"; fi
+if [[ "${1:-}" == "--test" ]]; then mode=test extras="[dev,ray,bench]"; fi
 
 if [[ $mode == test ]] && ! command -v chromium >/dev/null 2>&1; then
   if [[ $(id -u) -eq 0 ]] && command -v apt-get >/dev/null 2>&1; then

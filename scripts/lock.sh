@@ -11,9 +11,9 @@ pip=("$scratch/venv/bin/python" -m pip install -q --disable-pip-version-check)
 "${pip[@]}" --upgrade pip
 "${pip[@]}" --index-url https://download.pytorch.org/whl/cpu --timeout 5 --retries 0 torch==2.13.0 2>/dev/null \
   || "${pip[@]}" torch==2.13.0
-"${pip[@]}" -e '.[dev,ray]'
+"${pip[@]}" -e '.[dev,ray,bench]'
 {
-  echo "# Pinned versions of everything pyproject.toml installs (runtime, dev and ray extras), used by"
+  echo "# Pinned versions of everything pyproject.toml installs (runtime, dev, ray and bench extras), used by"
   echo "# scripts/bootstrap.sh and docker/Dockerfile. Refresh with: make lock"
   "$scratch/venv/bin/python" -m pip freeze --all --exclude-editable \
     | grep -viE '^(torch|nvidia-|triton|edmcgs)[=-]' | grep -v '^-e ' | sort -f

@@ -23,6 +23,8 @@ MODEL_CORE = ("edmcgs.model.dynamic", "edmcgs.model.motion", "edmcgs.model.rende
 RAY_ROOMS = ("edmcgs.server.ray_serve", "edmcgs.fanout")
 """The only installed modules that import ``ray`` (the optional extra): the Serve application and the
 training fan-out."""
+BENCH_ONLY = ("matplotlib",)
+"""Third-party packages of the ``bench`` extra, which only ``bench/`` imports."""
 
 
 def _modules():
@@ -224,6 +226,13 @@ def _top_level_imports(path: Path) -> set[str]:
 def test_only_the_ray_rooms_import_ray():
     bad = [name for name, path in MODULES.items()
            if _within(name, "edmcgs") and not _within(name, *RAY_ROOMS) and "ray" in _top_level_imports(path)]
+    assert bad == []
+
+
+def test_nothing_installed_imports_a_bench_only_package():
+    """matplotlib is the ``bench`` extra's: a plain install has none."""
+    bad = [name for name, path in MODULES.items()
+           if _within(name, "edmcgs") and _top_level_imports(path) & set(BENCH_ONLY)]
     assert bad == []
 
 

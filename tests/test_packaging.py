@@ -39,3 +39,19 @@ def test_cli_rejects_unknown_command(capsys):
         main(["no-such-command"])
     assert exc.value.code == 2
     assert "invalid choice" in capsys.readouterr().err
+
+
+def test_package_data_lies_in_listed_packages():
+    """Each package-data pattern names files in its own package's folder: a data folder inside another
+    package is a package of its own to setuptools, which warns at every install unless it is listed."""
+    config = _config()
+    for package, patterns in config["package-data"].items():
+        assert package in config["packages"], f"{package} has package data but is not listed"
+        assert all("/" not in p for p in patterns), f"{package}: list the data folder as its own package"
+
+
+def test_bench_only_dependencies_are_an_extra():
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    runtime = {d.split(">")[0].split("=")[0].split("[")[0].strip() for d in project["dependencies"]}
+    assert "matplotlib" not in runtime
+    assert any(d.startswith("matplotlib") for d in project["optional-dependencies"]["bench"])
