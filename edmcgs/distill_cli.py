@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 from edmcgs.errors import EdmcgsError, InvalidInputError
+from edmcgs.filekind import check_checkpoint, check_recording
 from edmcgs.options import RecordingOptions, add_recording_arguments
 
 
@@ -38,6 +39,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.output.exists() and not args.force:
         parser.error(f"{args.output} exists (use --force to replace it)")
     try:
+        order = "edmcgs distill takes the checkpoint first, then the recording it was trained on"
+        check_checkpoint(args.checkpoint, verify=True, hint=order)
+        check_recording(args.recording, hint=order)
         return _run(args)
     except EdmcgsError as exc:
         print(f"edmcgs distill: {exc}", file=sys.stderr)

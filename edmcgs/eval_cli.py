@@ -8,6 +8,7 @@ import csv
 import sys
 
 from edmcgs.errors import EdmcgsError, InvalidInputError
+from edmcgs.filekind import check_checkpoint, check_recording
 from edmcgs.options import RecordingOptions, add_recording_arguments
 
 
@@ -39,6 +40,10 @@ def main(argv: list[str] | None = None) -> int:
             from edmcgs.server.demo import files
 
             args.checkpoint, args.recording = files()
+        else:  # before torch: a wrong file is said at once
+            order = "edmcgs eval takes the checkpoint first, then the recording it was trained on"
+            check_checkpoint(args.checkpoint, verify=True, hint=order)
+            check_recording(args.recording, hint=order)
         return _run(args)
     except EdmcgsError as exc:
         print(f"edmcgs eval: {exc}", file=sys.stderr)

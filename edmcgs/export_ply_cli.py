@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 from edmcgs.errors import EdmcgsError, InvalidInputError
+from edmcgs.filekind import check_checkpoint, check_recording
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -29,6 +30,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.output.exists() and not args.force:
         parser.error(f"{args.output} exists (use --force to replace it)")
     try:
+        check_checkpoint(args.checkpoint, verify=True, hint="give it as --recording (the checkpoint first)")
+        if args.recording is not None:
+            check_recording(args.recording, hint="the checkpoint goes first; --recording takes its recording")
         return _run(args)
     except EdmcgsError as exc:
         print(f"edmcgs export-ply: {exc}", file=sys.stderr)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import sys
 
 from edmcgs.errors import EdmcgsError
+from edmcgs.filekind import check_recording
 from edmcgs.options import RecordingOptions, add_recording_arguments
 from edmcgs.sensor import record
 from edmcgs.sensor.files.recording import write_recording
@@ -37,6 +38,7 @@ def main(argv: list[str] | None = None) -> int:
     from edmcgs.pipeline import open_recording
 
     try:
+        check_recording(args.source)
         rec = open_recording(args.source, options, progress=not args.quiet, start_s=args.start,
                              duration_s=args.duration, frames=not args.no_frames)
         write_recording(args.output, rec)

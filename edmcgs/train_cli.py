@@ -15,6 +15,7 @@ import threading
 from pathlib import Path
 
 from edmcgs.errors import EdmcgsError, InvalidInputError
+from edmcgs.filekind import check_checkpoint, check_recording
 from edmcgs.model.config import PRESETS
 from edmcgs.options import RecordingOptions, add_recording_arguments
 
@@ -72,6 +73,7 @@ def main(argv: list[str] | None = None) -> int:
             return 1
     args.argv = list(sys.argv[1:] if argv is None else argv)
     try:
+        check_inputs(args, many)
         if many:
             return _run_many(args)
         args.recording = args.recording[0]
@@ -86,6 +88,21 @@ def main(argv: list[str] | None = None) -> int:
 
 INTERRUPTED = 130
 """Exit status after Ctrl-C (128 + SIGINT), as shells report it."""
+
+
+def check_inputs(args: argparse.Namespace, many: bool) -> None:
+    """What can be checked before torch is imported (seconds): every recording is one, a checkpoint to
+    resume is one, a trajectory file exists. An EdmcgsError naming the first problem."""
+    for recording in args.recording:
+        check_recording(recording, hint="edmcgs train takes the recording to train on (a checkpoint goes to "
+                                        "--resume)")
+    resumed = args.resume if isinstance(args.resume, str) else None
+    if args.resume is True and not many and os.path.exists(args.output):
+        resumed = args.output
+    if resumed is not None:
+        check_checkpoint(resumed, verify=True, hint="--resume takes the checkpoint of the run to continue")
+    if args.poses is not None and not os.path.isfile(args.poses):
+        raise InvalidInputError(f"--poses {args.poses}: no such file")
 
 
 def resume_command(argv: list[str], checkpoint, steps: int | None) -> str:

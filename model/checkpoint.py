@@ -34,6 +34,7 @@ import torch
 
 from edmcgs.atomic import atomic_output
 from edmcgs.errors import CheckpointError, EdmcgsError, translated
+from edmcgs.filekind import check_checkpoint
 from edmcgs.geometry import Intrinsics, Trajectory
 from edmcgs.model.config import EdmcgsConfig
 from edmcgs.model.dynamic import EdMCGS, SceneMeta
@@ -101,9 +102,7 @@ def save_checkpoint(model: EdMCGS, path: str | os.PathLike, *, train_state: dict
 
 def read_checkpoint(path: str | os.PathLike) -> dict:
     """The validated raw payload (tensors on the CPU); ``CheckpointError`` for anything but ours."""
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"checkpoint {str(path)!r} does not exist")
+    path = check_checkpoint(path)  # missing, a recording, not a torch file: said before torch reads it
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:

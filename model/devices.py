@@ -10,9 +10,11 @@ def check_device(name: str) -> str:
 
     'cpu', 'cuda', 'cuda:N' (N < the number of GPUs), 'mps' where torch has it; nothing else.
     """
+    text = str(name).strip()
+    if text == "cpu":  # every torch has it: no need to import torch (a command's checks stay instant)
+        return text
     import torch
 
-    text = str(name).strip()
     try:
         device = torch.device(text)
     except (RuntimeError, ValueError, TypeError):

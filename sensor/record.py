@@ -19,6 +19,7 @@ from tqdm import tqdm
 
 from edmcgs.atomic import atomic_output
 from edmcgs.errors import EdmcgsError, InvalidInputError, RecordingError
+from edmcgs.filekind import check_recording
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import Recording, RecordingWriter
 from edmcgs.sensor.frames import Frames
@@ -239,6 +240,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.output.exists() and not args.force:
         parser.error(f"{args.output} exists (use --force to replace it)")
     try:
+        if args.source is not None:
+            check_recording(args.source)
         pacing = Pacing(factor=args.factor, start_offset_us=round(args.start * 1e6))
         source = open_source(args.source, live=args.live, serial=args.serial, pacing=pacing,
                              resolution=parse_resolution(args.resolution))

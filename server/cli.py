@@ -15,16 +15,18 @@ route require ``Authorization: Bearer <token>``.
 from __future__ import annotations
 
 import argparse
+import errno
 import logging
 import os
 import signal
+import socket
 import sys
 
 from pydantic import ValidationError
 
 from edmcgs import __version__
-from edmcgs.errors import EdmcgsError
-from edmcgs.server.auth import redact_query
+from edmcgs.errors import EdmcgsError, InvalidInputError
+from edmcgs.filekind import check_checkpoint, check_recording
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -59,6 +61,8 @@ class _RedactToken(logging.Filter):
     redacted by its decoded names, the ones the middleware authenticates with."""
 
     def filter(self, record: logging.LogRecord) -> bool:
+        from edmcgs.server.auth import redact_query  # loaded by then: the app imports it
+
         if record.args:
             record.args = tuple(redact_query(a) if isinstance(a, str) else a for a in record.args)
         if isinstance(record.msg, str):
@@ -75,10 +79,6 @@ def main(argv: list[str] | None = None) -> int:
     # each other, and the deformation slows by an order of magnitude. An explicit OMP_WAIT_POLICY in the
     # environment wins.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    import uvicorn
-
-    from edmcgs.server.app import create_app
-    from edmcgs.server.service import Service
     from edmcgs.server.settings import Settings
 
     flags = {k: v for k, v in vars(args).items() if v is not None and k != "log_level"}
@@ -91,6 +91,16 @@ def main(argv: list[str] | None = None) -> int:
             where = ".".join(str(p) for p in err["loc"]) or "settings"
             print(f"edmcgs-serve: {where}: {err['msg']}", file=sys.stderr)
         return 2
+    try:
+        check_inputs(settings)
+    except EdmcgsError as exc:
+        print(f"edmcgs-serve: {exc}", file=sys.stderr)
+        return 1
+    import uvicorn
+
+    from edmcgs.server.app import create_app
+    from edmcgs.server.service import Service
+
     if settings.token is None and settings.host not in ("127.0.0.1", "localhost", "::1"):
         logging.getLogger("edmcgs.server").warning(
             "serving on %s without EDMCGS_TOKEN: anyone who can reach this port can use the service",
@@ -121,6 +131,37 @@ def main(argv: list[str] | None = None) -> int:
     if stopped_by[:1] == [signal.SIGINT]:  # uvicorn's re-raise may find asyncio's main task done
         return 130
     return 0 if server.started else 1
+
+
+def check_inputs(settings) -> None:
+    """What can be checked before torch is imported and the model loaded (seconds): the files are what
+    their flags say, and the port is free. An EdmcgsError naming the first problem."""
+    if settings.replay is not None:
+        check_recording(settings.replay, hint="pass it as --checkpoint (--replay takes its recording)")
+    if settings.checkpoint is not None:
+        check_checkpoint(settings.checkpoint, verify=True,
+                         hint="pass it as --replay (--checkpoint takes the model trained on it)")
+    check_port(settings.host, settings.port)
+
+
+def check_port(host: str, port: int) -> None:
+    """InvalidInputError unless ``host:port`` can be bound now (port 0 is always free), tried as uvicorn
+    binds it (SO_REUSEADDR, so a closed connection's TIME_WAIT is no obstacle)."""
+    if port == 0:
+        return
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+    except socket.gaierror as exc:
+        raise InvalidInputError(f"--host {host!r}: {exc.strerror}") from None
+    with socket.socket(family, kind, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind(address)
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                raise InvalidInputError(f"port {port} on {host} is in use (another edmcgs-serve?): give "
+                                        "--port N or EDMCGS_PORT=N (0: any free port)") from None
+            raise InvalidInputError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
 
 
 def _main_ray(args: argparse.Namespace) -> int:

@@ -8,9 +8,10 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 FOLDERS = {"edmcgs": "edmcgs", "sensor": "edmcgs.sensor", "model": "edmcgs.model", "synth": "edmcgs.synth",
            "server": "edmcgs.server", "clients": "edmcgs.clients", "bench": "bench", "tests": "tests"}
-BASE = ("edmcgs.errors", "edmcgs.atomic", "edmcgs.geometry", "edmcgs.luminance")
+BASE = ("edmcgs.errors", "edmcgs.atomic", "edmcgs.geometry", "edmcgs.luminance",
+        "edmcgs.filekind")
 """Shared by every layer: the error tree, atomic file output, the camera / pose / quaternion maths and
-what an event pixel sees of an image (luminance)."""
+what an event pixel sees of an image (luminance), and what a file is by its first bytes."""
 PROTOCOL = "edmcgs.protocol"
 APPLICATION = ("edmcgs.pipeline", "edmcgs.options", "edmcgs.cli", "edmcgs.train_cli", "edmcgs.eval_cli",
                "edmcgs.record_cli", "edmcgs.export_ply_cli")
@@ -82,6 +83,7 @@ def test_the_shared_base_imports_nothing_above_it():
     assert _violations("edmcgs.atomic", ("edmcgs.errors",)) == []
     assert _violations("edmcgs.geometry", ("edmcgs.errors",)) == []
     assert _violations("edmcgs.luminance", ()) == []
+    assert _violations("edmcgs.filekind", ("edmcgs.errors",)) == []
     assert _violations(PROTOCOL, ()) == [], "the wire protocol imports nothing of the project"
 
 

@@ -10,9 +10,6 @@ from edmcgs.errors import InvalidInputError, ReplayFormatError
 from edmcgs.sensor.sources.base import EventSource
 from edmcgs.sensor.sources.pacing import Pacing
 
-AEDAT_SUFFIXES = (".aedat4",)
-HDF5_SUFFIXES = (".h5", ".hdf5")
-
 FORMATS = (
     "AEDAT4 (iniVation DV)",
     "AEDAT 2.0 / 3.1 (jAER, cAER)",

@@ -203,6 +203,7 @@ def test_connections_are_capped(monkeypatch):
     monkeypatch.setattr(uvicorn, "Server", FakeServer)
     monkeypatch.setattr("edmcgs.server.service.Service.open", lambda settings: StubService(settings))
     monkeypatch.setenv("EDMCGS_MAX_CONNECTIONS", "77")
+    monkeypatch.setenv("EDMCGS_PORT", "0")  # the command checks its port is free: 8000 may be taken here
     assert cli.main([]) == 0
     assert seen["limit"] == 77
 
