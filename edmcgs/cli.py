@@ -5,6 +5,7 @@ import importlib
 import sys
 
 from edmcgs import __version__
+from edmcgs.errors import did_you_mean
 
 # subcommand -> (module, help). Imported lazily so that `edmcgs --help` is instant.
 COMMANDS = {
@@ -25,6 +26,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--version", action="version", version=f"edmcgs {__version__}")
         parser.add_argument("command", choices=sorted(COMMANDS), help="; ".join(
             f"{name}: {text}" for name, (_, text) in COMMANDS.items()))
+        if argv and argv[0] not in COMMANDS and not argv[0].startswith("-"):
+            parser.error(f"unknown command {argv[0]!r}{did_you_mean(argv[0], COMMANDS)} (invalid choice; "
+                         f"choose from {', '.join(sorted(COMMANDS))})")
         parser.parse_args(argv[:1])
         return 2
     if "--version" in argv[1:]:  # every subcommand answers it, the same way

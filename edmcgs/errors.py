@@ -8,7 +8,8 @@ translated at the boundary with ``raise ... from exc`` so the cause stays visibl
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Iterator
+import difflib
+from collections.abc import Callable, Iterable, Iterator
 
 
 class EdmcgsError(Exception):
@@ -64,6 +65,12 @@ class RenderError(EdmcgsError):
 
 class TrainingError(EdmcgsError):
     """Training cannot proceed (e.g. a recording without anchor frames)."""
+
+
+def did_you_mean(name: str, known: Iterable[str]) -> str:
+    """``"; did you mean 'x'?"`` naming the known names closest to a mistyped ``name``; '' when none is."""
+    close = difflib.get_close_matches(name, list(known), n=3, cutoff=0.6)
+    return f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else ""
 
 
 @contextlib.contextmanager

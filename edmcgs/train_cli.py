@@ -16,7 +16,7 @@ from pathlib import Path
 
 from edmcgs.errors import EdmcgsError, InvalidInputError
 from edmcgs.filekind import check_checkpoint, check_recording
-from edmcgs.model.config import PRESETS
+from edmcgs.model.config import PRESETS, split_overrides
 from edmcgs.options import RecordingOptions, add_recording_arguments
 
 
@@ -91,8 +91,9 @@ INTERRUPTED = 130
 
 
 def check_inputs(args: argparse.Namespace, many: bool) -> None:
-    """What can be checked before torch is imported (seconds): every recording is one, a checkpoint to
-    resume is one, a trajectory file exists. An EdmcgsError naming the first problem."""
+    """What can be checked before torch is imported (seconds): the --set keys, every recording is one, a
+    checkpoint to resume is one, a trajectory file exists. An EdmcgsError naming the first problem."""
+    split_overrides(args.overrides)  # the keys; their values are parsed against the config they change
     for recording in args.recording:
         check_recording(recording, hint="edmcgs train takes the recording to train on (a checkpoint goes to "
                                         "--resume)")

@@ -17,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, fields
 
-from edmcgs.errors import InvalidInputError
+from edmcgs.errors import InvalidInputError, did_you_mean
 from edmcgs.luminance import LOG_EPS
 
 
@@ -245,14 +245,8 @@ class EdmcgsConfig(Schedule, Losses, Initialisation, Structure):
         """Apply ``key=value`` strings (``--set``); values are parsed by the field's type."""
         cfg = dataclasses.replace(self)
         by_name = {f.name: f for f in fields(self)}
-        for item in items:
-            key, sep, raw = item.partition("=")
-            key = key.strip()
-            if not sep:
-                raise InvalidInputError(f"--set {item!r}: expected key=value")
-            if key not in by_name:
-                raise InvalidInputError(f"--set {item!r}: unknown key {key!r}; known: {sorted(by_name)}")
-            setattr(cfg, key, _parse(by_name[key], raw.strip()))
+        for key, raw in split_overrides(items):
+            setattr(cfg, key, _parse(by_name[key], raw))
         cfg.validate()
         return cfg
 
@@ -368,10 +362,28 @@ PRESETS = {
 ``real`` (a static or rotating 346x260 event camera: background layer, anchor windows)."""
 
 
+def split_overrides(items: list[str]) -> list[tuple[str, str]]:
+    """``key=value`` strings (``--set``) as (key, raw value) pairs; InvalidInputError for a malformed item or
+    an unknown key (with the closest known ones)."""
+    known = {f.name for f in fields(EdmcgsConfig)}
+    pairs = []
+    for item in items:
+        key, sep, raw = item.partition("=")
+        key = key.strip()
+        if not sep:
+            raise InvalidInputError(f"--set {item!r}: expected key=value")
+        if key not in known:
+            raise InvalidInputError(f"--set {item!r}: unknown key {key!r}{did_you_mean(key, known)} "
+                                    f"(--list-config prints all {len(known)} with their meaning)")
+        pairs.append((key, raw.strip()))
+    return pairs
+
+
 def preset(name: str) -> EdmcgsConfig:
     """The named preset; ``InvalidInputError`` for an unknown name."""
     if name not in PRESETS:
-        raise InvalidInputError(f"config: unknown preset {name!r}; choose from {sorted(PRESETS)}")
+        raise InvalidInputError(f"config: unknown preset {name!r}{did_you_mean(name, PRESETS)}; choose from "
+                                f"{sorted(PRESETS)}")
     return PRESETS[name]()
 
 

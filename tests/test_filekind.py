@@ -1,5 +1,5 @@
-"""What a file is, by its first bytes; and every command says a wrong file (or a busy port) before it
-imports torch, naming a recording given as a checkpoint and the reverse."""
+"""What a file is, by its first bytes; and every command says a wrong file, a busy port or a mistyped
+config key before it imports torch, naming a recording given as a checkpoint and the reverse."""
 
 import json
 import os
@@ -125,6 +125,8 @@ def test_commands_say_a_wrong_file_or_busy_port_before_importing_torch(files, tm
              "a checkpoint (a torch file), not a recording: edmcgs train takes the recording"),
             (("train", [f["rec"], "-o", str(tmp_path / "o.ckpt"), "--resume", f["rec"]]),
              "an HDF5 recording, not a checkpoint: --resume takes"),
+            (("train", [f["rec"], "-o", str(tmp_path / "o.ckpt"), "--set", "iteration=5"]),
+             "unknown key 'iteration'; did you mean 'iterations'?"),
             (("eval", [f["rec"], f["ckpt"]]), "not a checkpoint: edmcgs eval takes the checkpoint first"),
             (("export-ply", [f["rec"], "--t", "0", "-o", str(tmp_path / "x.ply")]), "not a checkpoint"),
             (("serve", ["--replay", f["png"], "--checkpoint", f["ckpt"], "--port", "0"]),

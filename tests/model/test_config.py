@@ -100,3 +100,23 @@ def test_an_old_flat_checkpoint_config_loads(tmp_path):
     assert config.bg_layer is False and config.event_act == "relu"  # the defaults of the missing fields
     with pytest.raises(InvalidInputError, match="unknown keys"):
         EdmcgsConfig.from_dict({**stored, "from_a_newer_writer": 1})
+
+
+def test_a_mistyped_key_or_preset_names_the_closest_ones():
+    cfg = preset("demo")
+    with pytest.raises(InvalidInputError) as info:
+        cfg.with_overrides(["iteration=50"])
+    assert "did you mean 'iterations'?" in str(info.value) and "init_points" not in str(info.value)
+    with pytest.raises(InvalidInputError) as info:
+        cfg.with_overrides(["zzzz=1"])
+    assert "did you mean" not in str(info.value) and "--list-config" in str(info.value)
+    with pytest.raises(InvalidInputError, match="did you mean 'demo'"):
+        preset("dmeo")
+
+
+def test_an_unknown_command_names_the_closest_one(capsys):
+    from edmcgs.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["trian"])
+    assert exc.value.code == 2 and "did you mean 'train'?" in capsys.readouterr().err
