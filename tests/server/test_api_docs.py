@@ -160,3 +160,19 @@ def test_a_subscription_echo_matches_its_schema(client):
     props = doc["components"]["schemas"]["Subscription"]["properties"]
     defaults = {k: p["default"] for k, p in props.items() if p.get("default") is not None}
     assert defaults == protocol.Subscription().to_message()
+
+
+def test_the_pose_parameter_states_its_quaternion_order_and_the_tum_files(client, capsys):
+    """A pose takes qw first and a TUM trajectory file qw last: each place that takes one says which."""
+    from edmcgs.clients.export import main as export_main
+    from edmcgs.train_cli import main as train_main
+
+    params = client.get("/openapi.json").json()["paths"]["/render"]["get"]["parameters"]
+    pose = next(p for p in params if p["name"] == "pose")["description"]
+    assert "tx,ty,tz,qw,qx,qy,qz, the quaternion scalar first" in pose and "qx qy qz qw" in pose
+    for main in (export_main, train_main):
+        with pytest.raises(SystemExit):
+            main(["--help"])
+    shown = " ".join(capsys.readouterr().out.split())
+    assert "tx,ty,tz,qw,qx,qy,qz (the quaternion scalar first" in shown
+    assert "t tx ty tz qx qy qz qw per line, t in seconds, the quaternion scalar last" in shown
