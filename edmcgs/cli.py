@@ -16,6 +16,7 @@ COMMANDS = {
     "distill": ("edmcgs.distill_cli", "learn the transition online anchors use past a checkpoint's span"),
     "export": ("edmcgs.clients.export", "export a time sweep of a running service as GIF or MP4"),
     "export-ply": ("edmcgs.export_ply_cli", "write the Gaussians at a time t as a 3DGS PLY file"),
+    "warm-up": ("edmcgs.warmup_cli", "compile the numba kernels into numba's cache (setup runs it)"),
 }
 
 

@@ -236,6 +236,18 @@ def check_resume_fits(model, data, path) -> None:
                                 "or give its recording")
 
 
+def _announce_compile() -> None:
+    """One line before a run that compiles numba kernels first (the training ones, and the renderer's for
+    the held-out scores at its end), which would otherwise sit at 0 % for tens of seconds."""
+    from edmcgs.model.render import rasterize, rasterize_fast
+    from edmcgs.model.render.jit import compiled
+
+    seconds = sum(m.COMPILE_S for m in (rasterize, rasterize_fast) if not compiled(*m.KERNELS))
+    if seconds:
+        print(f"compiling the numba kernels (first run only, about {seconds} s; edmcgs warm-up does it "
+              "ahead) ...", flush=True)
+
+
 def _on_interrupt(stop: threading.Event):
     """SIGINT handler: the first Ctrl-C asks the trainer to stop after the current step and save; a second
     one abandons the run at once (a checkpoint being written is left out: writes are atomic)."""
@@ -295,6 +307,8 @@ def _run(args) -> int:
             print(f"--resume: no checkpoint at {out} yet: training from the start")
         cfg = build_config(args.config, args.overrides, rec)
         model = new_model(data, cfg)
+    if args.device == "cpu":
+        _announce_compile()
     trainer = Trainer(model, data, device=args.device, progress=not args.quiet)
     if train_state:
         trainer.load_train_state(train_state)

@@ -6,7 +6,8 @@
 # PyTorch: the CPU build from PyTorch's own CPU index where it is reachable (PyPI's torch wheel for
 # Linux is the CUDA build, several GB), else the machine's own torch==2.13.0 wheel. EDMCGS_TORCH_SPEC
 # brings another build (e.g. EDMCGS_TORCH_SPEC=torch==2.13.0 EDMCGS_TORCH_INDEX= for CUDA from PyPI).
-# Idempotent: a stamp keyed on the pins, this script and the mode skips the pip work when nothing changed.
+# Idempotent: a stamp keyed on the pins, this script and the mode skips the pip work (and edmcgs warm-up,
+# which compiles the numba kernels into numba's cache) when nothing changed.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -42,5 +43,9 @@ if ! .venv/bin/python -c "import torch" 2>/dev/null; then
   fi
 fi
 "${pip[@]}" -c requirements/constraints.txt -e ".$extras"
+# The numba kernels into numba's on-disk cache, so that the first edmcgs-serve / edmcgs train starts at
+# once instead of compiling for a minute; seconds when the cache already holds them.
+echo "bootstrap: compiling the numba kernels once (about a minute the first time)"
+.venv/bin/edmcgs warm-up
 echo "$want" > "$stamp"
 echo "bootstrap: .venv ready for $mode ($(.venv/bin/python -c 'import torch; print("torch", torch.__version__)'))"

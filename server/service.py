@@ -25,6 +25,8 @@ import numpy as np
 from edmcgs import protocol
 from edmcgs.errors import EdmcgsError, InvalidInputError, RenderError
 from edmcgs.model.checkpoint import load_checkpoint
+from edmcgs.model.render import rasterize_fast
+from edmcgs.model.render.jit import compiled
 from edmcgs.sensor.buffer.anchors import AnchorStore
 from edmcgs.sensor.buffer.ingest import Ingest
 from edmcgs.sensor.buffer.ring import EventRingBuffer
@@ -45,6 +47,15 @@ from edmcgs.server.settings import Settings
 from edmcgs.server.views import training_views
 
 log = logging.getLogger("edmcgs.server")
+
+def _warm_up(engine: Engine) -> float:
+    """``engine.warm_up()``, announced first where the renderer's kernels are not in numba's cache yet
+    (the start would otherwise look hung)."""
+    if engine.fast and not compiled(*rasterize_fast.KERNELS):
+        log.info("compiling the renderer's kernels (first run only, about %d s; edmcgs warm-up does it "
+                 "ahead) ...", rasterize_fast.COMPILE_S)
+    return engine.warm_up()
+
 
 def invalid(param: str, message: str) -> InvalidInputError:
     """An InvalidInputError that names the offending request parameter (mapped to 422)."""
@@ -133,7 +144,7 @@ class Service:
                                                   inputs.loop)
                 retain_passes(ring, engine.timeline)
             service = cls(settings, inputs, model, source, ring, None, engine)
-            seconds = engine.warm_up()
+            seconds = _warm_up(engine)
             log.info("model %s on %s: %d Gaussians, warm-up %.1f s; source %s (%dx%d, %s)",
                      inputs.checkpoint, settings.device, len(model.gaussians), seconds, info.sensor,
                      info.width, info.height, "tau from the checkpoint's anchors" + (
@@ -158,7 +169,7 @@ class Service:
         engine = Engine(model, ring, cache_size=settings.deform_cache, raster_threads=settings.raster_threads,
                         playback=playback)
         service = cls(settings, inputs, model, None, ring, None, engine)
-        seconds = engine.warm_up()
+        seconds = _warm_up(engine)
         log.info("model %s on %s: %d Gaussians, warm-up %.1f s; no sensor (no event branch): the span "
                  "plays in a loop at %gx", inputs.checkpoint, settings.device, len(model.gaussians), seconds,
                  settings.speed)

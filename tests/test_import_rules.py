@@ -14,9 +14,9 @@ BASE = ("edmcgs.errors", "edmcgs.atomic", "edmcgs.geometry", "edmcgs.luminance",
 what an event pixel sees of an image (luminance), and what a file is by its first bytes."""
 PROTOCOL = "edmcgs.protocol"
 APPLICATION = ("edmcgs.pipeline", "edmcgs.options", "edmcgs.cli", "edmcgs.train_cli", "edmcgs.eval_cli",
-               "edmcgs.record_cli", "edmcgs.export_ply_cli")
+               "edmcgs.record_cli", "edmcgs.export_ply_cli", "edmcgs.warmup_cli")
 CLI_MODULES = ("edmcgs.cli", "edmcgs.train_cli", "edmcgs.eval_cli", "edmcgs.record_cli",
-               "edmcgs.export_ply_cli", "edmcgs.server.cli")
+               "edmcgs.export_ply_cli", "edmcgs.warmup_cli", "edmcgs.server.cli")
 MODEL_ROOMS = ("render", "motion", "train", "eval", "online")
 MODEL_CORE = ("edmcgs.model.dynamic", "edmcgs.model.motion", "edmcgs.model.render", "edmcgs.model.config",
               "edmcgs.model.data", "edmcgs.model.checkpoint")

@@ -319,3 +319,7 @@ def composite_fast(attrs: Tensor, feat: Tensor, rect: Tensor, depth: Tensor, wid
         raise InvalidInputError(f"feat must be [M, F] with F <= {FEATURES}, got {tuple(feat.shape)}")
     tiles = _Tiles(rect, depth, width, height, attrs.dtype)
     return CompositeFast.apply(attrs, feat, tiles)
+
+
+KERNELS = (_forward, _backward)
+"""The compositor's kernels a training step compiles on first use (``jit.compiled``)."""

@@ -23,6 +23,18 @@ def njit_cached(**options):
     return wrap
 
 
+def compiled(*kernels) -> bool:
+    """Whether numba's on-disk cache holds every one of ``kernels`` (njit dispatchers) compiled from its
+    current source: a process that finds them loads them in a fraction of a second, one that does not
+    compiles them first (tens of seconds for the renderer), which a command announces. False where
+    numba keeps no cache for a kernel."""
+    for kernel in kernels:
+        index = getattr(getattr(kernel, "_cache", None), "_cache_file", None)  # none: numba's NullCache
+        if index is None or not index._load_index():  # {} when absent or stale (the source changed)
+            return False
+    return True
+
+
 def in_torch_threads(kernel, *args, chunksize: int = 0):
     """``kernel(*args)``, a parallel numba kernel called from torch code, on torch's thread count (the
     trainer's ``--threads``, the server's ``torch_threads``). numba's OpenMP layer shares the

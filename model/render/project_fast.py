@@ -316,3 +316,7 @@ def sh_color_fast(coeffs: Tensor, means: Tensor, w2c: np.ndarray) -> Tensor:
     w2c = np.asarray(w2c, np.float64)
     centre = np.ascontiguousarray(-(w2c[:3, :3].T @ w2c[:3, 3]))
     return ShColorFast.apply(coeffs, means, centre)
+
+
+KERNELS = (_project_forward, _project_backward)
+"""The projection's kernels a training step compiles on first use (``jit.compiled``)."""

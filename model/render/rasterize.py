@@ -23,8 +23,10 @@ from torch import Tensor
 from edmcgs.errors import InvalidInputError
 from edmcgs.geometry import Intrinsics
 from edmcgs.model.render.composite import composite, make_plan
+from edmcgs.model.render.composite_fast import KERNELS as _COMPOSITE_KERNELS
 from edmcgs.model.render.composite_fast import composite_fast
 from edmcgs.model.render.io import RenderOutput, check_inputs
+from edmcgs.model.render.project_fast import KERNELS as _PROJECT_KERNELS
 from edmcgs.model.render.project_fast import project_fast, sh_color_fast
 from edmcgs.model.render.projection import Splats, ewa_project, screen_rect
 from edmcgs.model.render.sh import sh_to_color
@@ -135,3 +137,10 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
         depth = torch.where(covered, acc[..., c] / torch.where(covered, alpha, torch.ones_like(alpha)),
                             torch.zeros_like(alpha))
     return RenderOutput(image=image, alpha=alpha if return_alpha else None, depth=depth)
+
+
+KERNELS = _PROJECT_KERNELS + _COMPOSITE_KERNELS
+"""The numba kernels of the differentiable path on the CPU (training, online corrections)."""
+COMPILE_S = 30
+"""About how long numba compiles ``KERNELS`` on a first run (2 shared cores: 30 to 33 s); ``edmcgs
+warm-up`` (run by setup) compiles them into numba's cache beforehand."""

@@ -323,3 +323,10 @@ def rasterize_fast(means, quats, scales, opacities, colors, w2c, intrinsics: Int
         numba.set_num_threads(previous_threads)
     return RenderOutput(image=image, alpha=alpha if return_alpha else None,
                         depth=depth if return_depth else None)
+
+
+KERNELS = (_project, _blend)
+"""The kernels every render compiles on first use (``jit.compiled`` tells whether numba's cache has them)."""
+COMPILE_S = 40
+"""About how long numba compiles the renderer's kernels on a first run (2 shared cores: 35 to 49 s);
+``edmcgs warm-up`` (run by setup) compiles them into numba's cache beforehand."""
