@@ -98,9 +98,9 @@ def check_inputs(args: argparse.Namespace, many: bool) -> None:
         check_recording(recording, hint="edmcgs train takes the recording to train on (a checkpoint goes to "
                                         "--resume)")
     resumed = args.resume if isinstance(args.resume, str) else None
-    if args.resume is True and not many and os.path.exists(args.output):
+    if args.resume is True and os.path.exists(args.output):
         resumed = args.output
-    if resumed is not None:
+    if resumed is not None and not many:  # several: --resume CKPT is refused, each run reads its own
         check_checkpoint(resumed, verify=True, hint="--resume takes the checkpoint of the run to continue")
     if args.poses is not None and not os.path.isfile(args.poses):
         raise InvalidInputError(f"--poses {args.poses}: no such file")

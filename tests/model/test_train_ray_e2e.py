@@ -37,8 +37,12 @@ def test_recordings_train_side_by_side_on_ray(tmp_path, capsys):
 
 
 def test_a_failing_run_fails_the_command(tmp_path, capsys):
+    import h5py
+
     bad = tmp_path / "bad.h5"
-    bad.write_bytes(b"not a recording")
+    with h5py.File(bad, "w") as f:  # an HDF5 file passes the command's checks: its Ray task fails
+        f["unrelated"] = [1, 2, 3]
     args = ["train", str(bad), "-o", str(tmp_path / "m"), "--ray", "--ray-cpus", "2",
             *[a for s in TINY for a in ("--set", s)]]
     assert main(args) == 1
+    assert f"{bad}: FAILED" in capsys.readouterr().out
