@@ -1,9 +1,13 @@
-"""What a file is, told by its first bytes with nothing heavy imported (no torch, numba or h5py).
+"""What a file is, told by its first bytes with nothing heavy imported (no torch, numba or h5py): the one
+place that knows each format's signature.
 
 The commands check the files they are given with it before they load torch or a model, so a wrong file is
 one line within a second, and a recording given where a checkpoint belongs (or the reverse) is named as
-such. Recordings: HDF5 (its signature at offset 0, or after a user block at 512, 1024, 2048 ...) and
-AEDAT4 (a ``#!AER-DAT4.0`` header). Checkpoints are torch files: a zip archive holding ``.../data.pkl``.
+such; the sensor layer picks a recording's reader by it (``sensor/sources/open.py``). Recordings: AEDAT4
+(``#!AER-DAT4``), AEDAT 2.0 / 3.1 (jAER), Prophesee RAW (a ``% `` header) and DAT, HDF5 (its signature at
+offset 0, or after a user block at 512, 1024, 2048 ...), ROS 1 and 2 bags, and the RPG text layout (a
+folder with ``events.txt``, or that file). Checkpoints are torch files: a zip archive holding
+``.../data.pkl``.
 """
 
 from __future__ import annotations
@@ -18,20 +22,41 @@ from edmcgs.errors import CheckpointError, InvalidInputError
 AEDAT_SUFFIXES = (".aedat4",)
 HDF5_SUFFIXES = (".h5", ".hdf5")
 HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
-AEDAT4_HEADER = b"#!AER-DAT4.0"
-_MAGIC = ((HDF5_SIGNATURE, "hdf5"), (AEDAT4_HEADER, "aedat4"), (b"PK\x03\x04", "zip"),
+_MAGIC = ((b"#!AER-DAT4", "aedat4"), (b"#!AER-DAT2", "jaer"), (b"#!AER-DAT3", "jaer"),
+          (HDF5_SIGNATURE, "hdf5"), (b"#ROSBAG V2.0", "rosbag"), (b"\x89MCAP", "rosbag"),
+          (b"SQLite format 3\x00", "rosbag"), (b"% ", "prophesee"), (b"PK\x03\x04", "zip"),
           (b"\x89PNG\r\n\x1a\n", "png"), (b"\xff\xd8\xff", "jpeg"))
-NAMES = {"hdf5": "an HDF5 recording", "aedat4": "an AEDAT4 recording",
-         "checkpoint": "a checkpoint (a torch file)", "zip": "a zip archive, not a torch file",
-         "png": "a PNG image", "jpeg": "a JPEG image", "empty": "an empty file"}
+RECORDING_KINDS = ("aedat4", "jaer", "prophesee", "hdf5", "rosbag", "rpg")
+"""The kinds ``sniff`` tells that are recordings (each the name of its reader in ``sensor/sources``)."""
+NAMES = {"aedat4": "an AEDAT4 recording", "jaer": "an AEDAT 2.0 / 3.1 recording",
+         "prophesee": "a Prophesee RAW / DAT recording", "hdf5": "an HDF5 recording",
+         "rosbag": "a ROS bag", "rpg": "an RPG-layout recording", "checkpoint": "a checkpoint (a torch file)",
+         "zip": "a zip archive, not a torch file", "png": "a PNG image", "jpeg": "a JPEG image",
+         "empty": "an empty file", "folder": "a folder"}
 """How a message names each kind ``sniff`` tells."""
-RECORDINGS = "AEDAT4 (.aedat4) or HDF5 (.h5, .hdf5)"
+FORMATS = (
+    "AEDAT4 (iniVation DV)",
+    "AEDAT 2.0 / 3.1 (jAER, cAER)",
+    "Prophesee RAW (EVT 2.0, 2.1, 3.0) and DAT",
+    "HDF5 (edmcgs recording, DSEC, v2e)",
+    "ROS 1 bag and ROS 2 bag (a folder with metadata.yaml, or its .db3 / .mcap)",
+    "the RPG text layout (a folder with events.txt [images.txt, imu.txt, groundtruth.txt, calib.txt])",
+)
+"""The recordings read here, for messages."""
+RECORDINGS = "; ".join(FORMATS)
 
 
 def sniff(path: str | os.PathLike) -> str | None:
-    """The kind of the file at ``path`` (a key of ``NAMES``), or None when its first bytes are none of
-    them. A zip archive is a ``checkpoint`` when it holds a torch pickle, else ``zip`` (unreadable ones
-    too). OSError when it cannot be read."""
+    """The kind of the file (or folder) at ``path`` (a key of ``NAMES``), or None when its first bytes are
+    none of them. A zip archive is a ``checkpoint`` when it holds a torch pickle, else ``zip`` (unreadable
+    ones too). OSError when it cannot be read."""
+    path = Path(path)
+    if path.is_dir():
+        if (path / "events.txt").is_file():
+            return "rpg"
+        return "rosbag" if (path / "metadata.yaml").is_file() else "folder"
+    if path.name == "events.txt":
+        return "rpg"
     with open(path, "rb") as f:
         head = f.read(16)
         if not head:
@@ -63,23 +88,27 @@ def _torch_pickle(archive: zipfile.ZipFile) -> bool:
     return any(name == "data.pkl" or name.endswith("/data.pkl") for name in archive.namelist())
 
 
-def check_recording(path: str | os.PathLike, *, hint: str = "") -> Path:
-    """``path`` if it is an HDF5 or AEDAT4 recording named by its format's suffix, else InvalidInputError in
-    one line naming what it is; ``hint`` is said after a checkpoint given in a recording's place."""
+def recording_kind(path: str | os.PathLike, *, hint: str = "", error: type[Exception] = InvalidInputError
+                   ) -> str:
+    """The kind of recording at ``path`` (``RECORDING_KINDS``), else ``error`` in one line naming what it
+    is; ``hint`` is said after a checkpoint given in a recording's place."""
     path = Path(path)
-    if not path.is_file():
-        raise InvalidInputError(f"{path}: no such file" + (" (a folder)" if path.is_dir() else ""))
-    kind = _kind(path, InvalidInputError)
+    if not path.exists():
+        raise error(f"{path}: no such file")
+    kind = _kind(path, error)
     if kind == "checkpoint":
-        raise InvalidInputError(f"{path} is {NAMES[kind]}, not a recording" + (f": {hint}" if hint else ""))
-    if kind not in ("hdf5", "aedat4"):
-        what = NAMES.get(kind, "neither HDF5 nor AEDAT4 by its first bytes")
-        raise InvalidInputError(f"{path} is not a recording ({what}); expected {RECORDINGS}")
-    suffixes = HDF5_SUFFIXES if kind == "hdf5" else AEDAT_SUFFIXES
-    if path.suffix.lower() not in suffixes:
-        named = f"named {path.suffix!r}" if path.suffix else "named without a suffix"
-        raise InvalidInputError(f"{path} is {NAMES[kind]} but {named}; rename it to end in {suffixes[0]}")
-    return path
+        raise error(f"{path} is {NAMES[kind]}, not a recording" + (f": {hint}" if hint else ""))
+    if kind not in RECORDING_KINDS:
+        what = NAMES.get(kind, f"it starts with {_head(path)!r}")
+        raise error(f"{path} is not a recording read here ({what}); recordings read here: {RECORDINGS}")
+    return kind
+
+
+def check_recording(path: str | os.PathLike, *, hint: str = "") -> Path:
+    """``path`` if it is a recording in a format read here (by its content), else InvalidInputError in one
+    line naming what it is (``recording_kind``)."""
+    recording_kind(path, hint=hint)
+    return Path(path)
 
 
 def check_checkpoint(path: str | os.PathLike, *, hint: str = "", verify: bool = False) -> Path:
@@ -107,6 +136,11 @@ def check_checkpoint(path: str | os.PathLike, *, hint: str = "", verify: bool = 
         raise CheckpointError(f"checkpoint {str(path)!r} is damaged: its part {damaged} does not match its "
                               "CRC (a partial copy, a flipped bit); use another copy")
     return path
+
+
+def _head(path: Path) -> bytes:
+    with open(path, "rb") as f:
+        return f.read(16)
 
 
 def _kind(path: Path, error: type[Exception]) -> str | None:

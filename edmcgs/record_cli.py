@@ -9,11 +9,10 @@ from __future__ import annotations
 import sys
 
 from edmcgs.errors import EdmcgsError
-from edmcgs.filekind import check_recording
+from edmcgs.filekind import HDF5_SUFFIXES, check_recording
 from edmcgs.options import RecordingOptions, add_recording_arguments
 from edmcgs.sensor import record
 from edmcgs.sensor.files.recording import write_recording
-from edmcgs.sensor.sources.open import HDF5_SUFFIXES
 
 
 def main(argv: list[str] | None = None) -> int:

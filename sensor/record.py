@@ -19,13 +19,13 @@ from tqdm import tqdm
 
 from edmcgs.atomic import atomic_output
 from edmcgs.errors import EdmcgsError, InvalidInputError, RecordingError
-from edmcgs.filekind import check_recording
+from edmcgs.filekind import AEDAT_SUFFIXES, HDF5_SUFFIXES, check_recording
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import Recording, RecordingWriter
 from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.sources.base import EventSource, Extras, SensorBatch, StreamInfo
 from edmcgs.sensor.sources.dv_bridge import dv_error_text, event_store, image_frame, imu_samples
-from edmcgs.sensor.sources.open import AEDAT_SUFFIXES, HDF5_SUFFIXES, open_source, parse_resolution
+from edmcgs.sensor.sources.open import open_source, parse_resolution
 from edmcgs.sensor.sources.pacing import Pacing
 
 

@@ -83,7 +83,7 @@ def test_a_raw_file_without_a_size_asks_for_one(tmp_path):
     (tmp_path / "cut.raw").write_bytes(data[:300])
     assert len(_drain(open_source(tmp_path / "cut.raw", pacing=Pacing(factor=0)))[0]) < 100
     (tmp_path / "junk.bin").write_bytes(b"\x00\x01junk")
-    with pytest.raises(ReplayFormatError, match=r"junk.bin: not a recording read here.*ROS 1 bag"):
+    with pytest.raises(ReplayFormatError, match=r"junk.bin is not a recording read here.*ROS 1 bag"):
         open_source(tmp_path / "junk.bin")
 
 

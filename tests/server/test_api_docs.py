@@ -169,10 +169,10 @@ def test_the_pose_parameter_states_its_quaternion_order_and_the_tum_files(client
 
     params = client.get("/openapi.json").json()["paths"]["/render"]["get"]["parameters"]
     pose = next(p for p in params if p["name"] == "pose")["description"]
-    assert "tx,ty,tz,qw,qx,qy,qz, the quaternion scalar first" in pose and "qx qy qz qw" in pose
+    assert "tx,ty,tz,qw,qx,qy,qz: the quaternion's w FIRST" in pose and "qx qy qz qw" in pose
     for main in (export_main, train_main):
         with pytest.raises(SystemExit):
             main(["--help"])
     shown = " ".join(capsys.readouterr().out.split())
-    assert "tx,ty,tz,qw,qx,qy,qz (the quaternion scalar first" in shown
-    assert "t tx ty tz qx qy qz qw per line, t in seconds, the quaternion scalar last" in shown
+    assert "tx,ty,tz,qw,qx,qy,qz: the quaternion's w FIRST" in shown
+    assert "t tx ty tz qx qy qz qw, the quaternion's w LAST" in shown
