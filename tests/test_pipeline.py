@@ -171,8 +171,8 @@ def test_tum_poses_become_the_trajectory(tmp_path):
 
 def test_unreadable_formats_name_what_was_found_and_what_is_read(tmp_path):
     (tmp_path / "notes.txt").write_text("hello")
-    with pytest.raises(ReplayFormatError, match=r"notes.txt is not a recording read here .*AEDAT4.*AEDAT 2\.0 "
-                       r"/ 3\.1.*Prophesee RAW.*DSEC.*ROS 1 bag.*RPG text layout"):
+    with pytest.raises(ReplayFormatError, match=r"notes.txt is not a recording read here .*AEDAT4.*AEDAT "
+                       r"2\.0 / 3\.1.*Prophesee RAW.*DSEC.*ROS 1 bag.*RPG text layout"):
         open_recording(tmp_path / "notes.txt")
     with pytest.raises(ReplayFormatError, match="no such file"):
         open_recording(tmp_path / "missing.aedat4")
