@@ -11,6 +11,7 @@ from edmcgs.errors import did_you_mean
 COMMANDS = {
     "record": ("edmcgs.record_cli", "record a live camera or a replay to AEDAT4 or HDF5"),
     "synth": ("edmcgs.synth.cli", "build a synthetic dynamic scene with simulated events"),
+    "poses": ("edmcgs.poses_cli", "estimate the camera's poses from a recording's frames (a TUM file)"),
     "train": ("edmcgs.train_cli", "train EdMCGS on a recording"),
     "eval": ("edmcgs.eval_cli", "evaluate a checkpoint on a recording's held-out frames"),
     "distill": ("edmcgs.distill_cli", "learn the transition online anchors use past a checkpoint's span"),

@@ -27,6 +27,10 @@ class PoseError(InvalidInputError):
     """A camera pose or quaternion is malformed: non-finite, not a rotation, zero quaternion."""
 
 
+class PoseEstimationError(InvalidInputError):
+    """A recording's camera poses cannot be estimated from its frames (too few register, none match)."""
+
+
 class SensorError(EdmcgsError):
     """Something went wrong between an event camera (or recording) and the ring buffer."""
 

@@ -6,10 +6,11 @@ from __future__ import annotations
 import argparse
 import csv
 import sys
+from dataclasses import replace
 
 from edmcgs.errors import EdmcgsError, InvalidInputError
 from edmcgs.filekind import check_checkpoint, check_recording
-from edmcgs.options import RecordingOptions, add_recording_arguments
+from edmcgs.options import AUTO_POSES, RecordingOptions, add_recording_arguments
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -60,14 +61,23 @@ def _run(args) -> int:
     from edmcgs.model.eval.compare import Comparison
     from edmcgs.model.eval.evaluation import evaluate, summarize
     from edmcgs.model.eval.lpips import LPIPS, find_weights, missing_weights
-    from edmcgs.pipeline import open_recording, split_at, training_data
+    from edmcgs.pipeline import open_recording, split_at, training_data, with_trajectory
 
     if args.threads < 1:
         raise InvalidInputError(f"--threads must be >= 1, got {args.threads}")
     torch.set_num_threads(args.threads)
     check_device(args.device)
     model = load_checkpoint(args.checkpoint, device=args.device)
-    rec = open_recording(args.recording, RecordingOptions.from_args(args))
+    options = RecordingOptions.from_args(args)
+    if options.poses == AUTO_POSES:  # the poses it was trained with, not a second estimate of them
+        trajectory = model.meta.trajectory
+        if trajectory is None:
+            raise InvalidInputError(f"--poses auto: {args.checkpoint} stores no trajectory to score with")
+        rec = with_trajectory(open_recording(args.recording, replace(options, poses=None)),
+                              trajectory.t_us, trajectory.c2w)
+        print(f"--poses auto: the {len(trajectory)} poses {args.checkpoint} was trained with")
+    else:
+        rec = open_recording(args.recording, options)
     if not np.array_equal(rec.anchors.t_us, model.meta.anchors_us):
         rec = split_at(rec, model.meta.anchors_us)  # the split the checkpoint was trained with
     data = training_data(rec)

@@ -7,6 +7,9 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass
 
+AUTO_POSES = "auto"
+"""``--poses auto``: estimate the camera's poses from the recording's own frames (``edmcgs.poses``)."""
+
 
 @dataclass(frozen=True)
 class RecordingOptions:
@@ -20,7 +23,8 @@ class RecordingOptions:
     """``fx,fy,cx,cy`` in pixels, or a DV camera-calibration file (.json, or legacy .xml)."""
     poses: str | None = None
     """A TUM trajectory file (``t tx ty tz qx qy qz qw``: the quaternion's w last, where the server's
-    ``pose=`` puts it first; t in seconds on the recording's clock)."""
+    ``pose=`` puts it first; t in seconds on the recording's clock), or ``auto``: structure from motion
+    over the recording's frames."""
     resolution: str | None = None
     """``WIDTHxHEIGHT`` for HDF5 layouts that do not store it (DSEC, v2e)."""
 
@@ -30,9 +34,10 @@ class RecordingOptions:
 
 
 def add_recording_arguments(parser: argparse.ArgumentParser, *, split: bool = True,
-                            resolution: bool = True) -> None:
+                            resolution: bool = True, poses: bool = True) -> None:
     """The flags of ``RecordingOptions`` (``split=False``: without the anchor choice; ``resolution=False``
-    for a parser that has its own ``--resolution``)."""
+    for a parser that has its own ``--resolution``; ``poses=False`` for ``edmcgs poses``, which estimates
+    them)."""
     if split:
         group = parser.add_mutually_exclusive_group()
         group.add_argument("--anchor-fps", type=float, metavar="F",
@@ -42,10 +47,13 @@ def add_recording_arguments(parser: argparse.ArgumentParser, *, split: bool = Tr
                            help="use every N-th frame as an anchor, the rest as held-out ground truth")
     parser.add_argument("--intrinsics", metavar="FX,FY,CX,CY|CALIB.json",
                         help="the camera: pixels, or a DV camera-calibration file (default: the recording's)")
-    parser.add_argument("--poses", metavar="TRAJ.txt",
-                        help="camera-to-world poses (OpenCV axes), TUM format: t tx ty tz qx qy qz qw, the "
-                             "quaternion's w LAST (GET /render's pose= and --pose take it first) "
-                             "(default: the recording's, else a static camera)")
+    if poses:
+        parser.add_argument("--poses", metavar="TRAJ.txt|auto",
+                            help="camera-to-world poses (OpenCV axes), TUM format: t tx ty tz qx qy qz qw, "
+                                 "the quaternion's w LAST (GET /render's pose= and --pose take it first), t "
+                                 "in seconds; or auto: estimated from the recording's frames by structure "
+                                 "from motion (edmcgs eval: the poses the checkpoint was trained with; "
+                                 "default: the recording's, else a static camera)")
     if resolution:
         parser.add_argument("--resolution", metavar="WxH",
                             help="HDF5 layouts without one (DSEC, v2e), e.g. 640x480")

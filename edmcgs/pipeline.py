@@ -8,7 +8,8 @@ Any recording the sensor layer reads comes in (``open_recording``: our HDF5 as s
 format, ``edmcgs.sensor.sources.open.FORMATS``, replayed into memory, with the calibration and
 ground-truth trajectory it states), with what the file cannot say given by the user: which frames are
 anchors (``--anchor-fps`` / ``--anchor-every``: the other frames become held-out ground truth), the
-camera (``--intrinsics fx,fy,cx,cy`` or a DV calibration file) and its poses (``--poses`` TUM file).
+camera (``--intrinsics fx,fy,cx,cy`` or a DV calibration file) and its poses (``--poses`` TUM file, or
+``--poses auto``: structure from motion over all its frames, ``edmcgs.poses``).
 """
 
 from __future__ import annotations
@@ -20,13 +21,14 @@ from pathlib import Path
 
 import numpy as np
 
+from edmcgs.atomic import atomic_output
 from edmcgs.errors import InvalidInputError, PoseError, TrainingError
-from edmcgs.geometry import Intrinsics, Trajectory, pose_from_quat, validate_pose
+from edmcgs.geometry import Intrinsics, Trajectory, pose_from_quat, rotmat_to_quat, validate_pose
 from edmcgs.model.config import EdmcgsConfig, preset
 from edmcgs.model.data import TrainingData
 from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.motion.leanness import events_decision
-from edmcgs.options import RecordingOptions
+from edmcgs.options import AUTO_POSES, RecordingOptions
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.files.recording import FORMAT_NAME, Recording, read_recording
 from edmcgs.sensor.frames import Frames
@@ -142,16 +144,16 @@ def open_recording(path: str | Path, options: RecordingOptions | None = None, *,
         rec = replace(rec, anchors=Frames.empty(rec.height, rec.width), held_out=None)
     if options.intrinsics is not None:
         rec = replace(rec, intrinsics=_intrinsics(options.intrinsics, rec.width, rec.height))
-    if options.poses is not None:
+    if options.poses == AUTO_POSES:
+        rec = estimated_poses(rec, progress=progress)
+    elif options.poses is not None:
         t_us, c2w = read_tum(options.poses)
         span = rec.t_range_us
         if span is not None and (t_us[-1] < span[0] or t_us[0] > span[1]):
             raise InvalidInputError(f"{options.poses}: its times {t_us[0]}..{t_us[-1]} µs miss the "
                                     f"recording's {span[0]}..{span[1]} µs (TUM times are seconds on the "
                                     "recording's clock)")
-        anchors = Frames(rec.anchors.t_us, rec.anchors.images)  # poses come from the trajectory
-        held = None if rec.held_out is None else Frames(rec.held_out.t_us, rec.held_out.images)
-        rec = replace(rec, anchors=anchors, held_out=held, trajectory_t_us=t_us, trajectory_c2w=c2w)
+        rec = with_trajectory(rec, t_us, c2w)
     if options.anchor_fps is not None or options.anchor_every is not None:
         rec = split_frames(rec, fps=options.anchor_fps, every=options.anchor_every)
     return rec
@@ -182,6 +184,35 @@ def cut(rec: Recording, *, start_s: float = 0.0, duration_s: float | None = None
     held = window(rec.held_out)
     return replace(rec, events=events.time_slice(begin, stop), anchors=window(rec.anchors),
                    held_out=held if held is not None and len(held) else None)
+
+
+def with_trajectory(rec: Recording, t_us: np.ndarray, c2w: np.ndarray) -> Recording:
+    """``rec`` whose camera follows the trajectory (t_us, c2w): the frames' own poses are dropped."""
+    anchors = Frames(rec.anchors.t_us, rec.anchors.images)
+    held = None if rec.held_out is None else Frames(rec.held_out.t_us, rec.held_out.images)
+    return replace(rec, anchors=anchors, held_out=held, trajectory_t_us=np.asarray(t_us, dtype=np.int64),
+                   trajectory_c2w=np.asarray(c2w, dtype=np.float64))
+
+
+def estimated_poses(rec: Recording, *, progress: bool = False) -> Recording:
+    """``rec`` with the poses structure from motion finds over all its frames (anchors and held-out
+    alike), the camera it estimated when the recording had none, and how in ``metadata["poses"]``; a
+    camera that did not move becomes a static one (one pose), said here."""
+    from edmcgs.poses import estimate_poses
+
+    frames = all_frames(rec)
+    given = None if rec.intrinsics is None else Intrinsics(*(float(v) for v in rec.intrinsics), rec.width,
+                                                           rec.height)
+    estimate = estimate_poses(frames.t_us, frames.images, given, progress=progress)
+    print(f"poses from the frames: {estimate.summary()}")
+    if estimate.intrinsics is not None and given is None:
+        k = estimate.intrinsics
+        rec = replace(rec, intrinsics=np.array([k.fx, k.fy, k.cx, k.cy]))
+    metadata = {**rec.metadata, "poses": {
+        "source": "structure from motion", "frames": estimate.frames, "registered": estimate.registered,
+        "static": estimate.static, "estimated_intrinsics": estimate.estimated_intrinsics,
+        "distortion": estimate.distortion, "seconds": round(estimate.seconds, 3)}}
+    return replace(with_trajectory(rec, estimate.t_us, estimate.c2w), metadata=metadata)
 
 
 def _is_ours(path: Path) -> bool:
@@ -250,6 +281,20 @@ def split_at(rec: Recording, anchors_us: np.ndarray, *, frames: Frames | None = 
 
     held = pick(~is_anchor)
     return replace(rec, anchors=pick(is_anchor), held_out=held if len(held) else None)
+
+
+def write_tum(path: str | Path, t_us: np.ndarray, c2w: np.ndarray) -> None:
+    """Write a TUM trajectory (what ``read_tum`` reads: t in seconds, OpenCV camera-to-world, the
+    quaternion x y z w), atomically."""
+    q = rotmat_to_quat(np.asarray(c2w)[:, :3, :3]) + 0.0  # w x y z
+    lines = ["# t tx ty tz qx qy qz qw (seconds; OpenCV camera-to-world: x right, y down, z forward)"]
+    for t, pose, (w, x, y, z) in zip(np.asarray(t_us, dtype=np.int64), c2w, q, strict=True):
+        tx, ty, tz = pose[:3, 3] + 0.0  # + 0.0: no "-0.000000000"
+        sign, t = ("-" if t < 0 else ""), abs(int(t))  # exact to the microsecond, whatever the epoch
+        lines.append(f"{sign}{t // 1_000_000}.{t % 1_000_000:06d} {tx:.9f} {ty:.9f} {tz:.9f} "
+                     f"{x:.9f} {y:.9f} {z:.9f} {w:.9f}")
+    with atomic_output(Path(path)) as tmp:
+        Path(tmp).write_text("\n".join(lines) + "\n")
 
 
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:

@@ -13,9 +13,10 @@ BASE = ("edmcgs.errors", "edmcgs.atomic", "edmcgs.geometry", "edmcgs.luminance",
 """Shared by every layer: the error tree, atomic file output, the camera / pose / quaternion maths and
 what an event pixel sees of an image (luminance), and what a file is by its first bytes."""
 PROTOCOL = "edmcgs.protocol"
-APPLICATION = ("edmcgs.pipeline", "edmcgs.options", "edmcgs.cli", "edmcgs.train_cli", "edmcgs.eval_cli",
-               "edmcgs.record_cli", "edmcgs.export_ply_cli", "edmcgs.warmup_cli")
-CLI_MODULES = ("edmcgs.cli", "edmcgs.train_cli", "edmcgs.eval_cli", "edmcgs.record_cli",
+APPLICATION = ("edmcgs.pipeline", "edmcgs.options", "edmcgs.poses", "edmcgs.cli", "edmcgs.train_cli",
+               "edmcgs.eval_cli", "edmcgs.record_cli", "edmcgs.poses_cli", "edmcgs.export_ply_cli",
+               "edmcgs.warmup_cli")
+CLI_MODULES = ("edmcgs.cli", "edmcgs.train_cli", "edmcgs.eval_cli", "edmcgs.record_cli", "edmcgs.poses_cli",
                "edmcgs.export_ply_cli", "edmcgs.warmup_cli", "edmcgs.server.cli")
 MODEL_ROOMS = ("render", "motion", "train", "eval", "online")
 MODEL_CORE = ("edmcgs.model.dynamic", "edmcgs.model.motion", "edmcgs.model.render", "edmcgs.model.config",
@@ -223,6 +224,18 @@ def _top_level_imports(path: Path) -> set[str]:
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             names.add(node.module.split(".")[0])
     return names
+
+
+def test_structure_from_motion_imports_only_the_base_and_alone_imports_pycolmap():
+    """``edmcgs.poses`` works on plain arrays (the pipeline hands it a recording's frames), and pycolmap is
+    imported inside its functions only, so no command's ``--help`` waits for it."""
+    assert _violations("edmcgs.poses", BASE) == []
+    bad = [name for name, path in MODULES.items()
+           if _within(name, "edmcgs") and name != "edmcgs.poses" and "pycolmap" in _top_level_imports(path)]
+    assert bad == []
+    module = ast.parse(MODULES["edmcgs.poses"].read_text())
+    top = {a.name.split(".")[0] for node in module.body if isinstance(node, ast.Import) for a in node.names}
+    assert "pycolmap" not in top
 
 
 def test_only_the_ray_rooms_import_ray():

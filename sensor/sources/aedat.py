@@ -3,10 +3,11 @@
 dv-processing reads the file in ``edmcgs.sensor.sources.aedat_decoder``, a child process, because its decoder
 can spin forever on a corrupt packet while holding the GIL. A child that sends nothing for ``stall_s``
 seconds is killed and the replay fails with a ``ReplayFormatError`` naming the file; closing the
-replay kills the child whatever it is doing. Trigger and other streams are skipped. Files are read
-forward packet by packet (never whole). The child is a fresh interpreter running the decoder module
-itself (not a ``multiprocessing`` spawn, which re-imports the caller's ``__main__``), so a plain script
-without an ``if __name__ == "__main__":`` guard replays AEDAT4 too.
+replay kills the child whatever it is doing. Trigger and other streams are skipped; a file of frames
+alone (an APS recording) replays its frames with no events. Files are read forward packet by packet
+(never whole). The child is a fresh interpreter running the decoder module itself (not a
+``multiprocessing`` spawn, which re-imports the caller's ``__main__``), so a plain script without an
+``if __name__ == "__main__":`` guard replays AEDAT4 too.
 """
 
 from __future__ import annotations
@@ -48,9 +49,9 @@ class AedatReplay(Replay):
         self._process = self._conn = None
         self._busy = False  # the child is in the middle of a read
         info = self._exchange("open")[1]
-        if not info["has_events"]:
+        if "resolution" not in info:
             self.close()
-            raise ReplayFormatError(f"{self.path}: no event stream (streams: {info['streams']})")
+            raise ReplayFormatError(f"{self.path}: no event or frame stream (streams: {info['streams']})")
         width, height = info["resolution"]
         self._info = StreamInfo(
             width=width, height=height, sensor=info["sensor"], has_frames=info["has_frames"],

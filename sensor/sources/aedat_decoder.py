@@ -39,8 +39,9 @@ def serve(path: str, conn) -> None:
     try:
         conn.send(("hello",))
         rec = _call("open", lambda: dv.io.MonoCameraRecording(path))
-        conn.send(("info", _info(rec)))
-        if not rec.isEventStreamAvailable():
+        info = _info(rec)
+        conn.send(("info", info))
+        if "resolution" not in info:
             return
         while (command := conn.recv())[0] == "read":
             for chunk in _chunks(rec, int(command[1])):
@@ -55,12 +56,14 @@ def serve(path: str, conn) -> None:
 
 
 def _info(rec) -> dict:
-    has_events = bool(rec.isEventStreamAvailable())
+    """The file's streams; with events or frames (a frames-only file: an APS recording, its resolution
+    the frames'), its resolution, camera, time range and what else it holds."""
+    has_events, has_frames = bool(rec.isEventStreamAvailable()), bool(rec.isFrameStreamAvailable())
     info = {"streams": list(rec.getStreamNames()), "has_events": has_events}
-    if has_events:
-        has_frames = bool(rec.isFrameStreamAvailable())
+    if has_events or has_frames:
         first, last = (int(v) for v in _call("read the time range", rec.getTimeRange))
-        info.update(resolution=tuple(int(v) for v in rec.getEventResolution()), sensor=rec.getCameraName(),
+        resolution = rec.getEventResolution() if has_events else rec.getFrameResolution()
+        info.update(resolution=tuple(int(v) for v in resolution), sensor=rec.getCameraName(),
                     has_frames=has_frames, has_imu=bool(rec.isImuStreamAvailable()),
                     t_range=(min(first, *_first_items(rec)), last),
                     frame_size=tuple(int(v) for v in rec.getFrameResolution()) if has_frames else None)
@@ -71,7 +74,7 @@ def _first_items(rec) -> list[int]:
     """The time of each stream's first item: a frame's timestamp (mid-exposure) may precede the range
     the file's table states, and a replay must start at the earliest item of any stream."""
     times = []
-    store = _call("read events", rec.getNextEventBatch)
+    store = _call("read events", rec.getNextEventBatch) if rec.isEventStreamAvailable() else None
     if store is not None and len(store):
         times.append(int(store_columns(store)[0][0]))
     if rec.isFrameStreamAvailable() and (frame := _call("read a frame", rec.getNextFrame)) is not None:
@@ -86,12 +89,12 @@ def _chunks(rec, begin_us: int):
     """(t, x, y, p, frames, imu, horizon_us) pieces of the file from the start, skipping event packets
     that end before ``begin_us`` (the parent drops what else precedes the replay's start)."""
     _call("rewind", rec.resetSequentialRead)
-    has_imu = bool(rec.isImuStreamAvailable())
+    has_imu, has_events = bool(rec.isImuStreamAvailable()), bool(rec.isEventStreamAvailable())
     next_frame = _call("read a frame", rec.getNextFrame) if rec.isFrameStreamAvailable() else None
     pending_imu: list[np.ndarray] = []
     imu_done = not has_imu
     while True:
-        store = _call("read events", rec.getNextEventBatch)
+        store = _call("read events", rec.getNextEventBatch) if has_events else None  # none: all at once
         if store is None:
             horizon = 2**62
             t = x = y = p = np.empty(0, np.int64)

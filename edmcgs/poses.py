@@ -1,0 +1,328 @@
+"""Camera poses from a recording's own frames: structure from motion over every APS / RGB frame (COLMAP,
+through pycolmap, on the CPU), for ``edmcgs poses`` and ``--poses auto``.
+
+Small grey event-camera frames defeat COLMAP's defaults (few features, tiny baselines between video
+frames, parts of the scene that move), so the stages are set for video: SIFT at a low peak threshold on
+the twice-upsampled image (COLMAP's first octave -1), sequential matching with a wide overlap (every
+frame against its ``OVERLAP`` successors, and quadratic jumps), tight RANSAC and reprojection bounds (a
+moving object's matches are outliers of the camera's motion, not a second motion the mapper averages
+in), and an initial pair that needs only a few degrees of parallax. The camera is the one given (a DV
+calibration or ``--intrinsics``, held fixed), else one pinhole focal length with a radial term
+estimated by the bundle adjustment and returned.
+
+Conventions of the result: OpenCV camera-to-world poses (x right, y down, z forward), the world the
+first registered frame's camera, the scale such that the median depth of the reconstructed points
+seen from the registered frames is 1 (the model's ``init_depth``, its scene depth when the cameras'
+axes do not meet). A camera whose frames match with (almost) no image motion is static; a recording
+where fewer than ``min_registered`` of the frames register in one model is refused, naming the count.
+pycolmap is imported when poses are estimated, never at import time.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from edmcgs.errors import InvalidInputError, PoseEstimationError
+from edmcgs.geometry import Intrinsics
+
+MIN_REGISTERED = 0.8
+"""Fewest frames, as a fraction of all, that must register in one model."""
+STATIC_PX = 1.0
+"""A camera is static when no matched pair of frames shows a median image motion above this (pixels)."""
+OVERLAP = 20
+"""Each frame is matched against this many successors (and quadratic jumps beyond)."""
+PEAK_THRESHOLD = 0.002
+"""SIFT's peak threshold (COLMAP's default 0.0067 finds ~100 features on a 173x130 frame)."""
+MAX_ERROR_PX = 1.0
+"""RANSAC inlier bound of two-view geometry (pixels at the frames' resolution)."""
+REPROJ_PX = 1.5
+"""Largest reprojection error an observation may keep in the model (pixels)."""
+ROBUST_PX = 0.5
+"""Scale of the Cauchy loss of the final bundle adjustment (pixels)."""
+STAGES = ("features", "matching", "motion", "mapping")
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """What structure from motion made of a run of frames."""
+
+    frames: int
+    """Frames given."""
+    registered: int
+    """Frames registered in the kept (largest) model."""
+    t_us: np.ndarray
+    """int64 [R]: the registered frames' times (static: the first frame's time alone)."""
+    c2w: np.ndarray
+    """float64 [R, 4, 4]: their OpenCV camera-to-world poses (static: the identity)."""
+    intrinsics: Intrinsics | None
+    """The camera: the one given, or the one estimated (None: a static camera and none given)."""
+    estimated_intrinsics: bool
+    """Whether ``intrinsics`` were estimated here (then ``distortion`` is their radial term)."""
+    distortion: float
+    """COLMAP's SIMPLE_RADIAL k of an estimated camera (0 when given: a pinhole is assumed)."""
+    static: bool
+    """No image motion between the frames: a static camera."""
+    models: int
+    """Separate models the mapper made (1 when every registered frame joined one)."""
+    points: int
+    """3D points of the kept model."""
+    motion_px: float
+    """Largest median image motion of a matched pair of frames (pixels; what decided ``static``)."""
+    seconds: float
+    """Wall time of the estimate."""
+
+    def summary(self) -> str:
+        """One line: what registered, the camera, the time."""
+        if self.static:
+            return (f"a static camera: the frames move by at most {self.motion_px:.2f} px "
+                    f"({self.frames} frames, {self.seconds:.1f} s)")
+        camera = "the camera given"
+        if self.estimated_intrinsics and self.intrinsics is not None:
+            k = self.intrinsics
+            camera = (f"estimated camera fx = fy = {k.fx:.1f}, cx = {k.cx:.1f}, cy = {k.cy:.1f} px (radial "
+                      f"distortion k = {self.distortion:+.3f} left out of the pinhole model)")
+        models = "" if self.models == 1 else f" (the largest of {self.models} models)"
+        return (f"{self.registered} of {self.frames} frames registered{models}, {self.points} points, "
+                f"{camera}, {self.seconds:.1f} s")
+
+
+def estimate_poses(t_us, images, intrinsics: Intrinsics | None = None, *,
+                   min_registered: float = MIN_REGISTERED, progress: bool = True, threads: int = -1,
+                   seed: int = 0) -> PoseEstimate:
+    """Poses of the frames ``images`` (uint8 [F, H, W, C], C 1 or 3) taken at ``t_us`` (int64 [F],
+    strictly increasing), by structure from motion.
+
+    ``intrinsics``: the camera (held fixed), or None to estimate it. Raises ``PoseEstimationError`` when
+    fewer than ``min_registered`` of the frames register in one model, or no two frames match.
+    """
+    t_us, images = _checked(t_us, images, intrinsics)
+    if not 0 < min_registered <= 1:
+        raise InvalidInputError(f"min_registered must be in (0, 1], got {min_registered}")
+    from tqdm import tqdm
+
+    start = time.perf_counter()
+    pycolmap = _pycolmap()
+    n, height, width = images.shape[:3]
+    with tempfile.TemporaryDirectory(prefix="edmcgs-poses-") as tmp, \
+            tqdm(total=len(STAGES), desc="poses", unit="stage", disable=not progress) as bar:
+        root = Path(tmp)
+        folder, database, output = root / "frames", root / "frames.db", root / "sfm"
+        folder.mkdir()
+        output.mkdir()
+        bar.set_postfix_str(STAGES[0])
+        names = _write_frames(images, folder)
+        _extract(pycolmap, database, folder, names, intrinsics, width, height, threads)
+        bar.update()
+        bar.set_postfix_str(STAGES[1])
+        _match(pycolmap, database, threads, seed)
+        bar.update()
+        bar.set_postfix_str(STAGES[2])
+        motion_px = _image_motion(pycolmap, database)
+        bar.update()
+        if motion_px is None:
+            raise PoseEstimationError(f"no two of the {n} frames match: structure from motion found nothing "
+                                      "to build on (too dark, too blurred or too little texture?)")
+        if motion_px <= STATIC_PX:
+            bar.update()
+            return PoseEstimate(
+                frames=n, registered=n, t_us=t_us[:1], c2w=np.eye(4)[None],
+                intrinsics=intrinsics,
+                estimated_intrinsics=False, distortion=0.0, static=True, models=0, points=0,
+                motion_px=motion_px, seconds=time.perf_counter() - start)
+        bar.set_postfix_str(STAGES[3])
+        models = _map(pycolmap, database, folder, output, fixed=intrinsics is not None, threads=threads,
+                      seed=seed)
+        bar.update()
+    if not models:
+        raise PoseEstimationError(f"0 of {n} frames registered: structure from motion found no initial pair "
+                                  "of frames with enough parallax (a camera that only rotates?)")
+    best = max(models, key=lambda r: r.num_reg_images())
+    registered = best.num_reg_images()
+    if registered < min_registered * n:
+        split = f" (the largest of {len(models)} separate models)" if len(models) > 1 else ""
+        raise PoseEstimationError(f"only {registered} of {n} frames registered in one model{split}; poses "
+                                  f"need {min_registered:.0%} (give --poses TRAJ.txt, or --intrinsics if "
+                                  "the camera is known)")
+    index, c2w = _poses(best)
+    camera = best.cameras[next(iter(best.cameras))]
+    estimated, k = _camera(camera, intrinsics, width, height)
+    return PoseEstimate(
+        frames=n, registered=registered, t_us=t_us[index], c2w=c2w, intrinsics=estimated,
+        estimated_intrinsics=intrinsics is None, distortion=k, static=False, models=len(models),
+        points=best.num_points3D(), motion_px=motion_px, seconds=time.perf_counter() - start)
+
+
+def _checked(t_us, images, intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    t_us, images = np.asarray(t_us), np.asarray(images)
+    if t_us.ndim != 1 or t_us.dtype.kind not in "iu":
+        raise InvalidInputError(f"t_us must be 1-D integer microseconds, got {t_us.dtype} {t_us.shape}")
+    if images.ndim == 3:
+        images = images[..., None]
+    if images.ndim != 4 or images.shape[-1] not in (1, 3) or images.dtype != np.uint8:
+        raise InvalidInputError(f"images must be uint8 [F, H, W, C] with C 1 or 3, got {images.dtype} "
+                                f"{images.shape}")
+    if len(images) != len(t_us):
+        raise InvalidInputError(f"{len(t_us)} times but {len(images)} frames")
+    if len(t_us) < 3:
+        raise PoseEstimationError(f"structure from motion needs at least 3 frames, the recording has "
+                                  f"{len(t_us)}")
+    if np.any(np.diff(t_us) <= 0):
+        raise InvalidInputError("frame times must be strictly increasing")
+    if intrinsics is not None and (intrinsics.width, intrinsics.height) != images.shape[2:0:-1]:
+        raise InvalidInputError(f"the camera is {intrinsics.width}x{intrinsics.height}, the frames "
+                                f"{images.shape[2]}x{images.shape[1]}")
+    return t_us.astype(np.int64), images
+
+
+def _pycolmap():
+    try:
+        import pycolmap
+    except ImportError as exc:  # a dependency: only a broken install lacks it
+        raise PoseEstimationError(f"estimating poses needs pycolmap (pip install pycolmap): {exc}") from exc
+    pycolmap.logging.minloglevel = 2  # its INFO and WARNING lines would bury the progress bar
+    pycolmap.logging.stderrthreshold = 2
+    return pycolmap
+
+
+def _write_frames(images: np.ndarray, folder: Path) -> list[str]:
+    """The frames as grey PNGs (SIFT sees grey), named in time order."""
+    from PIL import Image
+
+    luma = images[..., 0] if images.shape[-1] == 1 else np.rint(
+        images.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)).astype(np.uint8)
+    names = []
+    for i, grey in enumerate(luma):
+        names.append(f"{i:06d}.png")
+        Image.fromarray(grey).save(folder / names[-1])
+    return names
+
+
+def _extract(pycolmap, database: Path, folder: Path, names: list[str], intrinsics: Intrinsics | None,
+             width: int, height: int, threads: int) -> None:
+    reader = pycolmap.ImageReaderOptions()
+    if intrinsics is None:
+        reader.camera_model = "SIMPLE_RADIAL"
+    else:  # COLMAP puts pixel centres at +0.5; ours at integers
+        reader.camera_model = "PINHOLE"
+        reader.camera_params = ",".join(repr(v) for v in (intrinsics.fx, intrinsics.fy, intrinsics.cx + 0.5,
+                                                           intrinsics.cy + 0.5))
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = threads
+    extraction.sift.peak_threshold = PEAK_THRESHOLD
+    extraction.sift.first_octave = -1  # (COLMAP's default) detect on the twice-upsampled frame too
+    extraction.max_image_size = max(width, height)
+    pycolmap.extract_features(database, folder, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                              reader_options=reader, extraction_options=extraction)
+
+
+def _match(pycolmap, database: Path, threads: int, seed: int) -> None:
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = threads
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.overlap = OVERLAP
+    pairing.quadratic_overlap = True
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.max_error = MAX_ERROR_PX
+    verification.ransac.random_seed = seed
+    verification.detect_watermark = False  # a still scene shared by both frames is no watermark here
+    pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing,
+                              verification_options=verification)
+
+
+def _image_motion(pycolmap, database: Path) -> float | None:
+    """The largest, over verified pairs of frames, of the median displacement of their inlier matches
+    (pixels); None when no pair was verified."""
+    with pycolmap.Database.open(database) as db:
+        pair_ids, geometries = db.read_two_view_geometries()
+        keypoints = {}
+        largest = None
+        for pair_id, geometry in zip(pair_ids, geometries, strict=True):
+            matches = np.asarray(geometry.inlier_matches)
+            if len(matches) < 15:
+                continue
+            a, b = pycolmap.pair_id_to_image_pair(pair_id)
+            for i in (a, b):
+                if i not in keypoints:
+                    keypoints[i] = np.asarray(db.read_keypoints(i))[:, :2]
+            moved = np.linalg.norm(keypoints[a][matches[:, 0]] - keypoints[b][matches[:, 1]], axis=1)
+            median = float(np.median(moved))
+            largest = median if largest is None else max(largest, median)
+    return largest
+
+
+def _map(pycolmap, database: Path, folder: Path, output: Path, *, fixed: bool, threads: int, seed: int):
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = threads
+    options.random_seed = seed
+    options.extract_colors = False
+    options.min_model_size = 3
+    if fixed:
+        options.ba_refine_focal_length = False
+        options.ba_refine_extra_params = False
+    options.ba_refine_principal_point = False
+    mapper = options.mapper
+    mapper.init_min_tri_angle = 4.0  # video: neighbouring frames are a few degrees apart at most
+    mapper.init_min_num_inliers = 30
+    mapper.init_max_error = MAX_ERROR_PX
+    mapper.abs_pose_min_num_inliers = 30
+    mapper.abs_pose_max_error = 2 * REPROJ_PX
+    mapper.filter_max_reproj_error = REPROJ_PX
+    mapper.filter_min_tri_angle = 1.0
+    mapper.max_reg_trials = 5
+    options.triangulation.min_angle = 1.0
+    options.triangulation.merge_max_reproj_error = REPROJ_PX
+    options.triangulation.complete_max_reproj_error = REPROJ_PX
+    try:
+        models = list(pycolmap.incremental_mapping(database, folder, output, options).values())
+        for model in models:
+            _adjust(pycolmap, model, fixed=fixed)
+        return models
+    except RuntimeError as exc:
+        raise PoseEstimationError(f"structure from motion failed: {exc}") from exc
+
+
+def _adjust(pycolmap, model, *, fixed: bool) -> None:
+    """A last bundle adjustment of ``model`` with a robust loss: a few matches on a moving part or a
+    repeated texture otherwise pull whole frames centimetres off (the mapper's own adjustments use a
+    squared loss)."""
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_focal_length = options.refine_extra_params = not fixed
+    options.refine_principal_point = False
+    options.print_summary = False
+    options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    options.ceres.loss_function_scale = ROBUST_PX
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id, image in model.images.items():
+        if image.has_pose:
+            config.add_image(image_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.THREE_POINTS)
+    pycolmap.create_default_bundle_adjuster(options, config, model).solve()
+
+
+def _poses(model) -> tuple[np.ndarray, np.ndarray]:
+    """(frame indices [R], c2w [R, 4, 4]) of the registered frames, in the first one's camera frame, scaled
+    so that the median depth of the model's points, seen from the registered frames, is 1."""
+    images = sorted((int(Path(im.name).stem), im) for im in model.images.values() if im.has_pose)
+    index = np.array([i for i, _ in images], dtype=np.int64)
+    w2c = np.tile(np.eye(4), (len(images), 1, 1))
+    w2c[:, :3] = [im.cam_from_world().matrix() for _, im in images]
+    points = np.array([p.xyz for p in model.points3D.values()]).reshape(-1, 3)
+    depths = np.einsum("rj,pj->rp", w2c[:, 2, :3], points) + w2c[:, 2, 3:]  # [R, P]
+    depths = depths[depths > 0]
+    scale = 1.0 / float(np.median(depths)) if depths.size else 1.0
+    c2w = w2c[0] @ np.linalg.inv(w2c)  # the world: the first registered frame's camera
+    c2w[:, :3, 3] *= scale
+    return index, c2w
+
+
+def _camera(camera, given: Intrinsics | None, width: int, height: int) -> tuple[Intrinsics, float]:
+    """The camera in our convention (pixel centres at integers) and its radial term."""
+    if given is not None:
+        return given, 0.0
+    f, cx, cy, k = (float(v) for v in camera.params)
+    return Intrinsics(f, f, cx - 0.5, cy - 0.5, width, height), k
