@@ -210,7 +210,8 @@ def estimated_poses(rec: Recording, *, progress: bool = False) -> Recording:
         rec = replace(rec, intrinsics=np.array([k.fx, k.fy, k.cx, k.cy]))
     metadata = {**rec.metadata, "poses": {
         "source": "structure from motion", "frames": estimate.frames, "registered": estimate.registered,
-        "static": estimate.static, "estimated_intrinsics": estimate.estimated_intrinsics,
+        "static": estimate.static, "rotation_only": estimate.rotation_only,
+        "estimated_intrinsics": estimate.estimated_intrinsics,
         "distortion": estimate.distortion, "seconds": round(estimate.seconds, 3)}}
     return replace(with_trajectory(rec, estimate.t_us, estimate.c2w), metadata=metadata)
 

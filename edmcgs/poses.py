@@ -13,8 +13,12 @@ estimated by the bundle adjustment and returned.
 Conventions of the result: OpenCV camera-to-world poses (x right, y down, z forward), the world the
 first registered frame's camera, the scale such that the median depth of the reconstructed points
 seen from the registered frames is 1 (the model's ``init_depth``, its scene depth when the cameras'
-axes do not meet). A camera whose frames match with (almost) no image motion is static; a recording
-where fewer than ``min_registered`` of the frames register in one model is refused, naming the count.
+axes do not meet). A camera whose frames match with (almost) no image motion is static; one whose
+matched frames are all related by homographies that are rotations (it turns about its centre: no
+parallax to map with, e.g. a pan) gets rotations alone, from those homographies, chained through the
+earliest frame each frame matched (its focal length, when not given, the one that makes them closest
+to rotations); a recording where fewer than ``min_registered`` of the frames register in one model is
+refused, naming the count.
 pycolmap is imported when poses are estimated, never at import time.
 """
 
@@ -44,6 +48,10 @@ REPROJ_PX = 1.5
 """Largest reprojection error an observation may keep in the model (pixels)."""
 ROBUST_PX = 0.5
 """Scale of the Cauchy loss of the final bundle adjustment (pixels)."""
+MIN_INLIERS = 15
+"""Fewest verified inlier matches that make two frames a pair."""
+MAX_NON_ROTATION = 0.02
+"""Largest median max |M^T M - I| of M = K^-1 H K over pairs for a camera that only turns."""
 STAGES = ("features", "matching", "motion", "mapping")
 
 
@@ -75,6 +83,9 @@ class PoseEstimate:
     """Largest median image motion of a matched pair of frames (pixels; what decided ``static``)."""
     seconds: float
     """Wall time of the estimate."""
+    rotation_only: bool = False
+    """The camera turned about its centre (no parallax): rotations from the frames' homographies, no
+    translation (``points`` 0)."""
 
     def summary(self) -> str:
         """One line: what registered, the camera, the time."""
@@ -84,8 +95,12 @@ class PoseEstimate:
         camera = "the camera given"
         if self.estimated_intrinsics and self.intrinsics is not None:
             k = self.intrinsics
-            camera = (f"estimated camera fx = fy = {k.fx:.1f}, cx = {k.cx:.1f}, cy = {k.cy:.1f} px (radial "
-                      f"distortion k = {self.distortion:+.3f} left out of the pinhole model)")
+            camera = f"estimated camera fx = fy = {k.fx:.1f}, cx = {k.cx:.1f}, cy = {k.cy:.1f} px"
+            if not self.rotation_only:
+                camera += f" (radial distortion k = {self.distortion:+.3f} left out of the pinhole model)"
+        if self.rotation_only:
+            return (f"a camera that turns about its centre (no parallax): {self.registered} of {self.frames} "
+                    f"frames rotated by their homographies, {camera}, {self.seconds:.1f} s")
         models = "" if self.models == 1 else f" (the largest of {self.models} models)"
         return (f"{self.registered} of {self.frames} frames registered{models}, {self.points} points, "
                 f"{camera}, {self.seconds:.1f} s")
@@ -122,7 +137,8 @@ def estimate_poses(t_us, images, intrinsics: Intrinsics | None = None, *,
         _match(pycolmap, database, threads, seed)
         bar.update()
         bar.set_postfix_str(STAGES[2])
-        motion_px = _image_motion(pycolmap, database)
+        pairs = _verified_pairs(pycolmap, database)
+        motion_px = _image_motion(pairs)
         bar.update()
         if motion_px is None:
             raise PoseEstimationError(f"no two of the {n} frames match: structure from motion found nothing "
@@ -134,15 +150,23 @@ def estimate_poses(t_us, images, intrinsics: Intrinsics | None = None, *,
                 intrinsics=intrinsics,
                 estimated_intrinsics=False, distortion=0.0, static=True, models=0, points=0,
                 motion_px=motion_px, seconds=time.perf_counter() - start)
+        turned = _rotations(pairs, n, intrinsics, width, height)
+        if turned is not None and len(turned[0]) >= min_registered * n:  # no parallax to map with
+            bar.update()
+            index, c2w, camera = turned
+            return PoseEstimate(
+                frames=n, registered=len(index), t_us=t_us[index], c2w=c2w, intrinsics=camera,
+                estimated_intrinsics=intrinsics is None, distortion=0.0, static=False, models=1, points=0,
+                motion_px=motion_px, seconds=time.perf_counter() - start, rotation_only=True)
         bar.set_postfix_str(STAGES[3])
         models = _map(pycolmap, database, folder, output, fixed=intrinsics is not None, threads=threads,
                       seed=seed)
         bar.update()
-    if not models:
+    best = max(models, key=lambda r: r.num_reg_images()) if models else None
+    registered = 0 if best is None else best.num_reg_images()
+    if best is None:
         raise PoseEstimationError(f"0 of {n} frames registered: structure from motion found no initial pair "
-                                  "of frames with enough parallax (a camera that only rotates?)")
-    best = max(models, key=lambda r: r.num_reg_images())
-    registered = best.num_reg_images()
+                                  "of frames with enough parallax")
     if registered < min_registered * n:
         split = f" (the largest of {len(models)} separate models)" if len(models) > 1 else ""
         raise PoseEstimationError(f"only {registered} of {n} frames registered in one model{split}; poses "
@@ -234,27 +258,110 @@ def _match(pycolmap, database: Path, threads: int, seed: int) -> None:
                               verification_options=verification)
 
 
-def _image_motion(pycolmap, database: Path) -> float | None:
-    """The largest, over verified pairs of frames, of the median displacement of their inlier matches
-    (pixels); None when no pair was verified."""
+@dataclass(frozen=True)
+class _Pair:
+    """Two frames the matcher verified: their indices, their inlier keypoints (COLMAP's pixels, centres
+    at +0.5) and the homography it fitted (``b ~ H a``)."""
+
+    a: int
+    b: int
+    points_a: np.ndarray
+    points_b: np.ndarray
+    H: np.ndarray
+
+
+def _verified_pairs(pycolmap, database: Path) -> list[_Pair]:
+    """Every pair of frames with at least ``MIN_INLIERS`` verified inlier matches."""
     with pycolmap.Database.open(database) as db:
-        pair_ids, geometries = db.read_two_view_geometries()
-        keypoints = {}
-        largest = None
-        for pair_id, geometry in zip(pair_ids, geometries, strict=True):
+        index = {image.image_id: int(Path(image.name).stem) for image in db.read_all_images()}
+        keypoints: dict[int, np.ndarray] = {}
+        pairs = []
+        for pair_id, geometry in zip(*db.read_two_view_geometries(), strict=True):
             matches = np.asarray(geometry.inlier_matches)
-            if len(matches) < 15:
+            if len(matches) < MIN_INLIERS:
                 continue
-            a, b = pycolmap.pair_id_to_image_pair(pair_id)
-            for i in (a, b):
+            ids = pycolmap.pair_id_to_image_pair(pair_id)
+            for i in ids:
                 if i not in keypoints:
-                    keypoints[i] = np.asarray(db.read_keypoints(i))[:, :2]
-            moved = np.linalg.norm(keypoints[a][matches[:, 0]] - keypoints[b][matches[:, 1]], axis=1)
-            median = float(np.median(moved))
-            largest = median if largest is None else max(largest, median)
-    return largest
+                    keypoints[i] = np.asarray(db.read_keypoints(i))[:, :2].astype(np.float64)
+            (a, ka), (b, kb) = sorted((index[i], keypoints[i]) for i in ids)
+            ma, mb = (matches[:, 0], matches[:, 1]) if index[ids[0]] == a else (matches[:, 1], matches[:, 0])
+            H = np.asarray(geometry.H, dtype=np.float64)
+            if index[ids[0]] != a:
+                H = np.linalg.inv(H)
+            pairs.append(_Pair(a, b, ka[ma], kb[mb], H))
+    return pairs
 
 
+def _image_motion(pairs: list[_Pair]) -> float | None:
+    """The largest, over verified pairs, of the median displacement of their inlier matches (pixels);
+    None when no pair was verified."""
+    moved = [float(np.median(np.linalg.norm(p.points_b - p.points_a, axis=1))) for p in pairs]
+    return max(moved) if moved else None
+
+
+def _rotations(pairs: list[_Pair], n: int, intrinsics: Intrinsics | None, width: int,
+               height: int) -> tuple[np.ndarray, np.ndarray, Intrinsics] | None:
+    """A camera that turns about its centre (no parallax: every pair a homography that is a rotation
+    conjugated by the camera): (frame indices, c2w [R, 4, 4] with no translation, the camera), the
+    rotations chained along the closest earlier frame; None when the homographies are no rotations.
+    Without a camera given, its focal length is the one that makes them closest to rotations."""
+    explained = [float(np.mean(np.linalg.norm(_transfer(p.H, p.points_a) - p.points_b, axis=1)
+                               <= 2 * MAX_ERROR_PX)) for p in pairs]
+    if not pairs or np.median(explained) < 0.9:
+        return None
+    pairs = [p for p, share in zip(pairs, explained, strict=True) if share >= 0.9]
+    if intrinsics is None:
+        side = max(width, height)
+        focal = min(np.geomspace(0.3, 3.0, 121) * side, key=lambda f: np.median(_non_rotation(
+            pairs, _k(f, f, width / 2, height / 2))))
+        intrinsics = Intrinsics(focal, focal, (width - 1) / 2, (height - 1) / 2, width, height)
+    K = _k(intrinsics.fx, intrinsics.fy, intrinsics.cx + 0.5, intrinsics.cy + 0.5)
+    residual = _non_rotation(pairs, K)
+    if np.median(residual) > MAX_NON_ROTATION:
+        return None
+    pairs = [p for p, r in zip(pairs, residual, strict=True) if r <= MAX_NON_ROTATION]
+    rotation = {0: np.eye(3)}  # world-to-camera rotations, the world the first frame's camera
+    for b in range(1, n):
+        earlier = [p for p in pairs if p.b == b and p.a in rotation]
+        if earlier:
+            p = min(earlier, key=lambda p: p.a)  # the longest baseline: the fewest links to frame 0
+            rotation[b] = _nearest_rotation(_conjugated(p.H, K)) @ rotation[p.a]
+    index = np.array(sorted(rotation), dtype=np.int64)
+    c2w = np.tile(np.eye(4), (len(index), 1, 1))
+    c2w[:, :3, :3] = [rotation[i].T for i in index]
+    return index, c2w, intrinsics
+
+
+def _k(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def _transfer(H: np.ndarray, points: np.ndarray) -> np.ndarray:
+    moved = np.c_[points, np.ones(len(points))] @ H.T
+    return moved[:, :2] / np.where(np.abs(moved[:, 2:]) < 1e-12, 1e-12, moved[:, 2:])
+
+
+def _conjugated(H: np.ndarray, K: np.ndarray) -> np.ndarray | None:
+    """K^-1 H K scaled to determinant 1 (a homography's scale and sign are arbitrary); None if singular."""
+    m = np.linalg.solve(K, H @ K)
+    det = np.linalg.det(m)
+    return None if not np.isfinite(det) or abs(det) < 1e-12 else m / np.cbrt(det)
+
+
+def _nearest_rotation(m: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(m)
+    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+
+
+def _non_rotation(pairs: list[_Pair], K: np.ndarray) -> np.ndarray:
+    """Per pair, how far K^-1 H K (scaled to determinant 1) is from a rotation M: max |M^T M - I|."""
+    out = np.full(len(pairs), np.inf)
+    for i, p in enumerate(pairs):
+        m = _conjugated(p.H, K)
+        if m is not None:
+            out[i] = float(np.abs(m.T @ m - np.eye(3)).max())
+    return out
 def _map(pycolmap, database: Path, folder: Path, output: Path, *, fixed: bool, threads: int, seed: int):
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = threads

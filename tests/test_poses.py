@@ -20,6 +20,7 @@ from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import Recording, read_recording, write_recording
 from edmcgs.sensor.frames import Frames
 from edmcgs.synth.scene import make_scene
+from edmcgs.synth.traffic import TrafficScene
 from tests.support.pose_scenes import rigid_sweep, trajectory_error
 
 REAL = Path(__file__).parent / "data" / "test-frame.aedat4"
@@ -91,6 +92,35 @@ def test_a_static_camera_is_detected_and_becomes_a_static_trajectory(tmp_path, c
     assert out.count("a static camera") == 1
     assert len(rec.trajectory_t_us) == 1 and np.array_equal(rec.trajectory_c2w[0], np.eye(4))
     assert training_data(rec).trajectory.is_static
+
+
+def _street(pan_px_s: float, frames: int = 16):
+    """The ``traffic`` street (cars crossing) at 173x130, 25 Hz: (t_us, frames, true c2w, camera)."""
+    scene = TrafficScene(173, 130, pan_px_s=pan_px_s, seed=0)
+    t_us = np.arange(frames, dtype=np.int64) * 40_000
+    images = np.stack([np.rint(np.clip(scene.render(t * 1e-6), 0, 1) * 255).astype(np.uint8) for t in t_us])
+    return t_us, images, np.stack([scene.camera_at(t * 1e-6) for t in t_us]), scene.intrinsics
+
+
+def test_a_still_camera_over_moving_cars_is_static():
+    t_us, images, _, _ = _street(0.0, frames=8)
+    estimate = estimate_poses(t_us, images, None, progress=False)
+    assert estimate.static and estimate.intrinsics is None  # nothing to estimate a camera from
+    assert "a static camera" in estimate.summary()
+
+
+def test_a_camera_that_only_turns_gets_rotations_from_homographies():
+    t_us, images, truth, intrinsics = _street(150.0)  # 150 px/s at fx = 300: about 29 degrees a second
+    estimate = estimate_poses(t_us, images, None, progress=False)
+    assert estimate.rotation_only and estimate.registered == len(t_us)
+    assert estimate.estimated_intrinsics and estimate.intrinsics.fx == pytest.approx(intrinsics.fx, rel=0.1)
+    assert np.abs(estimate.c2w[:, :3, 3]).max() == 0  # no translation: no parallax to measure one
+    angle = [np.degrees(np.arccos(np.clip((np.trace(a[:3, :3].T @ b[:3, :3]) - 1) / 2, -1, 1)))
+             for a, b in zip(estimate.c2w, truth[np.searchsorted(t_us, estimate.t_us)], strict=True)]
+    turned = np.degrees(np.arccos((np.trace(truth[-1][:3, :3]) - 1) / 2))
+    assert turned > 5 and max(angle) < 0.05 * turned
+    given = estimate_poses(t_us, images, intrinsics, progress=False)
+    assert given.rotation_only and given.intrinsics == intrinsics
 
 
 def test_too_few_registered_frames_are_refused_with_the_count(sweep):
