@@ -27,7 +27,7 @@ fuzz:   ## schemathesis against a real edmcgs-serve: all checks, >= 1000 cases, 
 
 bench:  ## every benchmark, JSON into reports/bench/
 	mkdir -p reports/bench
-	for b in render sensor simulate serve; do $(PY) -m bench.$$b --json reports/bench/$$b.json || exit 1; done
+	for b in render sensor simulate serve poses; do $(PY) -m bench.$$b --json reports/bench/$$b.json || exit 1; done
 
 demo:   ## regenerate the bundled demo scene (server/demo/) from the synthetic benchmark
 	scripts/bootstrap.sh

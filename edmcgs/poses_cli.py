@@ -38,7 +38,8 @@ def main(argv: list[str] | None = None) -> int:
     except EdmcgsError as exc:
         print(f"edmcgs poses: {exc}", file=sys.stderr)
         return 1
-    print(f"wrote {args.output}: {len(rec.trajectory_t_us)} poses")
+    count = len(rec.trajectory_t_us)
+    print(f"wrote {args.output}: {count} pose{'' if count == 1 else 's'}")
     if rec.intrinsics is not None and not had_camera:
         fx, fy, cx, cy = rec.intrinsics
         print(f"the estimated camera, for --intrinsics: {fx:.3f},{fy:.3f},{cx:.3f},{cy:.3f}")
