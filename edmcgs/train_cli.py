@@ -17,7 +17,7 @@ from pathlib import Path
 from edmcgs.errors import EdmcgsError, InvalidInputError
 from edmcgs.filekind import check_checkpoint, check_recording
 from edmcgs.model.config import PRESETS, split_overrides
-from edmcgs.options import RecordingOptions, add_recording_arguments
+from edmcgs.options import AUTO_POSES, RecordingOptions, add_recording_arguments
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -102,7 +102,7 @@ def check_inputs(args: argparse.Namespace, many: bool) -> None:
         resumed = args.output
     if resumed is not None and not many:  # several: --resume CKPT is refused, each run reads its own
         check_checkpoint(resumed, verify=True, hint="--resume takes the checkpoint of the run to continue")
-    if args.poses is not None and not os.path.isfile(args.poses):
+    if args.poses not in (None, AUTO_POSES) and not os.path.isfile(args.poses):
         raise InvalidInputError(f"--poses {args.poses}: no such file")
 
 
