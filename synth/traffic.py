@@ -35,6 +35,7 @@ import numpy as np
 from edmcgs.errors import InvalidInputError
 from edmcgs.geometry import Intrinsics
 from edmcgs.synth.orbit import DAVIS346
+from edmcgs.synth.procedural import band, box_sd, fbm, hash01, ramp
 
 FULL_WIDTH, FULL_HEIGHT = DAVIS346.width, DAVIS346.height
 CANVAS_SUPERSAMPLING = 4
@@ -86,88 +87,6 @@ class MovingObject:
         return self.u_speed * (t_s - self.t_pass)
 
 
-def _mix64(h: np.ndarray) -> np.ndarray:
-    """splitmix64 finaliser on uint64 arrays."""
-    h = h ^ (h >> np.uint64(30))
-    h = h * np.uint64(0xBF58476D1CE4E5B9)
-    h = h ^ (h >> np.uint64(27))
-    h = h * np.uint64(0x94D049BB133111EB)
-    return h ^ (h >> np.uint64(31))
-
-
-def hash01(ix: np.ndarray, iy: np.ndarray, key: int) -> np.ndarray:
-    """A deterministic value in [0, 1) per integer lattice point (any sign) and key: float64."""
-    with np.errstate(over="ignore"):
-        h = (np.asarray(ix, np.int64).astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
-             + np.asarray(iy, np.int64).astype(np.uint64) * np.uint64(0xC2B2AE3D27D4EB4F)
-             + np.uint64(key & 0xFFFFFFFFFFFFFFFF))
-        h = _mix64(h)
-    return (h >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53))
-
-
-_TABLE_BITS = 10
-_TABLE: list[np.ndarray] = []
-
-
-def _lattice() -> np.ndarray:
-    """A 1024x1024 table of lattice values in [0, 1), flattened (built once, shared by every key)."""
-    if not _TABLE:
-        n = 1 << _TABLE_BITS
-        _TABLE.append(hash01(np.arange(n)[None, :], np.arange(n)[:, None], 0x5EED).ravel())
-    return _TABLE[0]
-
-
-def value_noise(u: np.ndarray, v: np.ndarray, spacing: float, key: int) -> np.ndarray:
-    """Smooth value noise in [-1, 1] with lattice ``spacing`` (px): continuous, C1 across cells.
-
-    The lattice values come from one shared table (period 1024 cells), read at an offset per ``key``.
-    """
-    x, y = u / spacing, v / spacing
-    ix, iy = np.floor(x), np.floor(y)
-    fx, fy = x - ix, y - iy
-    wx, wy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)
-    mask = (1 << _TABLE_BITS) - 1
-    offset = hash01(np.array([key, key + 1]), np.array([1, 2]), 0x0FF5E7)
-    ix = (ix.astype(np.int64) + int(offset[0] * 1024)) & mask
-    iy = (iy.astype(np.int64) + int(offset[1] * 1024)) & mask
-    ix1, iy1 = (ix + 1) & mask, ((iy + 1) & mask) << _TABLE_BITS
-    iy <<= _TABLE_BITS
-    table = _lattice()
-    a, b, c, d = table[iy + ix], table[iy + ix1], table[iy1 + ix], table[iy1 + ix1]
-    return 2.0 * ((a + (b - a) * wx) * (1 - wy) + (c + (d - c) * wx) * wy) - 1.0
-
-
-def fbm(u, v, spacings, key: int, px: float) -> np.ndarray:
-    """Sum of value-noise octaves (amplitude ~ spacing^0.6, normalised to about [-1, 1]); octaves with
-    a lattice finer than two output pixels (``px`` canvas px each) are left out (no aliasing)."""
-    out = np.zeros(np.broadcast_shapes(np.shape(u), np.shape(v)))
-    total = 0.0
-    for i, s in enumerate(spacings):
-        amp = s ** 0.6
-        total += amp
-        if s >= 2.0 * px:
-            out += amp * value_noise(u, v, s, key * 131 + i)
-    return out / total
-
-
-def _ramp(sd: np.ndarray, px: float) -> np.ndarray:
-    """Coverage of a signed distance (canvas px, negative inside) over a one-output-pixel ramp."""
-    return np.clip(0.5 - sd / px, 0.0, 1.0)
-
-
-def _box_sd(a, b, half_a, half_b, radius=0.0):
-    """Signed distance to a rounded box centred at 0 (half sizes include the rounding)."""
-    qa = np.abs(a) - half_a + radius
-    qb = np.abs(b) - half_b + radius
-    outside = np.hypot(np.maximum(qa, 0.0), np.maximum(qb, 0.0))
-    return outside + np.minimum(np.maximum(qa, qb), 0.0) - radius
-
-
-def _band(v, lo, hi, px):
-    """Coverage of lo <= v < hi."""
-    return _ramp(np.abs(v - 0.5 * (lo + hi)) - 0.5 * (hi - lo), px)
-
-
 def background(u: np.ndarray, v: np.ndarray, seed: int, px: float) -> np.ndarray:
     """Luminance of the static street at canvas points (u, v) (full-resolution px), float64.
 
@@ -181,46 +100,46 @@ def background(u: np.ndarray, v: np.ndarray, seed: int, px: float) -> np.ndarray
     bu = u - block * BLOCK_PX
     tone = 0.2 + 0.22 * hash01(block, 0, key + 3)
     roof = 4.0 + (SKY_BOTTOM - 4.0) * hash01(block, 1, key + 3)
-    gap = _ramp(-(np.abs(bu - 0.5 * BLOCK_PX) - (0.5 * BLOCK_PX - 1.5)), px)  # dark joint between blocks
+    gap = ramp(-(np.abs(bu - 0.5 * BLOCK_PX) - (0.5 * BLOCK_PX - 1.5)), px)  # dark joint between blocks
     wu, wv = np.floor((bu - 4.0) / 12.0), np.floor((v - roof - 6.0) / 14.0)
     cu, cv = bu - 4.0 - 12.0 * wu - 6.0, v - roof - 6.0 - 14.0 * wv - 7.0
     in_grid = ((bu > 4.0) & (bu < BLOCK_PX - 4.0) & (v > roof + 6.0)
                & (v < FACADE_BOTTOM - 6.0)).astype(float)
     lit = hash01(block * 64 + wu, wv, key + 4)
     glass = np.where(lit > 0.8, 0.62, 0.07 + 0.08 * lit)
-    window = in_grid * _ramp(_box_sd(cu, cv, 3.0, 4.0), px)
+    window = in_grid * ramp(box_sd(cu, cv, 3.0, 4.0), px)
     facade = tone * (1 + 0.25 * lo + 0.12 * hi)
     facade = facade * (1 - 0.45 * gap)
     facade = facade + window * (glass - facade)
-    facade = facade + _band(v, FACADE_BOTTOM - 4.0, FACADE_BOTTOM + 1.0, px) * (0.13 - facade)  # plinth
+    facade = facade + band(v, FACADE_BOTTOM - 4.0, FACADE_BOTTOM + 1.0, px) * (0.13 - facade)  # plinth
     sky = 0.74 + 0.04 * lo - 0.0006 * v
-    img = sky + _ramp(roof - v, px) * (facade - sky)
+    img = sky + ramp(roof - v, px) * (facade - sky)
     # pavements with joints, curbs with a bright top and a dark gutter
     pave = 0.4 * (1 + 0.12 * lo + 0.08 * hi)
-    joints = np.maximum(_ramp(np.abs(u - 16.0 * np.round(u / 16.0)) - 0.5, px),
-                        _ramp(np.abs(v - 80.0) - 0.5, px)) * 0.2
-    joints += _ramp(np.abs(v - 205.5) - 0.5, px) * 0.2
+    joints = np.maximum(ramp(np.abs(u - 16.0 * np.round(u / 16.0)) - 0.5, px),
+                        ramp(np.abs(v - 80.0) - 0.5, px)) * 0.2
+    joints += ramp(np.abs(v - 205.5) - 0.5, px) * 0.2
     pave = pave * (1 - joints)
-    img = img + _band(v, FACADE_BOTTOM + 1.0, UPPER_PAVEMENT[1], px) * (pave - img)
-    img = img + _band(v, LOWER_PAVEMENT[0], LOWER_PAVEMENT[1], px) * (pave - img)
-    img = img + _band(v, UPPER_PAVEMENT[1], ROAD[0], px) * (0.56 * (1 + 0.05 * hi) - img)
-    img = img + _band(v, ROAD[1], LOWER_PAVEMENT[0], px) * (0.52 * (1 + 0.05 * hi) - img)
+    img = img + band(v, FACADE_BOTTOM + 1.0, UPPER_PAVEMENT[1], px) * (pave - img)
+    img = img + band(v, LOWER_PAVEMENT[0], LOWER_PAVEMENT[1], px) * (pave - img)
+    img = img + band(v, UPPER_PAVEMENT[1], ROAD[0], px) * (0.56 * (1 + 0.05 * hi) - img)
+    img = img + band(v, ROAD[1], LOWER_PAVEMENT[0], px) * (0.52 * (1 + 0.05 * hi) - img)
     # the road: asphalt, repair patches, lane markings
     patch = np.clip(4.0 * (fbm(u, v, (40.0, 20.0), key + 5, px) - 0.25), 0.0, 1.0)
     asphalt = 0.19 * (1 + 0.18 * lo + 0.16 * hi) * (1 - 0.25 * patch)
-    dash = _ramp(np.abs(u - 28.0 * np.round(u / 28.0)) - 7.0, px)
+    dash = ramp(np.abs(u - 28.0 * np.round(u / 28.0)) - 7.0, px)
     for line in LANE_LINES:
-        asphalt = asphalt + dash * _ramp(np.abs(v - line) - 0.75, px) * (0.6 - asphalt)
+        asphalt = asphalt + dash * ramp(np.abs(v - line) - 0.75, px) * (0.6 - asphalt)
     for line in CENTRE_LINES:
-        asphalt = asphalt + _ramp(np.abs(v - line) - 0.6, px) * (0.5 - asphalt)
-    img = img + _band(v, ROAD[0] + 1.0, ROAD[1] - 1.0, px) * (asphalt - img)
-    img = img + _band(v, ROAD[0], ROAD[0] + 2.0, px) * (0.09 - img)  # gutter shadow under the curb
+        asphalt = asphalt + ramp(np.abs(v - line) - 0.6, px) * (0.5 - asphalt)
+    img = img + band(v, ROAD[0] + 1.0, ROAD[1] - 1.0, px) * (asphalt - img)
+    img = img + band(v, ROAD[0], ROAD[0] + 2.0, px) * (0.09 - img)  # gutter shadow under the curb
     # the verge: grass and tree canopies
     canopy = np.clip(3.0 * (fbm(u, v, (48.0, 24.0, 12.0), key + 6, px) + 0.05), 0.0, 1.0)
     grass = 0.2 * (1 + 0.3 * lo + 0.25 * hi)
     trees = 0.07 * (1 + 0.6 * hi + 0.3 * lo)
     verge = grass + canopy * (trees - grass)
-    img = img + _ramp(LOWER_PAVEMENT[1] - v, px) * (verge - img)
+    img = img + ramp(LOWER_PAVEMENT[1] - v, px) * (verge - img)
     return np.clip(img, 0.02, 0.85)
 
 
@@ -404,14 +323,14 @@ class TrafficScene:
         b = v - obj.v
         hl, hw = 0.5 * obj.length, 0.5 * obj.width
         radius = min(2.0, 0.6 * hw) if obj.kind == "car" else hw
-        shadow = np.clip(0.5 - _box_sd(a + 0.5, b - 1.6, hl + 0.3, hw + 0.3, radius) / (1.8 * px), 0.0, 1.0)
-        body = _ramp(_box_sd(a, b, hl, hw, radius), px)
+        shadow = np.clip(0.5 - box_sd(a + 0.5, b - 1.6, hl + 0.3, hw + 0.3, radius) / (1.8 * px), 0.0, 1.0)
+        body = ramp(box_sd(a, b, hl, hw, radius), px)
         lum = np.full(a.shape, obj.body)
         if obj.kind == "car":
-            roof = _ramp(_box_sd(a + 0.05 * obj.length, b, 0.2 * obj.length, hw - 1.2, 0.8), px)
+            roof = ramp(box_sd(a + 0.05 * obj.length, b, 0.2 * obj.length, hw - 1.2, 0.8), px)
             lum += roof * (obj.roof - lum)
-            front = _ramp(_box_sd(a - 0.2 * obj.length, b, 0.07 * obj.length + 0.5, hw - 0.9, 0.5), px)
-            rear = _ramp(_box_sd(a + 0.3 * obj.length, b, 0.05 * obj.length + 0.4, hw - 1.1, 0.5), px)
+            front = ramp(box_sd(a - 0.2 * obj.length, b, 0.07 * obj.length + 0.5, hw - 0.9, 0.5), px)
+            rear = ramp(box_sd(a + 0.3 * obj.length, b, 0.05 * obj.length + 0.4, hw - 1.1, 0.5), px)
             lum += np.maximum(front, rear) * (obj.glass - lum)
         region = img[y0:y1, x0:x1]
         region *= 1.0 - 0.5 * shadow

@@ -30,32 +30,13 @@ from edmcgs.errors import EdmcgsError, InvalidInputError
 from edmcgs.sensor.files.recording import Recording
 from edmcgs.sensor.frames import Frames
 from edmcgs.synth.build import TRAJECTORY_STEP_US, frame_times, save
+from edmcgs.synth.davis import APS_HZ, DAVIS346_SIMULATOR, aps_frame, read_out
 from edmcgs.synth.esim import AdaptiveSampling, SimulatorConfig, simulate_render
 from edmcgs.synth.traffic import FULL_HEIGHT, FULL_WIDTH, TrafficScene
 
 GENERATOR = "edmcgs.synth.traffic_build/1"
-APS_HZ = 25.0
 SCENES = ("traffic", "traffic-pan")
 SIZES = {"small": (173, 130), "full": (FULL_WIDTH, FULL_HEIGHT)}
-
-DAVIS346_SIMULATOR = SimulatorConfig(
-    contrast_threshold=0.2, threshold_sigma=0.03, refractory_us=250, noise_rate_hz=0.2,
-    hot_pixel_fraction=3e-4, hot_pixel_rate_hz=100.0)
-"""Event-pixel settings of a DAVIS346 in daylight, and why:
-
-- C = 0.2 (log units), the nominal threshold of DAVIS biases near their defaults (ESIM and v2e use
-  0.2 too; the project's other scenes and the model's default assume it);
-- threshold mismatch sigma = 0.03: v2e's default pixel-to-pixel spread, measured on DVS/DAVIS sensors
-  at about 2-4 % contrast;
-- refractory period 250 µs: DAVIS346 refractory biases give some 100 µs to 1 ms; a pixel under a
-  fast edge (400 px/s, C = 0.2, a 1.5 log-unit edge fires ~7 events over 2.5 ms) loses about half
-  of them, as real pixels do;
-- background activity 0.2 Hz per pixel (18k events/s over 346x260): the leak/shot-noise rate of a
-  DAVIS346 in normal indoor/outdoor light is 0.1 to 1 Hz per pixel;
-- hot pixels: 3 per 10,000 pixels (27 at 346x260) firing 100 Hz each (2.7k events/s): the few
-  pixels a DAVIS346 hot-pixel filter typically removes fire at tens to hundreds of Hz.
-"""
-
 
 @dataclass(frozen=True)
 class TrafficConfig:
@@ -116,22 +97,6 @@ class TrafficConfig:
                             seed=self.seed, occupancy=self.occupancy)
 
 
-def aps_frame(scene: TrafficScene, t_us: int, exposure_us: int, subframes: int) -> np.ndarray:
-    """The noise-free APS image at t_us: the mean luminance over the centred exposure, float64 [H, W]."""
-    if exposure_us == 0:
-        return scene.render(t_us * 1e-6)
-    offsets = ((np.arange(subframes) + 0.5) / subframes - 0.5) * exposure_us
-    return np.mean([scene.render((t_us + o) * 1e-6) for o in offsets], axis=0)
-
-
-def read_out(image: np.ndarray, read_noise_dn: float, rng: np.random.Generator) -> np.ndarray:
-    """Digitise a [0, 1] luminance image: + N(0, read_noise_dn / 255), rounded and clipped to uint8."""
-    dn = image * 255.0
-    if read_noise_dn > 0:
-        dn = dn + rng.normal(0.0, read_noise_dn, size=image.shape)
-    return np.clip(np.round(dn), 0, 255).astype(np.uint8)
-
-
 def build_traffic(config: TrafficConfig, *, progress: bool = True) -> Recording:
     """Composite, expose, read out and simulate the recording described by ``config``."""
     started = time.perf_counter()
@@ -147,7 +112,7 @@ def build_traffic(config: TrafficConfig, *, progress: bool = True) -> Recording:
     with tqdm(total=len(all_t), desc=f"{label}: frames", unit="frame", disable=not progress,
               file=sys.stderr) as bar:
         for t in all_t:  # in time order, so the read noise of a frame does not depend on the fps
-            images[int(t)] = read_out(aps_frame(scene, int(t), config.exposure_us, config.subframes),
+            images[int(t)] = read_out(aps_frame(scene.render, int(t), config.exposure_us, config.subframes),
                                       config.read_noise_dn, noise_rng)
             bar.update(1)
 

@@ -9,9 +9,10 @@ from edmcgs.errors import InvalidInputError
 from edmcgs.pipeline import training_data
 from edmcgs.sensor.files.recording import read_recording, write_recording
 from edmcgs.synth.cli import main as synth_main
+from edmcgs.synth.davis import aps_frame, read_out
 from edmcgs.synth.esim import AdaptiveSampling, SimulatorConfig
 from edmcgs.synth.traffic import TrafficScene
-from edmcgs.synth.traffic_build import TrafficConfig, aps_frame, build_traffic, read_out
+from edmcgs.synth.traffic_build import TrafficConfig, build_traffic
 
 COARSE = AdaptiveSampling(dt_max_us=4000, dt_min_us=4000)  # uniform 4 ms steps: quick
 TINY = dict(width=86, height=65, duration_s=0.4, sampling=COARSE, subframes=4)
@@ -87,7 +88,7 @@ def test_exposure_blur_smears_a_moving_car_along_its_motion(static_full):
     obj = next(o for o in scene.objects_at(1.0) if o.kind == "car" and 40 < o.u_at(1.0) < 306)
     bg = empty.render(1.0)
     sharp = scene.render(1.0)
-    blurred = aps_frame(scene, t_us, 10_000, 20)
+    blurred = aps_frame(scene.render, t_us, 10_000, 20)
     row = round(obj.v)
 
     def extent(img):

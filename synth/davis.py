@@ -1,0 +1,142 @@
+"""The DAVIS346-like sensor of the street scenes (``traffic``, ``street3d``): APS readout, event pixels, IMU.
+
+- APS: ``APS_HZ`` grey frames, each the mean of the sharp luminance over its exposure (``aps_frame``),
+  plus Gaussian read noise, rounded to uint8 (``read_out``);
+- events: the simulator settings of a DAVIS346 in daylight (``DAVIS346_SIMULATOR``);
+- IMU: what a gyroscope and an accelerometer rigidly on the camera read along a camera path
+  (``imu_truth``, from the poses alone), plus white noise and a constant bias per axis (``ImuConfig``,
+  ``imu_samples``). Samples are the sensor layer's ``IMU_DTYPE`` (dv's units: g and degrees per second),
+  in the camera frame (OpenCV: x right, y down, z forward): a level camera at rest reads accel (0, -1, 0) g.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from edmcgs.errors import InvalidInputError
+from edmcgs.sensor.sources.base import IMU_DTYPE
+from edmcgs.synth.esim import SimulatorConfig
+
+APS_HZ = 25.0
+STANDARD_GRAVITY = 9.80665
+"""m/s^2 per g."""
+
+DAVIS346_SIMULATOR = SimulatorConfig(
+    contrast_threshold=0.2, threshold_sigma=0.03, refractory_us=250, noise_rate_hz=0.2,
+    hot_pixel_fraction=3e-4, hot_pixel_rate_hz=100.0)
+"""Event-pixel settings of a DAVIS346 in daylight, and why:
+
+- C = 0.2 (log units), the nominal threshold of DAVIS biases near their defaults (ESIM and v2e use
+  0.2 too; the project's other scenes and the model's default assume it);
+- threshold mismatch sigma = 0.03: v2e's default pixel-to-pixel spread, measured on DVS/DAVIS sensors
+  at about 2-4 % contrast;
+- refractory period 250 µs: DAVIS346 refractory biases give some 100 µs to 1 ms; a pixel under a
+  fast edge (400 px/s, C = 0.2, a 1.5 log-unit edge fires ~7 events over 2.5 ms) loses about half
+  of them, as real pixels do;
+- background activity 0.2 Hz per pixel (18k events/s over 346x260): the leak/shot-noise rate of a
+  DAVIS346 in normal indoor/outdoor light is 0.1 to 1 Hz per pixel;
+- hot pixels: 3 per 10,000 pixels (27 at 346x260) firing 100 Hz each (2.7k events/s): the few
+  pixels a DAVIS346 hot-pixel filter typically removes fire at tens to hundreds of Hz.
+"""
+
+
+def aps_frame(render: Callable[[float], np.ndarray], t_us: int, exposure_us: int,
+              subframes: int) -> np.ndarray:
+    """The noise-free APS image at t_us: the mean of ``render(t_s)`` (a sharp luminance image, float64
+    [H, W]) over the exposure centred on t_us, ``subframes`` samples."""
+    if exposure_us == 0:
+        return render(t_us * 1e-6)
+    offsets = ((np.arange(subframes) + 0.5) / subframes - 0.5) * exposure_us
+    return np.mean([render((t_us + o) * 1e-6) for o in offsets], axis=0)
+
+
+def read_out(image: np.ndarray, read_noise_dn: float, rng: np.random.Generator) -> np.ndarray:
+    """Digitise a [0, 1] luminance image: + N(0, read_noise_dn / 255), rounded and clipped to uint8."""
+    dn = image * 255.0
+    if read_noise_dn > 0:
+        dn = dn + rng.normal(0.0, read_noise_dn, size=image.shape)
+    return np.clip(np.round(dn), 0, 255).astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class ImuConfig:
+    """The IMU of a DAVIS346 (an InvenSense MPU-6500-class part), and why each default.
+
+    rate_hz: 1 kHz, the DAVIS346's usual IMU rate. Noise per sample: the part's noise densities
+    (gyro 0.01 deg/s/sqrt(Hz), accel 300 ug/sqrt(Hz)) over a ~100 Hz low-pass give about 0.1 deg/s and
+    3 mg. Biases: a turn-on offset per axis, constant over a recording of seconds (an uncalibrated
+    part: about 0.5 deg/s and 20 mg).
+    """
+
+    rate_hz: float = 1000.0
+    gyro_noise_dps: float = 0.1
+    """Standard deviation of each gyro sample's white noise, degrees per second."""
+    accel_noise_g: float = 0.003
+    """Standard deviation of each accelerometer sample's white noise, g."""
+    gyro_bias_dps: float = 0.5
+    """Standard deviation of the constant gyro bias drawn per axis for a recording, degrees per second."""
+    accel_bias_g: float = 0.02
+    """Standard deviation of the constant accelerometer bias drawn per axis, g."""
+    temperature_c: float = 30.0
+    """The temperature every sample reports."""
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.rate_hz) and 1 <= self.rate_hz <= 100_000):
+            raise InvalidInputError(f"ImuConfig.rate_hz must be in [1, 100000], got {self.rate_hz!r}")
+        for name in ("gyro_noise_dps", "accel_noise_g", "gyro_bias_dps", "accel_bias_g"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise InvalidInputError(f"ImuConfig.{name} must be a finite number >= 0, got {value!r}")
+        if not math.isfinite(self.temperature_c):
+            raise InvalidInputError(f"ImuConfig.temperature_c must be finite, got {self.temperature_c!r}")
+
+    def to_metadata(self) -> dict:
+        return asdict(self)
+
+
+def _rotation_log(m: np.ndarray) -> np.ndarray:
+    """Rotation vectors [K, 3] of rotation matrices [K, 3, 3] (angles below pi)."""
+    w = 0.5 * np.stack([m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], axis=-1)
+    s = np.linalg.norm(w, axis=-1)
+    angle = np.arctan2(s, 0.5 * (np.trace(m, axis1=1, axis2=2) - 1.0))
+    scale = np.where(s > 1e-12, angle / np.where(s > 1e-12, s, 1.0), 1.0)
+    return w * scale[:, None]
+
+
+def imu_truth(pose_at: Callable[[np.ndarray], np.ndarray], t_s: np.ndarray,
+              gravity=(0.0, 0.0, -STANDARD_GRAVITY)) -> tuple[np.ndarray, np.ndarray]:
+    """(angular velocity rad/s, specific force m/s^2), float64 [K, 3] each, in the camera frame at t_s.
+
+    pose_at(t [K]) -> camera-to-world [K, 4, 4], a smooth path in metres (twice differentiable);
+    gravity: the world's gravity vector (z up: (0, 0, -g)). Central differences: the body rate from
+    R(t - h)^T R(t + h) (h = 0.1 ms), the acceleration from the positions (h = 0.2 ms); both are exact to
+    O(h^2), far below any IMU's noise for a hand's motion.
+    """
+    t_s = np.asarray(t_s, np.float64)
+    hr, hp = 1e-4, 2e-4
+    before, after = pose_at(t_s - hr), pose_at(t_s + hr)
+    gyro = _rotation_log(np.einsum("kji,kjl->kil", before[:, :3, :3], after[:, :3, :3])) / (2 * hr)
+    now = pose_at(t_s)
+    p = [pose_at(t_s + d)[:, :3, 3] for d in (-hp, hp)]
+    accel_world = (p[0] - 2.0 * now[:, :3, 3] + p[1]) / (hp * hp)
+    force = np.einsum("kji,kj->ki", now[:, :3, :3], accel_world - np.asarray(gravity, np.float64))
+    return gyro, force
+
+
+def imu_samples(t_us: np.ndarray, gyro_rad_s: np.ndarray, force_m_s2: np.ndarray, config: ImuConfig,
+                rng: np.random.Generator) -> tuple[np.ndarray, dict]:
+    """What the IMU reports for the true motion: IMU_DTYPE [K] (g, deg/s), and the biases drawn
+    ({"gyro_dps": [3], "accel_g": [3]}, for the metadata)."""
+    k = len(t_us)
+    gyro_bias = rng.normal(0.0, config.gyro_bias_dps, 3)
+    accel_bias = rng.normal(0.0, config.accel_bias_g, 3)
+    out = np.empty(k, IMU_DTYPE)
+    out["t"] = t_us
+    out["gyro"] = np.degrees(gyro_rad_s) + gyro_bias + rng.normal(0.0, config.gyro_noise_dps, (k, 3))
+    out["accel"] = force_m_s2 / STANDARD_GRAVITY + accel_bias + rng.normal(0.0, config.accel_noise_g, (k, 3))
+    out["temperature"] = config.temperature_c
+    return out, {"gyro_dps": gyro_bias.tolist(), "accel_g": accel_bias.tolist()}
