@@ -179,7 +179,8 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="edmcgs synth", description=(
         "Build a synthetic dynamic scene with simulated events, sparse RGB anchors and held-out "
         "ground-truth frames, as an HDF5 recording. `edmcgs synth traffic|traffic-pan --help`: the "
-        "composited street scene, a DAVIS346-like recording."))
+        "composited street scene, a DAVIS346-like recording; `edmcgs synth street3d --help`: a 3D street "
+        "seen by a handheld DAVIS346, with its IMU and a second camera's novel views."))
     p.add_argument("scene", choices=SCENES)
     p.add_argument("--fps", type=float, default=5.0, help="anchor frame rate (the paper: 5 or 10; default 5)")
     p.add_argument("-o", "--output", type=Path, help="output file (default: SCENE_FPSfps_SIZE.h5)")

@@ -2,6 +2,7 @@
 
     edmcgs synth jumpingjack|kick|lego|mutant ...   Gaussian scenes (``build``)
     edmcgs synth traffic|traffic-pan ...            the composited DAVIS346-like street (``traffic_build``)
+    edmcgs synth street3d ...                       a handheld camera in a ray-cast 3D street (``street3d_build``)
 """
 
 from __future__ import annotations
@@ -9,7 +10,8 @@ from __future__ import annotations
 import sys
 from importlib import import_module
 
-BUILDERS = {"traffic": "edmcgs.synth.traffic_build", "traffic-pan": "edmcgs.synth.traffic_build"}
+BUILDERS = {"traffic": "edmcgs.synth.traffic_build", "traffic-pan": "edmcgs.synth.traffic_build",
+            "street3d": "edmcgs.synth.street3d_build"}
 """Scenes with a builder of their own; every other scene is ``edmcgs.synth.build``'s."""
 
 

@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import argparse
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -19,7 +20,7 @@ import numpy as np
 
 from edmcgs.errors import InvalidInputError
 from edmcgs.sensor.sources.base import IMU_DTYPE
-from edmcgs.synth.esim import SimulatorConfig
+from edmcgs.synth.esim import AdaptiveSampling, SimulatorConfig
 
 APS_HZ = 25.0
 STANDARD_GRAVITY = 9.80665
@@ -42,6 +43,66 @@ DAVIS346_SIMULATOR = SimulatorConfig(
 - hot pixels: 3 per 10,000 pixels (27 at 346x260) firing 100 Hz each (2.7k events/s): the few
   pixels a DAVIS346 hot-pixel filter typically removes fire at tens to hundreds of Hz.
 """
+
+
+def check_aps(fps: float, duration_s: float, exposure_us: int, subframes: int, read_noise_dn: float,
+              simulator) -> None:
+    """InvalidInputError unless these are a valid recording's APS and event settings."""
+    if not (math.isfinite(fps) and 0 < fps <= APS_HZ):
+        raise InvalidInputError(f"fps must be in (0, {APS_HZ:g}], got {fps!r}")
+    ratio = APS_HZ / fps
+    if abs(ratio - round(ratio)) > 1e-9:
+        raise InvalidInputError(f"fps={fps:g} must divide the {APS_HZ:g} Hz APS rate "
+                                "(25, 12.5, 5, 2.5, ...): anchors are every (25 / fps)-th frame")
+    if not (math.isfinite(duration_s) and 0 < duration_s <= 600):
+        raise InvalidInputError(f"duration_s must be in (0, 600], got {duration_s!r}")
+    if not (isinstance(exposure_us, int) and 0 <= exposure_us < 1e6 / APS_HZ):
+        raise InvalidInputError(f"exposure_us must be an integer in [0, 40000), got {exposure_us!r}")
+    if not (isinstance(subframes, int) and 1 <= subframes <= 1000):
+        raise InvalidInputError(f"subframes must be an integer in 1..1000, got {subframes!r}")
+    if not (math.isfinite(read_noise_dn) and 0 <= read_noise_dn <= 64):
+        raise InvalidInputError(f"read_noise_dn must be in [0, 64], got {read_noise_dn!r}")
+    if not isinstance(simulator, SimulatorConfig):
+        raise InvalidInputError("simulator must be a SimulatorConfig")
+
+
+def held_out_per_interval(fps: float) -> int:
+    """APS frames between two anchors at ``fps``."""
+    return round(APS_HZ / fps) - 1
+
+
+def add_sensor_flags(p: argparse.ArgumentParser, *, exposure_us: int, read_noise_dn: float,
+                     dt_min_us: int, dt_max_us: int) -> None:
+    """The command-line flags of the APS readout, the event pixels and the simulation's steps."""
+    s = DAVIS346_SIMULATOR
+    p.add_argument("--exposure-us", type=int, default=exposure_us,
+                   help=f"APS exposure, µs (default {exposure_us})")
+    p.add_argument("--read-noise-dn", type=float, default=read_noise_dn,
+                   help=f"APS read noise, 8-bit DN (default {read_noise_dn:g})")
+    p.add_argument("--contrast-threshold", type=float, default=s.contrast_threshold, help="C (default 0.2)")
+    p.add_argument("--threshold-sigma", type=float, default=s.threshold_sigma,
+                   help=f"per-pixel threshold mismatch, log units (default {s.threshold_sigma:g})")
+    p.add_argument("--refractory-us", type=int, default=s.refractory_us,
+                   help=f"refractory period, µs (default {s.refractory_us})")
+    p.add_argument("--noise-hz", type=float, default=s.noise_rate_hz,
+                   help=f"background events per pixel per second (default {s.noise_rate_hz:g})")
+    p.add_argument("--hot-pixels", type=float, default=s.hot_pixel_fraction,
+                   help=f"fraction of hot pixels (default {s.hot_pixel_fraction:g})")
+    p.add_argument("--hot-hz", type=float, default=s.hot_pixel_rate_hz,
+                   help=f"events per second of each hot pixel (default {s.hot_pixel_rate_hz:g})")
+    p.add_argument("--dt-min-us", type=int, default=dt_min_us,
+                   help=f"finest simulation step, µs (default {dt_min_us})")
+    p.add_argument("--dt-max-us", type=int, default=dt_max_us,
+                   help=f"coarsest simulation step, µs (default {dt_max_us})")
+
+
+def sensor_from_flags(args: argparse.Namespace) -> tuple[SimulatorConfig, AdaptiveSampling]:
+    """The event pixels and the simulation's steps that ``add_sensor_flags``' flags set."""
+    simulator = SimulatorConfig(
+        contrast_threshold=args.contrast_threshold, threshold_sigma=args.threshold_sigma,
+        refractory_us=args.refractory_us, noise_rate_hz=args.noise_hz,
+        hot_pixel_fraction=args.hot_pixels, hot_pixel_rate_hz=args.hot_hz)
+    return simulator, AdaptiveSampling(dt_max_us=args.dt_max_us, dt_min_us=args.dt_min_us, max_delta=2.0)
 
 
 def aps_frame(render: Callable[[float], np.ndarray], t_us: int, exposure_us: int,

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from edmcgs.errors import InvalidInputError
+
 
 def _mix64(h: np.ndarray) -> np.ndarray:
     """splitmix64 finaliser on uint64 arrays."""
@@ -42,36 +44,47 @@ def _lattice() -> np.ndarray:
     return _TABLE[0]
 
 
-def value_noise(u: np.ndarray, v: np.ndarray, spacing: float, key: int) -> np.ndarray:
+def value_noise(u: np.ndarray, v: np.ndarray, spacing: float, key: int,
+                period: float | None = None) -> np.ndarray:
     """Smooth value noise in [-1, 1] with lattice ``spacing`` (in u, v units): continuous, C1 across cells.
 
     The lattice values come from one shared table (period 1024 cells), read at an offset per ``key``.
+    period: repeat every ``period`` in u and v (a whole number of cells, a power of two up to 1024), so
+    that a texture drawn with it tiles without seams.
     """
     x, y = u / spacing, v / spacing
     ix, iy = np.floor(x), np.floor(y)
     fx, fy = x - ix, y - iy
     wx, wy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)
     mask = (1 << _TABLE_BITS) - 1
+    cells = mask
+    if period is not None:
+        n = round(period / spacing)
+        if n < 1 or n > mask + 1 or n & (n - 1) or abs(n * spacing - period) > 1e-9 * period:
+            raise InvalidInputError(f"period {period} is not a power of two (<= 1024) of {spacing} cells")
+        cells = n - 1
     offset = hash01(np.array([key, key + 1]), np.array([1, 2]), 0x0FF5E7)
-    ix = (ix.astype(np.int64) + int(offset[0] * 1024)) & mask
-    iy = (iy.astype(np.int64) + int(offset[1] * 1024)) & mask
-    ix1, iy1 = (ix + 1) & mask, ((iy + 1) & mask) << _TABLE_BITS
-    iy <<= _TABLE_BITS
+    ix, iy = ix.astype(np.int64), iy.astype(np.int64)
+    ix0, iy0 = int(offset[0] * 1024), int(offset[1] * 1024)
+    ix1, iy1 = ((((ix + 1) & cells) + ix0) & mask), (((((iy + 1) & cells) + iy0) & mask) << _TABLE_BITS)
+    ix = ((ix & cells) + ix0) & mask
+    iy = (((iy & cells) + iy0) & mask) << _TABLE_BITS
     table = _lattice()
     a, b, c, d = table[iy + ix], table[iy + ix1], table[iy1 + ix], table[iy1 + ix1]
     return 2.0 * ((a + (b - a) * wx) * (1 - wy) + (c + (d - c) * wx) * wy) - 1.0
 
 
-def fbm(u, v, spacings, key: int, px: float) -> np.ndarray:
+def fbm(u, v, spacings, key: int, px: float, period: float | None = None) -> np.ndarray:
     """Sum of value-noise octaves (amplitude ~ spacing^0.6, normalised to about [-1, 1]); octaves with
-    a lattice finer than two output pixels (``px`` u, v units each) are left out (no aliasing)."""
+    a lattice finer than two output pixels (``px`` u, v units each) are left out (no aliasing).
+    period: see ``value_noise``."""
     out = np.zeros(np.broadcast_shapes(np.shape(u), np.shape(v)))
     total = 0.0
     for i, s in enumerate(spacings):
         amp = s ** 0.6
         total += amp
         if s >= 2.0 * px:
-            out += amp * value_noise(u, v, s, key * 131 + i)
+            out += amp * value_noise(u, v, s, key * 131 + i, period)
     return out / total
 
 

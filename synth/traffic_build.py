@@ -30,7 +30,16 @@ from edmcgs.errors import EdmcgsError, InvalidInputError
 from edmcgs.sensor.files.recording import Recording
 from edmcgs.sensor.frames import Frames
 from edmcgs.synth.build import TRAJECTORY_STEP_US, frame_times, save
-from edmcgs.synth.davis import APS_HZ, DAVIS346_SIMULATOR, aps_frame, read_out
+from edmcgs.synth.davis import (
+    APS_HZ,
+    DAVIS346_SIMULATOR,
+    add_sensor_flags,
+    aps_frame,
+    check_aps,
+    held_out_per_interval,
+    read_out,
+    sensor_from_flags,
+)
 from edmcgs.synth.esim import AdaptiveSampling, SimulatorConfig, simulate_render
 from edmcgs.synth.traffic import FULL_HEIGHT, FULL_WIDTH, TrafficScene
 
@@ -68,29 +77,15 @@ class TrafficConfig:
     """Adaptive render steps of the simulation (as ``edmcgs synth``'s scenes)."""
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.fps) and 0 < self.fps <= APS_HZ):
-            raise InvalidInputError(f"fps must be in (0, {APS_HZ:g}], got {self.fps!r}")
-        ratio = APS_HZ / self.fps
-        if abs(ratio - round(ratio)) > 1e-9:
-            raise InvalidInputError(f"fps={self.fps:g} must divide the {APS_HZ:g} Hz APS rate "
-                                    "(25, 12.5, 5, 2.5, ...): anchors are every (25 / fps)-th frame")
-        if not (math.isfinite(self.duration_s) and 0 < self.duration_s <= 600):
-            raise InvalidInputError(f"duration_s must be in (0, 600], got {self.duration_s!r}")
+        check_aps(self.fps, self.duration_s, self.exposure_us, self.subframes, self.read_noise_dn,
+                  self.simulator)
         if not (math.isfinite(self.pan_px_s) and 0 < abs(self.pan_px_s) <= 200):
             raise InvalidInputError(f"pan_px_s must be non-zero, within +-200 px/s, got {self.pan_px_s!r}")
-        if not (isinstance(self.exposure_us, int) and 0 <= self.exposure_us < 1e6 / APS_HZ):
-            raise InvalidInputError(f"exposure_us must be an integer in [0, 40000), got {self.exposure_us!r}")
-        if not (isinstance(self.subframes, int) and 1 <= self.subframes <= 1000):
-            raise InvalidInputError(f"subframes must be an integer in 1..1000, got {self.subframes!r}")
-        if not (math.isfinite(self.read_noise_dn) and 0 <= self.read_noise_dn <= 64):
-            raise InvalidInputError(f"read_noise_dn must be in [0, 64], got {self.read_noise_dn!r}")
-        if not isinstance(self.simulator, SimulatorConfig):
-            raise InvalidInputError("simulator must be a SimulatorConfig")
         TrafficScene(self.width, self.height, seed=self.seed, occupancy=self.occupancy)  # checks the rest
 
     @property
     def held_out_per_interval(self) -> int:
-        return round(APS_HZ / self.fps) - 1
+        return held_out_per_interval(self.fps)
 
     def scene(self) -> TrafficScene:
         return TrafficScene(self.width, self.height, pan_px_s=self.pan_px_s if self.pan else 0.0,
@@ -159,7 +154,7 @@ def build_traffic(config: TrafficConfig, *, progress: bool = True) -> Recording:
 
 
 def _parser() -> argparse.ArgumentParser:
-    d, s = TrafficConfig(), DAVIS346_SIMULATOR
+    d = TrafficConfig()
     p = argparse.ArgumentParser(prog="edmcgs synth", description=(
         "Build the composited street scene (not drawn by Gaussians) as a DAVIS346-like recording: "
         "25 Hz grey APS frames with exposure blur and read noise (anchors every 25/fps-th, the rest "
@@ -175,23 +170,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="full: 346x260, the DAVIS346 (default); small: 173x130")
     p.add_argument("--duration", "--seconds", type=float, default=d.duration_s,
                    help=f"sequence length in seconds (default {d.duration_s:g})")
-    p.add_argument("--exposure-us", type=int, default=d.exposure_us,
-                   help=f"APS exposure, µs (default {d.exposure_us})")
-    p.add_argument("--read-noise-dn", type=float, default=d.read_noise_dn,
-                   help=f"APS read noise, 8-bit DN (default {d.read_noise_dn:g})")
-    p.add_argument("--contrast-threshold", type=float, default=s.contrast_threshold, help="C (default 0.2)")
-    p.add_argument("--threshold-sigma", type=float, default=s.threshold_sigma,
-                   help=f"per-pixel threshold mismatch, log units (default {s.threshold_sigma:g})")
-    p.add_argument("--refractory-us", type=int, default=s.refractory_us,
-                   help=f"refractory period, µs (default {s.refractory_us})")
-    p.add_argument("--noise-hz", type=float, default=s.noise_rate_hz,
-                   help=f"background events per pixel per second (default {s.noise_rate_hz:g})")
-    p.add_argument("--hot-pixels", type=float, default=s.hot_pixel_fraction,
-                   help=f"fraction of hot pixels (default {s.hot_pixel_fraction:g})")
-    p.add_argument("--hot-hz", type=float, default=s.hot_pixel_rate_hz,
-                   help=f"events per second of each hot pixel (default {s.hot_pixel_rate_hz:g})")
-    p.add_argument("--dt-min-us", type=int, default=250, help="finest simulation step, µs (default 250)")
-    p.add_argument("--dt-max-us", type=int, default=4000, help="coarsest simulation step, µs (default 4000)")
+    add_sensor_flags(p, exposure_us=d.exposure_us, read_noise_dn=d.read_noise_dn, dt_min_us=250,
+                     dt_max_us=4000)
     p.add_argument("--compress", action="store_true", help="gzip the event columns (smaller, slower replay)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     return p
@@ -200,16 +180,13 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
-        simulator = SimulatorConfig(
-            contrast_threshold=args.contrast_threshold, threshold_sigma=args.threshold_sigma,
-            refractory_us=args.refractory_us, noise_rate_hz=args.noise_hz,
-            hot_pixel_fraction=args.hot_pixels, hot_pixel_rate_hz=args.hot_hz)
+        simulator, sampling = sensor_from_flags(args)
         width, height = SIZES[args.size]
         config = TrafficConfig(
             pan=args.pan or args.scene == "traffic-pan", pan_px_s=args.pan_px_s, fps=args.fps,
             duration_s=args.duration, width=width, height=height, seed=args.seed,
             exposure_us=args.exposure_us, read_noise_dn=args.read_noise_dn, simulator=simulator,
-            sampling=AdaptiveSampling(dt_max_us=args.dt_max_us, dt_min_us=args.dt_min_us, max_delta=2.0))
+            sampling=sampling)
         name = "traffic-pan" if config.pan else "traffic"
         out = args.output or Path(f"{name}_{args.fps:g}fps_{args.size}.h5")
         save(build_traffic(config, progress=not args.quiet), out, compress=args.compress)

@@ -13,6 +13,15 @@ Layout (format ``edmcgs.recording``, version 1)::
     /held_out/...      same three as /anchors                                   (optional group)
     /intrinsics        float64 [4]  fx, fy, cx, cy in pixels                    (optional)
     /trajectory/t_us   int64  [T],  /trajectory/c2w  float64 [T, 4, 4]          (optional group)
+    /imu/t             int64  [K]  µs, non-decreasing                           (optional group)
+    /imu/accel         float32 [K, 3]  g;  /imu/gyro  float32 [K, 3]  degrees/s; /imu/temperature
+                       float32 [K]  °C: the sensor layer's IMU_DTYPE (dv's units), in the axes the
+                       metadata's "imu" entry states
+    /novel_views/...   same three as /anchors: frames of a second camera, its poses required (optional
+                       group; e.g. held-out views from another viewpoint, scored like held-out frames)
+
+The optional groups are additions within version 1: a reader that predates them ignores them, and a
+file without them reads as before (``imu`` and ``novel_views`` None).
 
 Files are written atomically (temporary file, fsync, rename) and the ``format`` attribute is written
 last, so an interrupted write never leaves a file that reads as a complete recording.
@@ -34,6 +43,7 @@ from edmcgs.atomic import atomic_output
 from edmcgs.errors import InvalidInputError, RecordingError, ReplayFormatError, translated
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.frames import Frames
+from edmcgs.sensor.sources.base import IMU_DTYPE
 
 FORMAT_NAME = "edmcgs.recording"
 FORMAT_VERSION = 1
@@ -94,6 +104,25 @@ def _check_trajectory(t_us, c2w) -> tuple[np.ndarray | None, np.ndarray | None]:
     return t_us.astype(np.int64), c2w
 
 
+def _check_imu(imu) -> np.ndarray | None:
+    if imu is None:
+        return None
+    if not isinstance(imu, np.ndarray) or imu.dtype != IMU_DTYPE or imu.ndim != 1:
+        raise InvalidInputError(f"imu must be a 1-D IMU_DTYPE array, got {getattr(imu, 'dtype', type(imu))}")
+    if len(imu) and np.any(np.diff(imu["t"]) < 0):
+        raise InvalidInputError("imu times must be non-decreasing")
+    if not all(np.isfinite(imu[name]).all() for name in ("accel", "gyro", "temperature")):
+        raise InvalidInputError("imu samples hold NaN or Inf")
+    return imu
+
+
+def _check_novel_views(frames, width: int, height: int) -> Frames | None:
+    _check_frames_in(frames, width, height, "novel_views")
+    if frames is not None and len(frames) and frames.poses is None:
+        raise InvalidInputError("novel_views need their poses (they are views from another camera)")
+    return frames
+
+
 def _check_threshold(c) -> float | None:
     if c is None:
         return None
@@ -137,6 +166,10 @@ class Recording:
     """Camera name, e.g. "DAVIS346_00000499" or "simulated"."""
     metadata: dict = field(default_factory=dict)
     """JSON-able extras: scene, simulator settings, seed, source file ..."""
+    imu: np.ndarray | None = None
+    """IMU_DTYPE [K] samples (g, degrees/s), when the recording has them."""
+    novel_views: Frames | None = None
+    """Frames of a second camera, with their poses (same size and intrinsics), for evaluation only."""
 
     def __post_init__(self) -> None:
         self.width, self.height = _check_resolution(self.width, self.height)
@@ -149,6 +182,8 @@ class Recording:
         self.trajectory_t_us, self.trajectory_c2w = _check_trajectory(self.trajectory_t_us,
                                                                       self.trajectory_c2w)
         self.contrast_threshold = _check_threshold(self.contrast_threshold)
+        self.imu = _check_imu(self.imu)
+        self.novel_views = _check_novel_views(self.novel_views, self.width, self.height)
         if not isinstance(self.sensor, str):
             raise InvalidInputError(f"sensor must be a string, got {type(self.sensor).__name__}")
         _metadata_json(self.metadata)
@@ -260,10 +295,13 @@ class RecordingWriter:
 
     def finish(self, *, held_out: Frames | None = None, intrinsics=None, trajectory_t_us=None,
                trajectory_c2w=None, contrast_threshold: float | None = None,
-               metadata: dict | None = None) -> Path:
+               metadata: dict | None = None, imu: np.ndarray | None = None,
+               novel_views: Frames | None = None) -> Path:
         """Write the remaining parts, then close, fsync and rename into place. Returns the path."""
         self._check_open()
         _check_frames_in(held_out, self.width, self.height, "held_out")
+        imu = _check_imu(imu)
+        novel_views = _check_novel_views(novel_views, self.width, self.height)
         intrinsics = _check_intrinsics(intrinsics)
         traj_t, traj_c2w = _check_trajectory(trajectory_t_us, trajectory_c2w)
         contrast_threshold = _check_threshold(contrast_threshold)
@@ -272,13 +310,19 @@ class RecordingWriter:
             f = self._f
             if self._anchors is None:
                 _create_frames_group(f, "anchors", self.height, self.width, 1, False)
-            if held_out is not None:
-                g = _create_frames_group(f, "held_out", self.height, self.width, held_out.channels,
-                                         held_out.poses is not None)
-                _append(g["t_us"], held_out.t_us)
-                _append(g["images"], held_out.images)
-                if held_out.poses is not None:
-                    _append(g["poses"], held_out.poses)
+            for name, frames in (("held_out", held_out), ("novel_views", novel_views)):
+                if frames is None:
+                    continue
+                g = _create_frames_group(f, name, self.height, self.width, frames.channels,
+                                         frames.poses is not None)
+                _append(g["t_us"], frames.t_us)
+                _append(g["images"], frames.images)
+                if frames.poses is not None:
+                    _append(g["poses"], frames.poses)
+            if imu is not None:
+                g = f.create_group("imu")
+                for name in IMU_DTYPE.names:
+                    g.create_dataset(name, data=np.ascontiguousarray(imu[name]))
             if intrinsics is not None:
                 f.create_dataset("intrinsics", data=intrinsics)
             if traj_t is not None:
@@ -343,7 +387,7 @@ def write_recording(path: str | os.PathLike, rec: Recording, *, compression: str
         w.append_anchors(rec.anchors)
         return w.finish(held_out=rec.held_out, intrinsics=rec.intrinsics, trajectory_t_us=rec.trajectory_t_us,
                         trajectory_c2w=rec.trajectory_c2w, contrast_threshold=rec.contrast_threshold,
-                        metadata=rec.metadata)
+                        metadata=rec.metadata, imu=rec.imu, novel_views=rec.novel_views)
 
 
 # ---------------------------------------------------------------- reading
@@ -416,9 +460,11 @@ class RecordingFile:
                 raise self._fail(f"event columns differ in length: { {k: len(d) for k, d in cols.items()} }")
             self.event_columns: dict[str, h5py.Dataset] = cols
             self.n_events = len(cols["t"])
-            for group in ("anchors", "held_out"):
+            for group in ("anchors", "held_out", "novel_views"):
                 if group in f:
                     self._validate_frames(group)
+            if "imu" in f:
+                self._validate_imu()
             if "anchors" not in f:
                 raise self._fail("anchors group missing")
 
@@ -432,6 +478,29 @@ class RecordingFile:
                              f"{self.width}, C]")
         if "poses" in g and g["poses"].shape != (len(t), 4, 4):
             raise self._fail(f"{group}/poses has shape {g['poses'].shape}, expected [{len(t)}, 4, 4]")
+
+    def _validate_imu(self) -> None:
+        g = self._f["imu"]
+        shapes = {name: (g[name].shape if isinstance(g.get(name), h5py.Dataset) else None)
+                  for name in IMU_DTYPE.names}
+        k = shapes["t"][0] if shapes["t"] is not None and len(shapes["t"]) == 1 else -1
+        want = {"t": (k,), "accel": (k, 3), "gyro": (k, 3), "temperature": (k,)}
+        if k < 0 or shapes != want:
+            raise self._fail(f"imu group's datasets have shapes {shapes}, expected {want}")
+
+    def imu(self) -> np.ndarray | None:
+        """The IMU samples (IMU_DTYPE [K]; None when the file has none)."""
+        if "imu" not in self._f:
+            return None
+        g = self._f["imu"]
+
+        def load():
+            out = np.empty(len(g["t"]), IMU_DTYPE)
+            for name in IMU_DTYPE.names:
+                out[name] = g[name][:]
+            return _check_imu(out)
+
+        return self._read("imu", load)
 
     def _read(self, what: str, fn):
         # InvalidInputError is translated: what we read fails the checks, the file is corrupt.
@@ -454,7 +523,7 @@ class RecordingFile:
         return ev
 
     def frames(self, group: str = "anchors") -> Frames | None:
-        """All frames of ``anchors`` or ``held_out`` (None when the group is absent)."""
+        """All frames of ``anchors``, ``held_out`` or ``novel_views`` (None when the group is absent)."""
         if group not in self._f:
             return None
         g = self._f[group]
@@ -477,7 +546,7 @@ class RecordingFile:
             width=self.width, height=self.height, events=self.read_events(), anchors=self.frames("anchors"),
             held_out=self.frames("held_out"), intrinsics=intr, trajectory_t_us=traj[0],
             trajectory_c2w=traj[1], contrast_threshold=self.contrast_threshold, sensor=self.sensor,
-            metadata=self.metadata))
+            metadata=self.metadata, imu=self.imu(), novel_views=self.frames("novel_views")))
 
     def close(self) -> None:
         self._f.close()

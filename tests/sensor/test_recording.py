@@ -16,6 +16,7 @@ from edmcgs.sensor.files.recording import (
     write_recording,
 )
 from edmcgs.sensor.frames import Frames
+from edmcgs.sensor.sources.base import IMU_DTYPE
 
 from .conftest import make_events, make_recording
 
@@ -184,3 +185,52 @@ def test_recordings_get_the_usual_permissions(tmp_path):
     finally:
         os.umask(old)
     assert path.stat().st_mode & 0o777 == 0o640
+
+
+def _imu(n: int, t0: int = 0) -> np.ndarray:
+    imu = np.zeros(n, IMU_DTYPE)
+    imu["t"] = t0 + 1000 * np.arange(n)
+    imu["accel"] = np.linspace(-1.0, 1.0, 3 * n).reshape(n, 3)
+    imu["gyro"] = np.linspace(5.0, -5.0, 3 * n).reshape(n, 3)
+    imu["temperature"] = 30.0
+    return imu
+
+
+def test_imu_and_novel_views_round_trip(tmp_path):
+    rec = make_recording()
+    held = rec.held_out
+    novel = Frames(held.t_us, 255 - held.images, held.poses @ np.diag([1.0, 1.0, 1.0, 1.0]))
+    rec = Recording(**{**rec.__dict__, "imu": _imu(50, int(rec.events.t[0])), "novel_views": novel})
+    path = write_recording(tmp_path / "r.h5", rec)
+    back = read_recording(path)
+    _assert_same(rec, back)
+    assert back.imu.dtype == IMU_DTYPE and np.array_equal(back.imu, rec.imu)
+    assert back.novel_views == novel
+    with RecordingFile(path) as f:
+        assert np.array_equal(f.imu(), rec.imu) and f.frames("novel_views") == novel
+    plain = read_recording(write_recording(tmp_path / "plain.h5", make_recording()))
+    assert plain.imu is None and plain.novel_views is None  # a recording without them reads as before
+    with h5py.File(path, "r") as f:  # the columns a reader without IMU_DTYPE finds
+        assert f["imu/accel"].shape == (50, 3) and f["imu/t"].dtype == np.int64
+        assert f.attrs["format_version"] == FORMAT_VERSION
+
+
+def test_imu_and_novel_views_are_checked(tmp_path):
+    rec = make_recording()
+    held = rec.held_out
+    with pytest.raises(InvalidInputError, match="IMU_DTYPE"):
+        Recording(**{**rec.__dict__, "imu": np.zeros((4, 3))})
+    with pytest.raises(InvalidInputError, match="non-decreasing"):
+        Recording(**{**rec.__dict__, "imu": _imu(5)[::-1].copy()})
+    bad = _imu(5)
+    bad["gyro"][2, 1] = np.nan
+    with pytest.raises(InvalidInputError, match="NaN"):
+        Recording(**{**rec.__dict__, "imu": bad})
+    with pytest.raises(InvalidInputError, match="poses"):
+        Recording(**{**rec.__dict__, "novel_views": Frames(held.t_us, held.images)})
+    path = write_recording(tmp_path / "r.h5", Recording(**{**rec.__dict__, "imu": _imu(8)}))
+    with h5py.File(path, "a") as f:
+        del f["imu/gyro"]
+        f["imu"].create_dataset("gyro", data=np.zeros((7, 3), np.float32))
+    with pytest.raises(ReplayFormatError, match="imu"):
+        read_recording(path)
