@@ -56,7 +56,7 @@ MAXC = 12
 """Most quads composited in one anti-aliased pixel (the nearest)."""
 AA_REACH = 0.8
 """A pixel is anti-aliased when its centre's hit is within this many pixels of its quad's border (the
-farthest sub-sample and its coverage ramp reach 0.62 px)."""
+farthest sub-sample and its coverage ramp reach 0.78 px, ``_SUB_REACH``)."""
 NEAR = 1e-3
 """Near clipping plane, metres."""
 THIN_PX = 3.0
@@ -66,6 +66,9 @@ anti-aliased, since pixel centres alone could miss it."""
 # rotated grid: offset k = ((k + 0.5) / 4, ((3 k) mod 4 + 0.5) / 4) - 0.5, every x and y distinct
 _SUB_X = (np.arange(SAMPLES) + 0.5) / SAMPLES - 0.5
 _SUB_Y = ((3 * np.arange(SAMPLES)) % SAMPLES + 0.5) / SAMPLES - 0.5
+_SUB_REACH = float(np.hypot(_SUB_X, _SUB_Y).max() + 0.5 / np.sqrt(SAMPLES))
+"""The farthest a quad's polygon may be from a pixel's centre and still cover one of its sub-samples:
+the farthest sub-sample and half a coverage ramp."""
 _FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
 """numba's fast-math flags short of assuming no NaN and no infinity (the depth buffers start at inf)."""
 _SCALE = 0.5 ** np.arange(64.0)
@@ -239,27 +242,28 @@ def _filtered(data, table, levels, tex, u, v, ux, vx, uy, vy):  # pragma: no cov
 
 @nb.njit(cache=True, inline="always", error_model="numpy", fastmath=_FAST)
 def _shade(cam, quads, data, table, levels, texel, q, x, y, fx, fy, cx, cy):  # pragma: no cover
-    """(luminance, distance in pixels from the hit to the quad's border) of quad q at pixel (x, y)."""
+    """(luminance, whether the hit is within AA_REACH pixels of the quad's border) of quad q at pixel
+    (x, y)."""
     rx, ry = (x - cx) / fx, (y - cy) / fy
     ax, ay, az = cam[q, 3], cam[q, 4], cam[q, 5]
     bx, by, bz = cam[q, 6], cam[q, 7], cam[q, 8]
-    nx, ny, nz = cam[q, 9], cam[q, 10], cam[q, 11]
-    den = rx * nx + ry * ny + nz
-    if den > -1e-12:
-        den = -1e-12
-    lam = cam[q, 12] / den
+    den = rx * cam[q, 9] + ry * cam[q, 10] + cam[q, 11]
+    inv = 1.0 / min(den, -1e-12)
+    lam = cam[q, 12] * inv
     ra, rb = rx * ax + ry * ay + az, rx * bx + ry * by + bz
     u, v = lam * ra - cam[q, 15], lam * rb - cam[q, 16]  # metres along a and b from the origin
-    kx, ky = lam / fx, lam / fy  # footprint: dP/dx = lam / fx * (e_x - n_x / den * r), same for y
-    ux, vx = kx * (ax - nx / den * ra), kx * (bx - nx / den * rb)
-    uy, vy = ky * (ay - ny / den * ra), ky * (by - ny / den * rb)
-    gu, gv = math.sqrt(ux * ux + uy * uy) + 1e-300, math.sqrt(vx * vx + vy * vy) + 1e-300
-    dist = min(min(u, cam[q, 13] - u) / gu, min(v, cam[q, 14] - v) / gv)
+    # the footprint: dP/dx = lam / fx * (e_x - n_x / den * r), the same for y
+    kx, ky, nx, ny = lam / fx, lam / fy, cam[q, 9] * inv, cam[q, 10] * inv
+    ux, vx = kx * (ax - nx * ra), kx * (bx - nx * rb)
+    uy, vy = ky * (ay - ny * ra), ky * (by - ny * rb)
+    mu, mv = min(u, cam[q, 13] - u), min(v, cam[q, 14] - v)  # metres to the border, along a and b
+    near = (mu < 0.0 or mu * mu < AA_REACH * AA_REACH * (ux * ux + uy * uy)
+            or mv < 0.0 or mv * mv < AA_REACH * AA_REACH * (vx * vx + vy * vy))
     tex = int(quads[q, 9])
     s = 1.0 / texel[tex]
     lum = _filtered(data, table, levels, tex, (u + quads[q, 10]) * s, (v + quads[q, 11]) * s,
                     ux * s, vx * s, uy * s, vy * s)
-    return quads[q, 12] * lum, dist
+    return quads[q, 12] * lum, near
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy", fastmath=_FAST)
@@ -457,9 +461,9 @@ def _render(quads, data, table, levels, texel, rot, centre, fx, fy, cx, cy, widt
             if q < 0:
                 out[y, x] = _sky(x, y, up, fx, fy, cx, cy, horizon, zenith)
             else:
-                lum, dist = _shade(cam, quads, data, table, levels, texel, q, x, y, fx, fy, cx, cy)
+                lum, near = _shade(cam, quads, data, table, levels, texel, q, x, y, fx, fy, cx, cy)
                 out[y, x] = lum
-                if dist < AA_REACH:
+                if near:
                     flag[y, x] = 1
             # each neighbour pair once (right, and the three below): both pixels of a differing pair
             for dy, dx in ((0, 1), (1, -1), (1, 0), (1, 1)):
@@ -499,7 +503,7 @@ def _render(quads, data, table, levels, texel, rot, centre, fx, fy, cx, cy, widt
                 reach = np.inf  # the signed distance from the centre to the polygon (min over its edges)
                 for i in range(n):
                     reach = min(reach, edges[q, i, 0] * x + edges[q, i, 1] * y + edges[q, i, 2])
-                if reach < -AA_REACH:  # no sub-sample's ramp reaches it
+                if reach < -_SUB_REACH:  # no sub-sample's ramp reaches it
                     continue
                 den = (x - cx) / fx * nx + ry * ny + nz
                 z = big_n / den if den < -1e-12 else np.inf

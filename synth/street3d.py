@@ -5,7 +5,7 @@ along the street (east), y across it (north), z up; the ground is z = 0.
 
 - the street: a 9 m road (two lanes, x-travelling cars at y = -1.7 eastwards and y = +1.7 westwards, a
   parking strip on the north side), 3 m pavements on 12 cm curbs, building fronts on both sides
-  (6-10 m wide, 11-20 m tall, set back 0-0.6 m: their side walls show) from x = -15 to 100 m, and a
+  (6-10 m wide, 10-20 m tall, set back 0-0.6 m: their side walls show) from x = -15 to 100 m, and a
   building across the street's end; lamp posts, bollards along the south curb, bins, a cabinet, an
   advertising pillar and planters (turned boxes), parked cars; procedural textures
   (``synth.street3d_textures``) lit by one sun (a shade per face), a sky gradient;
@@ -356,30 +356,36 @@ class StreetScene:
     def car_windows(self, t_s: float, c2w: np.ndarray, margin: int = 3) -> list[tuple[int, int, int, int]]:
         """Pixel windows (x0, y0, x1, y1), ends excluded, that hold the moving cars seen from ``c2w`` at
         t_s, each widened by ``margin`` pixels (their edges' anti-aliasing reaches under a pixel)."""
+        cars = self.cars_at(t_s)
+        if not cars:
+            return []
+        size = np.array([[tx.CAR_MODELS[c.model].length, tx.CAR_MODELS[c.model].width,
+                          tx.CAR_MODELS[c.model].body + tx.CAR_MODELS[c.model].cabin] for c in cars])
+        low = np.array([[c.x_at(t_s), c.y, 0.0] for c in cars]) - 0.5 * size * [1, 1, 0]
+        corners = low[:, None, :] + _CORNERS[None] * size[:, None, :]  # [C, 8, 3]
+        cam = (corners - c2w[:3, 3]) @ c2w[:3, :3]
+        a, b = cam[:, _EDGES[:, 0]], cam[:, _EDGES[:, 1]]  # the box's edges, clipped to the near plane
+        cross = (a[..., 2] >= NEAR) != (b[..., 2] >= NEAR)
+        w = np.where(cross, (NEAR - a[..., 2]) / np.where(cross, b[..., 2] - a[..., 2], 1.0), 0.0)
+        points = np.concatenate([cam, a + w[..., None] * (b - a)], axis=1)
+        seen = np.concatenate([cam[..., 2] >= NEAR, cross], axis=1)
         k = self.intrinsics
-        rot, centre = c2w[:3, :3].T, c2w[:3, 3]
+        z = np.where(seen, points[..., 2], 1.0)
+        xs, ys = k.fx * points[..., 0] / z + k.cx, k.fy * points[..., 1] / z + k.cy
         windows = []
-        for car in self.cars_at(t_s):
-            m = tx.CAR_MODELS[car.model]
-            x = car.x_at(t_s)
-            corners = np.array([[x + sx * 0.5 * m.length, car.y + sy * 0.5 * m.width, sz * (m.body + m.cabin)]
-                                for sx in (-1, 1) for sy in (-1, 1) for sz in (0, 1)])
-            cam = (corners - centre) @ rot.T
-            points = [p for p in cam if p[2] >= NEAR]
-            for i in range(8):  # the box's edges join corners that differ in one coordinate
-                for j in (i ^ 1, i ^ 2, i ^ 4):
-                    a, b = cam[i], cam[j]
-                    if i < j and (a[2] >= NEAR) != (b[2] >= NEAR):
-                        points.append(a + (NEAR - a[2]) / (b[2] - a[2]) * (b - a))
-            if not points:
-                continue
-            pts = np.array(points)
-            xs, ys = k.fx * pts[:, 0] / pts[:, 2] + k.cx, k.fy * pts[:, 1] / pts[:, 2] + k.cy
-            x0, x1 = max(0, math.floor(xs.min()) - margin), min(self.width, math.ceil(xs.max()) + margin + 1)
-            y0, y1 = max(0, math.floor(ys.min()) - margin), min(self.height, math.ceil(ys.max()) + margin + 1)
+        for i in np.flatnonzero(seen.any(axis=1)):
+            px, py = xs[i][seen[i]], ys[i][seen[i]]
+            x0, x1 = max(0, math.floor(px.min()) - margin), min(self.width, math.ceil(px.max()) + margin + 1)
+            y0, y1 = max(0, math.floor(py.min()) - margin), min(self.height, math.ceil(py.max()) + margin + 1)
             if x0 < x1 and y0 < y1:
                 windows.append((x0, y0, x1, y1))
         return windows
+
+
+_CORNERS = np.array([[i & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], np.float64)
+"""A unit box's corners: bit 0 is x, bit 1 y, bit 2 z."""
+_EDGES = np.array([(i, i | bit) for i in range(8) for bit in (1, 2, 4) if not i & bit])
+"""Its 12 edges: corners that differ in one bit."""
 
 
 KEYFRAME_US = 4000

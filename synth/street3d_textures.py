@@ -19,6 +19,8 @@ from edmcgs.synth.procedural import band, box_sd, fbm, hash01, ramp
 ROAD_TILE = 10.24
 """Metres of road texture along and across the street (the road is 9 m wide)."""
 ROAD_MARKINGS = {"parking": 1.5, "centre": 4.5, "edge": 8.3}
+FACADE_HEIGHT = 20.48
+"""Metres of a facade texture from the roof line down: no building is taller."""
 """Lines across the road texture's v (metres from the road's north edge)."""
 
 
@@ -156,7 +158,7 @@ class Facade:
         """A random building front ``width`` metres wide."""
         storey = float(rng.uniform(2.9, 3.4))
         ground = float(rng.uniform(3.6, 4.4))
-        floors = int(rng.integers(2, 6))
+        floors = min(int(rng.integers(2, 6)), int((FACADE_HEIGHT - 0.6 - ground) / storey))
         material = str(rng.choice(["brick", "plaster", "stone"]))
         tone = float({"brick": rng.uniform(0.28, 0.4), "plaster": rng.uniform(0.42, 0.62),
                       "stone": rng.uniform(0.38, 0.52)}[material])
