@@ -2,7 +2,8 @@
 
     edmcgs synth jumpingjack|kick|lego|mutant ...   Gaussian scenes (``build``)
     edmcgs synth traffic|traffic-pan ...            the composited DAVIS346-like street (``traffic_build``)
-    edmcgs synth street3d ...                       a handheld camera in a ray-cast 3D street (``street3d_build``)
+    edmcgs synth street3d ...                       a handheld camera in a ray-cast 3D street
+                                                    (``street3d_build``)
 """
 
 from __future__ import annotations

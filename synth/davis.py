@@ -19,7 +19,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from edmcgs.errors import InvalidInputError
-from edmcgs.sensor.sources.base import IMU_DTYPE
+from edmcgs.sensor.imu import IMU_DTYPE
 from edmcgs.synth.esim import AdaptiveSampling, SimulatorConfig
 
 APS_HZ = 25.0

@@ -43,7 +43,7 @@ from edmcgs.atomic import atomic_output
 from edmcgs.errors import InvalidInputError, RecordingError, ReplayFormatError, translated
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.sources.base import IMU_DTYPE
+from edmcgs.sensor.imu import IMU_DTYPE
 
 FORMAT_NAME = "edmcgs.recording"
 FORMAT_VERSION = 1

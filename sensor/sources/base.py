@@ -17,9 +17,6 @@ from edmcgs.errors import SensorError
 from edmcgs.sensor.events import Events, EventStats
 from edmcgs.sensor.frames import Frames
 
-# IMU samples as a structured array: accelerometer in g, gyroscope in degrees per second (dv's units).
-IMU_DTYPE = np.dtype([("t", "<i8"), ("accel", "<f4", (3,)), ("gyro", "<f4", (3,)), ("temperature", "<f4")])
-
 
 @dataclass(frozen=True)
 class StreamInfo:

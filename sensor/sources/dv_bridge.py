@@ -12,7 +12,7 @@ import dv_processing as dv
 import numpy as np
 
 from edmcgs.sensor.events import Events
-from edmcgs.sensor.sources.base import IMU_DTYPE
+from edmcgs.sensor.imu import IMU_DTYPE
 
 
 def dv_error_text(exc: BaseException) -> str:

@@ -26,7 +26,8 @@ import numpy as np
 from edmcgs.errors import EdmcgsError, InvalidInputError, ReplayFormatError, translated
 from edmcgs.geometry import pose_from_quat
 from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.sources.base import IMU_DTYPE, Extras, StreamInfo
+from edmcgs.sensor.imu import IMU_DTYPE
+from edmcgs.sensor.sources.base import Extras, StreamInfo
 from edmcgs.sensor.sources.pacing import Pacing
 from edmcgs.sensor.sources.replay import Ahead, Chunk, Replay
 

@@ -25,7 +25,8 @@ import numpy as np
 from edmcgs.errors import InvalidInputError, PoseError, ReplayFormatError
 from edmcgs.geometry import pose_from_quat, validate_pose
 from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.sources.base import IMU_DTYPE, Extras, StreamInfo
+from edmcgs.sensor.imu import IMU_DTYPE
+from edmcgs.sensor.sources.base import Extras, StreamInfo
 from edmcgs.sensor.sources.pacing import Pacing
 from edmcgs.sensor.sources.replay import Ahead, Chunk, Replay
 

@@ -16,7 +16,7 @@ from edmcgs.sensor.files.recording import (
     write_recording,
 )
 from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.sources.base import IMU_DTYPE
+from edmcgs.sensor.imu import IMU_DTYPE
 
 from .conftest import make_events, make_recording
 

@@ -10,7 +10,7 @@ from edmcgs.errors import InvalidInputError
 from edmcgs.geometry import validate_pose
 from edmcgs.sensor.files.recording import read_recording, write_recording
 from edmcgs.synth import street3d_textures as tx
-from edmcgs.synth.build import main as synth_main
+from edmcgs.synth.cli import main as synth_main
 from edmcgs.synth.davis import STANDARD_GRAVITY, ImuConfig, imu_samples, imu_truth
 from edmcgs.synth.esim import AdaptiveSampling, SimulatorConfig, simulate_render
 from edmcgs.synth.procedural import value_noise
