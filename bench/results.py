@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from edmcgs.atomic import atomic_output
+
 
 def meets(value: float, target: tuple[str, float]) -> bool:
     """Whether ``value`` satisfies ``target`` = ("<=" or ">=", bound)."""
@@ -33,4 +35,5 @@ def write_json(path: Path | None, data) -> None:
         return
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, indent=2) + "\n")
+    with atomic_output(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2) + "\n")

@@ -67,6 +67,11 @@ class RenderError(EdmcgsError):
     """A render failed for a reason other than its inputs."""
 
 
+class DiskFullError(EdmcgsError):
+    """A file could not be written because its file system is full (or the user's quota is); the file at
+    the target path is left as it was (``edmcgs.atomic``)."""
+
+
 class TrainingError(EdmcgsError):
     """Training cannot proceed (e.g. a recording without anchor frames)."""
 

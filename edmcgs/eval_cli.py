@@ -8,6 +8,7 @@ import csv
 import sys
 from dataclasses import replace
 
+from edmcgs.atomic import atomic_output
 from edmcgs.errors import EdmcgsError, InvalidInputError
 from edmcgs.filekind import check_checkpoint, check_recording
 from edmcgs.options import AUTO_POSES, RecordingOptions, add_recording_arguments
@@ -93,7 +94,7 @@ def _run(args) -> int:
     comparison = Comparison({"model": rows, **baselines})
     skipped = data.held_out_t_us.size - len(rows)
     if args.csv:
-        with open(args.csv, "w", newline="") as fh:
+        with atomic_output(args.csv, InvalidInputError) as tmp, open(tmp, "w", newline="") as fh:
             writer = csv.writer(fh)
             writer.writerow(["index", "t_us", "anchor_us", "events", "psnr", "ssim", "lpips",
                              *(f"{m}_{SHORT[name]}" for name in BASELINES for m in ("psnr", "ssim")),

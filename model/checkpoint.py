@@ -57,7 +57,15 @@ def save_checkpoint(model: EdMCGS, path: str | os.PathLike, *, train_state: dict
     stays below ``freeze_threshold`` (world units; default ``leanness.FREEZE_FRACTION`` of the extent;
     0 freezes only points that do not move at all). ``model`` itself is left as it was.
     """
-    path = Path(path)
+    payload = checkpoint_payload(model, train_state=train_state, freeze_threshold=freeze_threshold)
+    write_checkpoint(payload, path)
+    return payload["checksum"]
+
+
+def checkpoint_payload(model: EdMCGS, *, train_state: dict | None = None,
+                       freeze_threshold: float | None = None) -> dict:
+    """What ``save_checkpoint`` writes, its ``checksum`` included (known before the file is written:
+    a final checkpoint's train-state sidecar is written first, ``model/train/resume.py``)."""
     meta = model.meta
     if train_state is None:
         frozen, threshold = frozen_control_points(model, freeze_threshold)
@@ -94,10 +102,15 @@ def save_checkpoint(model: EdMCGS, path: str | os.PathLike, *, train_state: dict
         "train_state": train_state,
     }
     payload["checksum"] = checksum(payload)
+    return payload
+
+
+def write_checkpoint(payload: dict, path: str | os.PathLike) -> None:
+    """Write a ``checkpoint_payload`` to ``path`` atomically (its folder created)."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_output(path, CheckpointError) as tmp:
         torch.save(payload, tmp)
-    return payload["checksum"]
 
 
 def read_checkpoint(path: str | os.PathLike) -> dict:

@@ -17,8 +17,8 @@ from pathlib import Path
 import dv_processing as dv
 from tqdm import tqdm
 
-from edmcgs.atomic import atomic_output
-from edmcgs.errors import EdmcgsError, InvalidInputError, RecordingError
+from edmcgs.atomic import atomic_output, ensure_room
+from edmcgs.errors import DiskFullError, EdmcgsError, InvalidInputError, RecordingError
 from edmcgs.filekind import AEDAT_SUFFIXES, HDF5_SUFFIXES, check_recording
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import Recording, RecordingWriter
@@ -34,6 +34,7 @@ class AedatOutput:
     IMU: a source's calibration and ground-truth trajectory have no place in it; our HDF5 keeps them)."""
 
     def __init__(self, path: Path, info: StreamInfo, *, frames: bool = True) -> None:
+        self._path = path
         self._atomic = atomic_output(path, RecordingError)
         tmp = self._atomic.__enter__()
         config = dv.io.MonoCameraWriter.Config(info.sensor)
@@ -44,13 +45,19 @@ class AedatOutput:
         if info.has_imu:
             config.addImuStream()
         try:
+            ensure_room(path, 0)
             self._writer = dv.io.MonoCameraWriter(str(tmp), config)
+        except DiskFullError as exc:
+            self.abort(exc)
+            raise
         except RuntimeError as exc:
             self.abort(exc)
             raise RecordingError(f"cannot write {path}: {dv_error_text(exc)}") from exc
         self._imu = info.has_imu
 
     def write(self, batch: SensorBatch) -> None:
+        ensure_room(self._path, 16 * len(batch.events)
+                    + (0 if batch.frames is None else batch.frames.images.nbytes))
         if len(batch.events):
             self._writer.writeEvents(event_store(batch.events))
         if self._frames and batch.frames is not None:

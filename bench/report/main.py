@@ -50,6 +50,7 @@ from bench.report.stability import (
     sparse_anchor_rows,
 )
 from bench.report.training import load_run_model, train_on_ray, train_run
+from edmcgs.atomic import atomic_output
 from edmcgs.model.eval.lpips import LPIPS, find_weights
 from edmcgs.pipeline import training_data
 
@@ -61,7 +62,7 @@ DAY_US = 86_400_000_000
 def write_csv(path: Path, rows: list[dict]) -> None:
     if not rows:
         return
-    with open(path, "w", newline="") as fh:
+    with atomic_output(path) as tmp, open(tmp, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
@@ -246,14 +247,16 @@ def write_outputs(out: Path, s: ReportSettings, r: dict, *, command: str, minute
                    knob_context=r["context"], stability=r["stability"], tests=TEST_CASES,
                    time_resolution=r["time_resolution"], lean=lean_section(r["lean"], r["lean_context"]),
                    online=online_section(r["online"], r["online_predictions"], r["online_context"]))
-    (out / "summary.md").write_text(text)
+    with atomic_output(out / "summary.md") as tmp:
+        tmp.write_text(text)
     payload = {"settings": s.__dict__, "command": command, "minutes": minutes, "ablation": table,
                "baselines": r["baselines"],
                "curves": curves, "render_knobs": r["knobs"], "render_context": r["context"],
                "stability": r["stability"], "time_resolution": r["time_resolution"], "lean": r["lean"],
                "lean_context": r["lean_context"], "online": r["online"],
                "online_predictions": r["online_predictions"], "online_context": r["online_context"]}
-    (out / "report.json").write_text(json.dumps(payload, indent=1, default=str))
+    with atomic_output(out / "report.json") as tmp:
+        tmp.write_text(json.dumps(payload, indent=1, default=str))
     return text
 
 

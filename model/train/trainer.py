@@ -16,7 +16,6 @@ import os
 import threading
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -25,6 +24,7 @@ from torch import Tensor
 from torch.profiler import record_function as stage  # a named range when profiled (bench.train_step)
 from tqdm.auto import tqdm
 
+from edmcgs.atomic import atomic_output
 from edmcgs.errors import InvalidInputError, TrainingError
 from edmcgs.geometry import world_to_camera
 from edmcgs.model.checkpoint import save_checkpoint
@@ -35,7 +35,7 @@ from edmcgs.model.motion.gaussians import GaussianState
 from edmcgs.model.train.curves import Curves
 from edmcgs.model.train.density import GradientStats, densify_and_prune, reset_opacity, screen_space_grad
 from edmcgs.model.train.losses import event_loss, laplacian_smoothness, photometric_loss, pyramid_l1, tli_loss
-from edmcgs.model.train.resume import remove_sidecar, write_sidecar
+from edmcgs.model.train.resume import remove_sidecar, save_final
 from edmcgs.model.train.schedule import exp_decay, ramp
 
 MAX_BAD_STEPS = 20
@@ -360,8 +360,7 @@ class Trainer:
         self.model.event_scale.fill_(1.0)
         self.model.eval()
         if checkpoint_path:
-            digest = save_checkpoint(self.model, checkpoint_path)
-            write_sidecar(checkpoint_path, self.train_state(), digest)
+            save_final(self.model, checkpoint_path, self.train_state())
             self.saved_step = self.step
         return self.history
 
@@ -407,4 +406,5 @@ def write_history_csv(history: list[dict], path: str | os.PathLike) -> None:
               + ",".join("" if h.get(k) is None else f"{h[k]:.5g}" for k in HEALTH)
               + f",{h.get('gaussians', '')}"
               for h in history]
-    Path(path).write_text("\n".join(lines) + "\n")
+    with atomic_output(path, TrainingError) as tmp:
+        tmp.write_text("\n".join(lines) + "\n")

@@ -39,8 +39,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from edmcgs.atomic import atomic_output
-from edmcgs.errors import InvalidInputError, RecordingError, ReplayFormatError, translated
+from edmcgs.atomic import atomic_output, ensure_room
+from edmcgs.errors import EdmcgsError, InvalidInputError, RecordingError, ReplayFormatError, translated
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.imu import IMU_DTYPE
@@ -262,6 +262,7 @@ class RecordingWriter:
             raise InvalidInputError(
                 f"events go back in time: batch starts at {events.t[0]} µs, "
                 f"previous ended at {self._last_t} µs")
+        ensure_room(self.path, 13 * len(events))
         g = self._f["events"]
         for c in "txyp":
             _append(g[c], getattr(events, c))
@@ -286,6 +287,7 @@ class RecordingWriter:
         if self._last_anchor_t is not None and frames.t_us[0] <= self._last_anchor_t:
             raise InvalidInputError(f"anchor at {frames.t_us[0]} µs is not after the previous one "
                                     f"({self._last_anchor_t} µs)")
+        ensure_room(self.path, frames.images.nbytes)
         _append(self._anchors["t_us"], frames.t_us)
         _append(self._anchors["images"], frames.images)
         if frames.poses is not None:
@@ -307,6 +309,7 @@ class RecordingWriter:
         contrast_threshold = _check_threshold(contrast_threshold)
         meta = _metadata_json({} if metadata is None else metadata)
         try:
+            ensure_room(self.path, 0 if held_out is None else held_out.images.nbytes)
             f = self._f
             if self._anchors is None:
                 _create_frames_group(f, "anchors", self.height, self.width, 1, False)
@@ -342,7 +345,7 @@ class RecordingWriter:
             self._atomic.__exit__(None, None, None)
         except BaseException as exc:
             self.abort(exc)
-            if not isinstance(exc, Exception) or isinstance(exc, RecordingError):
+            if not isinstance(exc, Exception) or isinstance(exc, EdmcgsError):
                 raise
             raise RecordingError(f"writing {self.path} failed: {exc}") from exc
         return self.path
