@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import ipaddress
+import re
 import time
-from urllib.parse import parse_qs, urlsplit
+from urllib.parse import parse_qs
 
 from fastapi.responses import JSONResponse
 
@@ -22,7 +24,7 @@ class AccessMiddleware:
                  open_paths: frozenset[str] = frozenset()):
         self.app = app
         self.token = token
-        self.allowed_hosts = None if allowed_hosts is None else {h.lower() for h in allowed_hosts}
+        self.allowed_hosts = allowed_hosts
         self.open_paths = open_paths
 
     async def __call__(self, scope, receive, send):
@@ -30,13 +32,12 @@ class AccessMiddleware:
         if kind not in ("http", "websocket"):
             await self.app(scope, receive, send)
             return
-        refused = self._foreign(scope)
+        refused = foreign(scope, self.allowed_hosts)
         if refused is not None:
             if kind == "websocket":
                 await send({"type": "websocket.close", "code": 1008, "reason": refused[:120]})
             else:
-                body = ErrorBody(ErrorCode.INVALID_INPUT, refused, "host").to_message()
-                await JSONResponse(body, status_code=421)(scope, receive, send)
+                await misdirected(refused)(scope, receive, send)
                 _record(scope, 421, 0.0)
             return
         if self.token is not None and _route_path(scope) not in self.open_paths:
@@ -67,31 +68,58 @@ class AccessMiddleware:
             _record(scope, status, time.perf_counter() - t0)
 
 
-    def _foreign(self, scope) -> str | None:
-        """Why a request comes from a foreign site (DNS rebinding: a Host not ours; a web page's
-        websocket: an Origin not ours), or None. Only with ``allowed_hosts`` (loopback by default)."""
-        if self.allowed_hosts is None or "*" in self.allowed_hosts:
-            return None
-        host = _hostname(_header(scope, b"host"))
-        if host is None or host not in self.allowed_hosts:
-            return (f"Host {host!r} is not one this server answers to (EDMCGS_ALLOWED_HOSTS); "
-                    "a DNS-rebinding page is refused")
-        origin = _header(scope, b"origin")
-        if origin is not None:
-            origin_host = _hostname(urlsplit(origin).netloc) if "://" in origin else None
-            if origin_host is None or origin_host not in self.allowed_hosts:
-                return f"Origin {origin[:60]!r} is not allowed (EDMCGS_ALLOWED_HOSTS)"
+def foreign(scope, allowed_hosts: list[str] | None) -> str | None:
+    """Why a request comes from a foreign site (DNS rebinding: a Host not ours; a web page's websocket:
+    an Origin not ours), or None; ``allowed_hosts`` None or with ``*``: any. The one check of every
+    page, the single process's and the Ray gateway's own. A Host or Origin that is not plainly a host
+    and a port (``127.0.0.1:1@evil.com``, ``http://localhost:1@evil.com``) is foreign."""
+    if allowed_hosts is None or "*" in allowed_hosts:
         return None
+    allowed = {h.lower() for h in allowed_hosts}
+    raw = _header(scope, b"host")
+    host = _hostname(raw)
+    if host is None or host not in allowed:
+        return (f"Host {(raw or '')[:60]!r} is not one this server answers to (EDMCGS_ALLOWED_HOSTS); "
+                "a DNS-rebinding page is refused")
+    origin = _header(scope, b"origin")
+    if origin is not None:
+        match = _ORIGIN.fullmatch(origin.strip())
+        origin_host = _hostname(match["netloc"]) if match else None
+        if origin_host is None or origin_host not in allowed:
+            return f"Origin {origin[:60]!r} is not allowed (EDMCGS_ALLOWED_HOSTS)"
+    return None
+
+
+def misdirected(reason: str) -> JSONResponse:
+    """The answer to a foreign request: 421, the error body naming the Host or Origin."""
+    return JSONResponse(ErrorBody(ErrorCode.INVALID_INPUT, reason, "host").to_message(), status_code=421)
+
+
+_NETLOC = re.compile(r"(?:\[(?P<v6>[0-9a-f:.]+)\]|(?P<name>[a-z0-9_.-]+))(?::[0-9]{1,5})?")
+"""A Host header (or an origin's netloc): a name or a bracketed IPv6 address, then a port; nothing else."""
+_ORIGIN = re.compile(r"[a-z][a-z0-9+.-]*://(?P<netloc>[^/?#\s]*)", re.IGNORECASE)
+"""An Origin header: a scheme and a netloc, no path (browsers send no more)."""
 
 
 def _hostname(netloc: str | None) -> str | None:
-    """The host name of a Host header or an origin's netloc, lowercase, without port or brackets."""
+    """The host name of a Host header or an origin's netloc, lowercase, without port or brackets; None
+    for anything else (user info, a path, stray characters)."""
     if not netloc:
         return None
     netloc = netloc.strip().lower()
-    if netloc.startswith("["):
-        return netloc[1:netloc.find("]")] if "]" in netloc else None
-    return netloc.rsplit(":", 1)[0] if netloc.count(":") == 1 else netloc
+    match = _NETLOC.fullmatch(netloc)
+    if match is not None:
+        v6 = match["v6"]
+        return match["name"] if v6 is None else (v6 if _is_ipv6(v6) else None)
+    return netloc if _is_ipv6(netloc) else None  # an unbracketed IPv6 address, as some clients send
+
+
+def _is_ipv6(text: str) -> bool:
+    try:
+        ipaddress.IPv6Address(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _record(scope, status: int, seconds: float) -> None:

@@ -21,6 +21,14 @@ ONLINE = OnlineConfig()
 """The online anchors' defaults (live/config.py: their one place)."""
 
 
+def host_allowlist(host: str, allowed_hosts: list[str] | None) -> list[str] | None:
+    """The Host / Origin names a server bound to ``host`` accepts (None: any): ``allowed_hosts`` when
+    given, else the loopback names on a loopback bind, any name otherwise."""
+    if allowed_hosts is not None:
+        return allowed_hosts
+    return list(LOOPBACK) if host in LOOPBACK else None
+
+
 def _memory_bytes() -> int:
     """Physical memory of the machine (or its cgroup limit when lower)."""
     import os
@@ -174,11 +182,7 @@ class Settings(BaseSettings):
     @property
     def host_allowlist(self) -> list[str] | None:
         """The Host / Origin names to accept (None: any)."""
-        if self.allowed_hosts is not None:
-            return self.allowed_hosts
-        if self.host in LOOPBACK:
-            return ["127.0.0.1", "localhost", "::1"]
-        return None
+        return host_allowlist(self.host, self.allowed_hosts)
 
     @property
     def uses_demo(self) -> bool:

@@ -77,12 +77,16 @@ def _ingest(scene: SceneConfig, values: dict[str, Any]):
 def build(config: RayConfig):
     """The application: the gateway (ingress) bound to one deployment per scene. ``EDMCGS_TOKEN`` (the
     environment where the application is built) guards the gateway's pages and every scene that sets no
-    token of its own."""
+    token of its own; the gateway's pages answer to the Host names a scene's would by default."""
+    from edmcgs.server.settings import host_allowlist
+
     token = os.environ.get("EDMCGS_TOKEN") or None
     scenes, info = {}, {}
     for scene in config.scenes:
         if token is not None:
             scene.settings.setdefault("token", token)
+        if config.http.allowed_hosts is not None:
+            scene.settings.setdefault("allowed_hosts", config.http.allowed_hosts)
         values = _check_settings(scene, config.http.host)
         concurrency, workers = values.pop("_concurrency"), values.pop("_workers")
         if scene.max_replicas is not None and scene.max_replicas > scene.replicas:
@@ -103,7 +107,7 @@ def build(config: RayConfig):
     gateway = serve.deployment(Gateway).options(name="gateway", num_replicas=1,
                                                 ray_actor_options={"num_cpus": 0},
                                                 max_ongoing_requests=1000)
-    return gateway.bind(scenes, info, token)
+    return gateway.bind(scenes, info, token, host_allowlist(config.http.host, config.http.allowed_hosts))
 
 
 def app_builder(args: dict[str, str]):

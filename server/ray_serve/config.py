@@ -1,7 +1,8 @@
 """The YAML file that lists the scenes served on Ray, validated before anything starts.
 
     http: {host: 127.0.0.1, port: 8000}       # Serve's HTTP proxy (optional); the host also decides the
-                                               # Host names the scenes answer to, as for edmcgs-serve
+                                               # Host names the gateway and the scenes answer to, as for
+                                               # edmcgs-serve (or allowed_hosts: [...])
     scenes:
       - name: street                           # its routes live under /scenes/street/
         checkpoint: street.ckpt                # relative paths: from the config file's folder
@@ -35,12 +36,15 @@ OWN_FIELDS = {"checkpoint", "replay", "live", "loop", "speed", "host", "port"}
 
 class HttpOptions(BaseModel):
     """Where Serve's HTTP proxy listens (every node's proxy, on a cluster; under ``serve run`` or KubeRay
-    Serve's own config sets it). ``host`` also gives the scenes' default Host allowlist: loopback names
-    for a loopback host, any name otherwise (``settings.allowed_hosts`` narrows it)."""
+    Serve's own config sets it). ``host`` also gives the Host allowlist of the gateway's own pages and
+    the scenes' default: loopback names for a loopback host, any name otherwise; ``allowed_hosts`` sets
+    it (a scene's ``settings.allowed_hosts`` sets the scene's own)."""
 
     model_config = ConfigDict(extra="forbid")
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
+    allowed_hosts: list[str] | None = Field(None, description="Host names the gateway and, unless they "
+                                            "name their own, the scenes answer to (['*']: any)")
 
 
 class SceneConfig(BaseModel):

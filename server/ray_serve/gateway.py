@@ -14,6 +14,7 @@ import logging
 
 import ray
 from fastapi import FastAPI, Request, WebSocket
+from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
 from ray import serve
 from ray.serve.exceptions import BackPressureError
@@ -21,6 +22,7 @@ from ray.serve.exceptions import BackPressureError
 from edmcgs import protocol
 from edmcgs.server.auth import check_token
 from edmcgs.server.errors import Unauthorized
+from edmcgs.server.middleware import foreign, misdirected
 from edmcgs.server.ray_serve.mailbox import Mailbox
 from edmcgs.server.ray_serve.relay import StreamRelay
 from edmcgs.server.ray_serve.retry import Retrier, retryable
@@ -34,7 +36,8 @@ HEALTH_TIMEOUT_S = 5.0
 
 app = FastAPI(title="edmcgs on Ray Serve", version="0.1.0",
               description="Many scenes: GET /scenes lists them; each scene's API (the one of "
-                          "edmcgs-serve) lives under /scenes/{name}/.")
+                          "edmcgs-serve) lives under /scenes/{name}/.",
+              docs_url=None, redoc_url=None, openapi_url=None)  # served below, behind the Host check
 
 
 def _error(status: int, code: protocol.ErrorCode, detail: str, retry_after: bool = False) -> JSONResponse:
@@ -51,10 +54,13 @@ def _client(request_or_ws) -> str:
 class Gateway:
     """``scenes``: name -> the scene deployment's handle; ``info``: name -> what ``/scenes`` says of it."""
 
-    def __init__(self, scenes: dict, info: dict[str, dict], token: str | None = None):
+    def __init__(self, scenes: dict, info: dict[str, dict], token: str | None = None,
+                 allowed_hosts: list[str] | None = None):
         self.scenes = scenes
         self.info = info
-        self.token = token  # the gateway's own pages; each scene's routes check it in the scene's app
+        # The gateway's own pages; each scene's routes check the scene's in the scene's app.
+        self.token = token
+        self.allowed_hosts = allowed_hosts
         self.retriers = {name: Retrier() for name in scenes}
         # Actors of this gateway's, gone with it: client messages into running replica sessions, and
         # the replicas' metrics (found by name: each replica pushes to it).
@@ -66,8 +72,17 @@ class Gateway:
         self.board = ray.remote(MetricsBoard).options(
             num_cpus=0, name=BOARD_NAME.format(app=app_name), namespace="serve", get_if_exists=True).remote()
 
+    def _misdirected(self, request: Request) -> JSONResponse | None:
+        """421 for a foreign Host or Origin (the single process's check, ``middleware.foreign``)."""
+        refused = foreign(request.scope, self.allowed_hosts)
+        return None if refused is None else misdirected(refused)
+
     def _auth(self, request: Request) -> JSONResponse | None:
-        """401 unless the request carries the token (when one is set), as every route of a scene."""
+        """421 for a foreign Host or Origin, then 401 unless the request carries the token (when one is
+        set): the checks of every route of a scene, for the pages the gateway answers itself."""
+        refused = self._misdirected(request)
+        if refused is not None:
+            return refused
         try:
             check_token(self.token, request.headers.get("authorization"), request.query_params.get("token"))
         except Unauthorized as exc:
@@ -98,7 +113,10 @@ class Gateway:
 
     @app.get("/healthz", summary="200 while the gateway serves; each scene's readiness in the body (open "
                                  "to probes, like a scene's with open_probes)")
-    async def healthz(self) -> dict:
+    async def healthz(self, request: Request):
+        refused = self._misdirected(request)
+        if refused is not None:
+            return refused
         names = list(self.scenes)
         healths = await asyncio.gather(*(self._health(n) for n in names))
         return {"ready": True, "retries": sum(r.retries for r in self.retriers.values()),
@@ -115,6 +133,15 @@ class Gateway:
         return HTMLResponse(f"<!doctype html><meta charset=utf-8><title>edmcgs scenes</title>"
                             f"<h1>edmcgs scenes</h1><ul>{items}</ul>")
 
+    @app.get("/openapi.json", include_in_schema=False)
+    async def openapi(self, request: Request) -> Response:
+        return self._misdirected(request) or JSONResponse(request.app.openapi())
+
+    @app.get("/docs", include_in_schema=False)
+    async def docs(self, request: Request) -> Response:
+        return self._misdirected(request) or get_swagger_ui_html(
+            openapi_url="/openapi.json", title="edmcgs on Ray Serve: Swagger UI")
+
     # ------------------------------------------------------------------ one scene
     async def _http(self, name: str, method: str, path: str, query: str, headers: list, client: str
                     = "127.0.0.1"):
@@ -124,9 +151,9 @@ class Gateway:
             lambda: handle.http.remote(method, path, query, headers, client, root))
 
     @app.get("/scenes/{name}", include_in_schema=False)
-    async def scene_root(self, name: str) -> Response:
+    async def scene_root(self, name: str, request: Request) -> Response:
         if name not in self.scenes:
-            return self._unknown(name)
+            return self._unknown(name, request)
         return RedirectResponse(f"/scenes/{name}/", status_code=308)
 
     @app.get("/scenes/{name}/metrics", summary="The scene's metrics: every replica's series, labelled "
@@ -162,7 +189,7 @@ class Gateway:
                    summary="The scene's own API (see edmcgs-serve's /docs)")
     async def scene_route(self, name: str, path: str, request: Request) -> Response:
         if name not in self.scenes:
-            return self._unknown(name)
+            return self._unknown(name, request)
         try:
             result = await self._http(name, request.method, "/" + path, request.url.query,
                                       list(request.headers.items()), _client(request))
@@ -178,12 +205,21 @@ class Gateway:
         media = next((v for k, v in result.headers if k.lower() == "content-type"), None)
         return Response(result.body, status_code=result.status, headers=headers, media_type=media)
 
-    def _unknown(self, name: str) -> JSONResponse:
+    def _unknown(self, name: str, request: Request) -> JSONResponse:
+        """404 naming the scenes (a page of the gateway's own: its checks first)."""
+        refused = self._auth(request)
+        if refused is not None:
+            return refused
         return _error(404, protocol.ErrorCode.INVALID_INPUT,
                       f"no scene named {name!r}; GET /scenes lists them: {', '.join(self.scenes)}")
 
     @app.websocket("/scenes/{name}/stream")
     async def stream(self, ws: WebSocket, name: str) -> None:
+        if name not in self.scenes:  # the gateway answers: its Host rules (a scene's are its replica's)
+            refused = foreign(ws.scope, self.allowed_hosts)
+            if refused is not None:
+                await ws.close(code=1008, reason=refused[:120])
+                return
         await ws.accept()
         if name not in self.scenes:
             body = protocol.ErrorBody(protocol.ErrorCode.INVALID_INPUT, f"no scene named {name!r}")

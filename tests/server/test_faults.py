@@ -242,6 +242,12 @@ def test_bad_websocket_messages_get_an_error_and_the_stream_lives_on(stub_client
     ({"origin": "null"}, False),
     ({"host": "evil.example:8000"}, False),
     ({"host": "127.0.0.1.evil.example"}, False),
+    ({"host": "127.0.0.1:1@evil.com"}, False),
+    ({"host": "localhost:8000/evil.com"}, False),
+    ({"host": "[::1]:8000"}, True),
+    ({"origin": "http://localhost:1@evil.com"}, False),
+    ({"origin": "http://user@127.0.0.1:8000"}, False),
+    ({"origin": "http://127.0.0.1:8000/evil"}, False),
 ])
 def test_foreign_hosts_and_origins_are_refused_on_loopback(stub_client, headers, allowed):
     from starlette.websockets import WebSocketDisconnect
