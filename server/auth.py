@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import hmac
-import re
-from urllib.parse import unquote_plus
+from urllib.parse import quote, unquote
 
 from edmcgs.server.errors import Unauthorized
 
@@ -29,23 +28,27 @@ def check_token(expected: str | None, authorization: str | None, query_token: st
         raise Unauthorized("wrong bearer token")
 
 
-_QUERY = re.compile(r"\?([^\s\"#]*)")
-SECRET_PARAMS = ("token",)
+DECODE_ROUNDS = 4
+"""Percent-decodings undone before a logged target is cut (``%253F`` is ``?`` twice encoded)."""
 
 
-def redact_query(text: str) -> str:
-    """``text`` with the value of every query parameter whose *decoded* name is a secret (``token``,
-    ``tok%65n``, ``%74oken`` ...) replaced by ``***``."""
-    if "?" not in text:
-        return text
-
-    def pairs(match: re.Match) -> str:
-        out = []
-        for pair in match.group(1).split("&"):
-            name, eq, _value = pair.partition("=")
-            if unquote_plus(name).strip().lower() in SECRET_PARAMS:
-                pair = f"{name}{eq}***" if eq else pair
-            out.append(pair)
-        return "?" + "&".join(out)
-
-    return _QUERY.sub(pairs, text)
+def loggable_target(target: str, token: str | None = None) -> str:
+    """A request target as a log line may show it: its path alone, the query never, whatever it holds
+    and however it is spelled (quotes, ``&amp;``, percent-encodings, duplicates, ``;`` separators). The
+    target is percent-decoded (uvicorn logs the path re-encoded: an ``?`` inside it as ``%3F``), cut at
+    the first ``?`` or ``;`` and encoded again; ``token``, should a client put it in the path itself,
+    shows as ``***``."""
+    text = target
+    for _ in range(DECODE_ROUNDS):
+        decoded = unquote(text)
+        if decoded == text:
+            break
+        text = decoded
+    cut = min((i for i in (text.find("?"), text.find(";")) if i >= 0), default=-1)
+    if cut < 0 and text == target:
+        shown = target
+    else:
+        shown = quote(text if cut < 0 else text[:cut], safe="/") + ("?..." if cut >= 0 else "")
+    for spelled in {token, quote(token, safe="/")} if token else ():
+        shown = shown.replace(spelled, "***")
+    return shown

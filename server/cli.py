@@ -56,18 +56,30 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-class _RedactToken(logging.Filter):
-    """Keep the token out of the access log, however its name is spelled (``?tok%65n=``): the query is
-    redacted by its decoded names, the ones the middleware authenticates with."""
+class RedactQueries(logging.Filter):
+    """Keep the token out of uvicorn's access and websocket lines: each request target is logged without
+    its query (``auth.loggable_target``), never redacted parameter by parameter; the configured token
+    is replaced wherever else it appears."""
+
+    def __init__(self, token: str | None = None):
+        super().__init__()
+        self.token = token
 
     def filter(self, record: logging.LogRecord) -> bool:
-        from edmcgs.server.auth import redact_query  # loaded by then: the app imports it
+        from edmcgs.server.auth import loggable_target  # loaded by then: the app imports it
 
-        if record.args:
-            record.args = tuple(redact_query(a) if isinstance(a, str) else a for a in record.args)
-        if isinstance(record.msg, str):
-            record.msg = redact_query(record.msg)
+        if isinstance(record.args, tuple):
+            record.args = tuple(loggable_target(a, self.token) if isinstance(a, str) else a
+                                for a in record.args)
+        if self.token and isinstance(record.msg, str):
+            record.msg = record.msg.replace(self.token, "***")
         return True
+
+
+def redact_logs(token: str | None) -> None:
+    """Install ``RedactQueries`` on uvicorn's loggers (access lines, and websocket accept lines)."""
+    for name in ("uvicorn.access", "uvicorn.error"):
+        logging.getLogger(name).addFilter(RedactQueries(token))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -105,8 +117,7 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger("edmcgs.server").warning(
             "serving on %s without EDMCGS_TOKEN: anyone who can reach this port can use the service",
             settings.host)
-    for name in ("uvicorn.access", "uvicorn.error"):  # access lines, and websocket accept lines
-        logging.getLogger(name).addFilter(_RedactToken())
+    redact_logs(settings.token.get_secret_value() if settings.token is not None else None)
     # Open before serving, so a bad checkpoint, recording or device is one line, not a traceback.
     try:
         service = Service.open(settings)
