@@ -60,7 +60,7 @@ def create_app(settings: Settings | None = None, *, service_factory=Service.open
     if settings.open_probes:
         open_paths |= {"/healthz", "/metrics"}
     app.add_middleware(AccessMiddleware, token=token, allowed_hosts=settings.host_allowlist,
-                       open_paths=frozenset(open_paths))
+                       open_paths=frozenset(open_paths), max_in_flight=settings.max_connections)
     errors.install(app)
     for module in (render, events, scene, health, stream, ply):
         app.include_router(module.router, responses=render.AUTH_ERRORS)

@@ -91,7 +91,8 @@ the checkpoint's clock; every frame carries both. The same types are the Python 
 def _close_codes() -> list[tuple[int, str]]:
     return [(CLOSE_POLICY, "refused before the handshake (token, foreign Host or Origin)"),
             (CLOSE_INTERNAL_ERROR, "the stream failed (after an error message saying how)"),
-            (CLOSE_TRY_AGAIN_LATER, "too many streams (after a busy error message)")]
+            (CLOSE_TRY_AGAIN_LATER, "too many streams (after a busy error message), or too many requests "
+                                     "in progress (max_connections, before the handshake)")]
 
 
 # ------------------------------------------------------------------------------------------ the page

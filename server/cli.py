@@ -111,6 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     import uvicorn
 
     from edmcgs.server.app import create_app
+    from edmcgs.server.connections import raise_fd_limit, uvicorn_config
     from edmcgs.server.service import Service
 
     if settings.token is None and settings.host not in ("127.0.0.1", "localhost", "::1"):
@@ -125,10 +126,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"edmcgs-serve: {exc}", file=sys.stderr)
         return 1
     app = create_app(settings, service_factory=lambda _settings: service)
-    config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=args.log_level,
-                            ws_max_size=1 << 20, timeout_graceful_shutdown=3,
-                            limit_concurrency=settings.max_connections)
-    server = uvicorn.Server(config)
+    raise_fd_limit()
+    server = uvicorn.Server(uvicorn_config(app, settings, log_level=args.log_level))
     stopped_by = []  # the signals that stopped it: uvicorn's own handler, wrapped to remember them
     handle_exit = server.handle_exit
     server.handle_exit = lambda sig, frame: (stopped_by.append(sig), handle_exit(sig, frame))

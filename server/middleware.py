@@ -11,27 +11,55 @@ from fastapi.responses import JSONResponse
 
 from edmcgs.protocol import ErrorBody, ErrorCode
 from edmcgs.server.auth import check_token
-from edmcgs.server.errors import Unauthorized, response_of
+from edmcgs.server.errors import Busy, Unauthorized, body_of, response_of
+from edmcgs.server.routes.stream import CLOSE_TRY_AGAIN_LATER
 
 
 class AccessMiddleware:
-    """With ``token`` set, refuse any request without ``Authorization: Bearer <token>`` or ``?token=``
-    (the browser viewer's page load and websocket cannot set headers): HTTP 401, websocket closed
-    with code 1008 before the handshake completes (HTTP 403). Then count and time HTTP requests.
+    """At most ``max_in_flight`` requests and websockets in progress (None: no bound): one more is
+    answered 503 busy with Retry-After, or closed with 1013. Connections that have not sent a request
+    never count (``connections.py`` closes them). Then: a foreign Host or Origin is refused (421,
+    websocket 1008), and with ``token`` set, any request without ``Authorization: Bearer <token>`` or
+    ``?token=`` (the browser viewer's page load and websocket cannot set headers): HTTP 401, websocket
+    closed with code 1008 before the handshake completes (HTTP 403). Then count and time HTTP requests.
     """
 
     def __init__(self, app, token: str | None, *, allowed_hosts: list[str] | None = None,
-                 open_paths: frozenset[str] = frozenset()):
+                 open_paths: frozenset[str] = frozenset(), max_in_flight: int | None = None):
         self.app = app
         self.token = token
         self.allowed_hosts = allowed_hosts
         self.open_paths = open_paths
+        self.max_in_flight = max_in_flight
+        self.in_flight = 0
 
     async def __call__(self, scope, receive, send):
         kind = scope["type"]
         if kind not in ("http", "websocket"):
             await self.app(scope, receive, send)
             return
+        if self.max_in_flight is not None and self.in_flight >= self.max_in_flight:
+            await self._busy(scope, receive, send)
+            return
+        self.in_flight += 1
+        try:
+            await self._checked(scope, receive, send)
+        finally:
+            self.in_flight -= 1
+
+    async def _busy(self, scope, receive, send) -> None:
+        busy = Busy(retry_after_s=1)
+        detail = (f"the server already handles {self.max_in_flight} requests and streams "
+                  "(EDMCGS_MAX_CONNECTIONS); retry later")
+        if scope["type"] == "websocket":
+            await send({"type": "websocket.close", "code": CLOSE_TRY_AGAIN_LATER, "reason": detail[:120]})
+            return
+        await JSONResponse(body_of(busy) | {"detail": detail}, status_code=503,
+                           headers={"Retry-After": str(busy.retry_after_s)})(scope, receive, send)
+        _record(scope, 503, 0.0)
+
+    async def _checked(self, scope, receive, send):
+        kind = scope["type"]
         refused = foreign(scope, self.allowed_hosts)
         if refused is not None:
             if kind == "websocket":

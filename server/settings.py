@@ -82,8 +82,13 @@ class Settings(BaseSettings):
                                 "never takes a single render's slot).")
     max_streams: int = Field(16, ge=0, le=10_000, description="Open websocket streams at most; one more is "
                              "answered with an error message and close code 1013 (try again later).")
-    max_connections: int = Field(256, gt=0, le=100_000, description="Concurrent connections and requests "
-                                 "at most (uvicorn's limit_concurrency); beyond it HTTP answers 503.")
+    max_connections: int = Field(256, gt=0, le=100_000, description="Requests and websockets in progress "
+                                 "at most; beyond it HTTP answers 503 busy, a websocket is closed with 1013. "
+                                 "Connections that have not sent a request do not count.")
+    head_timeout_s: float = Field(10.0, gt=0, le=3600, description="Seconds a connection has to send a "
+                                  "request's line and headers, from its opening (or the request's first "
+                                  "byte after a response); past them it is closed (an idle or half-sent "
+                                  "connection holds nothing).")
     stream_max_fps: float = Field(60.0, gt=0, le=1000,
         description="Highest frame rate one websocket may ask for.")
     replay_batch_us: int = Field(5_000, gt=0, le=10_000_000,

@@ -167,10 +167,12 @@ def test_streams_beyond_the_limit_get_busy_and_1013():
         assert info.value.code == 1013
 
 
-def test_connections_are_capped(monkeypatch):
+def test_requests_in_progress_are_capped_not_connections(monkeypatch):
     import uvicorn
 
     from edmcgs.server import cli
+    from edmcgs.server.connections import HeadDeadlineProtocol
+    from edmcgs.server.middleware import AccessMiddleware
 
     seen = {}
 
@@ -178,7 +180,7 @@ def test_connections_are_capped(monkeypatch):
         started = True
 
         def __init__(self, config):
-            seen["limit"] = config.limit_concurrency
+            seen["config"] = config
 
         def run(self):
             pass
@@ -190,8 +192,13 @@ def test_connections_are_capped(monkeypatch):
     monkeypatch.setattr("edmcgs.server.service.Service.open", lambda settings: StubService(settings))
     monkeypatch.setenv("EDMCGS_MAX_CONNECTIONS", "77")
     monkeypatch.setenv("EDMCGS_PORT", "0")  # the command checks its port is free: 8000 may be taken here
+    monkeypatch.setenv("EDMCGS_HEAD_TIMEOUT_S", "3.5")
     assert cli.main([]) == 0
-    assert seen["limit"] == 77
+    config = seen["config"]
+    assert config.limit_concurrency is None, "uvicorn's limit counts idle connections"
+    access = next(m for m in config.app.user_middleware if m.cls is AccessMiddleware)
+    assert access.kwargs["max_in_flight"] == 77
+    assert issubclass(config.http, HeadDeadlineProtocol) and config.http.head_timeout_s == 3.5
 
 
 WS_CASES = {

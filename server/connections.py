@@ -1,0 +1,118 @@
+"""HTTP connections that must say what they want: a deadline and a size for each request's head.
+
+uvicorn closes a connection idle *between* requests (``timeout_keep_alive``), but arms nothing before a
+connection's first request, cancels even that timer on any byte, and its httptools parser keeps header
+bytes without a bound. A client that connects and sends nothing, or half a request line, or one header
+byte a second, would hold its connection (and a file descriptor) for as long as it likes; one that sends
+headers without end grows the server's memory. uvicorn has no setting for either, so its httptools
+protocol is subclassed here: the request line and headers must arrive within ``head_timeout_s`` of the
+connection opening (or of the request's first byte, for later requests on a kept-alive connection) and
+within ``MAX_HEAD_BYTES``; otherwise the connection is answered 408 or 431 (when it sent anything) and
+closed. Such connections never count against ``max_connections`` either: the app counts requests in
+progress (``middleware.AccessMiddleware``), not connections.
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+
+MAX_HEAD_BYTES = 64 * 1024
+"""Largest request head (request line and headers) a connection may send; uvicorn's h11 allows 16 KiB."""
+
+
+class HeadDeadlineProtocol(HttpToolsProtocol):
+    """uvicorn's httptools protocol with the deadline and size of a request head (module docstring)."""
+
+    head_timeout_s = 10.0
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self._head_bytes = 0
+        self._head_timer: asyncio.TimerHandle | None = None
+        self._arm()
+
+    def on_message_begin(self) -> None:
+        super().on_message_begin()
+        self._head_bytes = 0
+        if self._head_timer is None:  # a later request on a kept-alive connection: from its first byte
+            self._arm()
+
+    def on_headers_complete(self) -> None:
+        self._disarm()
+        super().on_headers_complete()
+
+    def data_received(self, data: bytes) -> None:
+        super().data_received(data)
+        if self._head_timer is not None and not self.transport.is_closing():
+            self._head_bytes += len(data)
+            if self._head_bytes > MAX_HEAD_BYTES:
+                self._refuse(431, "Request Header Fields Too Large")
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._disarm()
+        super().connection_lost(exc)
+
+    def _arm(self) -> None:
+        self._head_timer = self.loop.call_later(self.head_timeout_s, self._late)
+
+    def _disarm(self) -> None:
+        if self._head_timer is not None:
+            self._head_timer.cancel()
+            self._head_timer = None
+
+    def _late(self) -> None:
+        self._head_timer = None
+        if self.transport.is_closing():
+            return
+        if self.cycle is not None and not self.cycle.response_complete:
+            self._arm()  # a pipelined head while the previous response is still being made: wait for it
+            return
+        self._refuse(408, "Request Timeout")
+
+    def _refuse(self, status: int, phrase: str) -> None:
+        """Answer ``status`` (to a client that sent part of a request; silence gets none) and close."""
+        self._disarm()
+        if self._head_bytes:
+            body = f"{phrase}: the request line and headers must come within {self.head_timeout_s:g} s " \
+                   f"and {MAX_HEAD_BYTES // 1024} KiB\n"
+            self.transport.write(f"HTTP/1.1 {status} {phrase}\r\ncontent-type: text/plain; charset=utf-8\r\n"
+                                 f"content-length: {len(body)}\r\nconnection: close\r\n\r\n{body}".encode())
+        self.transport.close()
+
+
+def head_deadline_protocol(head_timeout_s: float) -> type[HeadDeadlineProtocol]:
+    """The protocol class to give uvicorn (``uvicorn.Config(http=...)``) for this deadline."""
+    return type("HeadDeadlineProtocol", (HeadDeadlineProtocol,), {"head_timeout_s": float(head_timeout_s)})
+
+
+WS_MAX_BYTES = 1 << 20
+"""Largest websocket message a client may send (after decompression); a larger one closes with 1009."""
+
+
+def uvicorn_config(app, settings, *, log_level: str = "info", **options):
+    """The uvicorn configuration ``edmcgs-serve`` runs ``app`` with: this module's protocol for the
+    settings' head deadline, websocket messages up to WS_MAX_BYTES, and no connection limit of
+    uvicorn's (it counts idle connections; the app bounds requests in progress instead)."""
+    import uvicorn
+
+    return uvicorn.Config(app, host=settings.host, port=settings.port, log_level=log_level,
+                          http=head_deadline_protocol(settings.head_timeout_s), ws_max_size=WS_MAX_BYTES,
+                          timeout_graceful_shutdown=3, **options)
+
+
+def raise_fd_limit() -> int:
+    """Raise this process's soft limit of open files to its hard limit (each connection is one); returns
+    the soft limit now in force."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    want = hard if hard != resource.RLIM_INFINITY else max(soft, 1 << 16)
+    if soft != resource.RLIM_INFINITY and soft < want:
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (want, hard))
+            soft = want
+        except (ValueError, OSError):  # a container may forbid it: serve with what there is
+            pass
+    return soft
