@@ -13,10 +13,15 @@ import re
 from edmcgs import protocol
 from edmcgs.server import wire_schema
 from edmcgs.server.openapi import BEARER, bearer_scheme
-from edmcgs.server.routes.stream import CLOSE_INTERNAL_ERROR, CLOSE_TRY_AGAIN_LATER, MIN_FPS
+from edmcgs.server.routes.stream import (
+    CLOSE_INTERNAL_ERROR,
+    CLOSE_POLICY,
+    CLOSE_TRY_AGAIN_LATER,
+    MIN_FPS,
+    SUBSCRIBE_WAIT_S,
+)
 from edmcgs.server.settings import Settings
 
-CLOSE_POLICY = 1008
 """Close code of a websocket refused before its handshake (missing or wrong token, foreign Host or
 Origin); ``middleware.AccessMiddleware`` sends it."""
 
@@ -52,7 +57,7 @@ def document(settings: Settings, version: str) -> dict:
         "asyncapi": "3.0.0",
         "info": {"title": "edmcgs stream", "version": version, "description": _DESCRIPTION.format(
             max_fps=settings.stream_max_fps, min_fps=MIN_FPS, max_streams=settings.max_streams,
-            max_bytes=protocol.MAX_MESSAGE_BYTES)},
+            max_bytes=protocol.MAX_MESSAGE_BYTES, subscribe_wait_s=SUBSCRIBE_WAIT_S)},
         "defaultContentType": "application/msgpack",
         "channels": {"stream": {
             "address": "/stream", "title": "WS /stream", "messages": channel_messages,
@@ -80,16 +85,19 @@ or sweeping a time range.
 
 The client sends a subscription (a msgpack map as a binary message or a JSON object as a text message, at
 most {max_bytes} bytes); each is answered by `subscribed` or `error`. Frames come at the subscription's
-fps ({min_fps:g} to {max_fps:g} on this server). A client that reads slower than that gets the newest
-frame: older unsent ones are dropped and counted in each frame's `dropped` (`seq` has a gap). This server
-serves at most {max_streams} streams at once; one more is sent a `busy` error and closed with 1013.
+fps ({min_fps:g} to {max_fps:g} on this server). A client that reads slower than that gets fewer: a frame
+is rendered only once the previous one is sent, the ones skipped meanwhile counted in each frame's
+`dropped`. This server serves at most {max_streams} streams at once; one more is sent a `busy` error and
+closed with 1013. A stream without a subscription for {subscribe_wait_s:g} s (from its opening or a sweep's
+end) is sent an `error` and closed with 1008; one that stops reading (and answering pings) is dropped.
 
 Time: `t` is seconds from the scene's start (`t_start_us` of GET /scene), `t_us` absolute microseconds on
 the checkpoint's clock; every frame carries both. The same types are the Python module `edmcgs.protocol`."""
 
 
 def _close_codes() -> list[tuple[int, str]]:
-    return [(CLOSE_POLICY, "refused before the handshake (token, foreign Host or Origin)"),
+    return [(CLOSE_POLICY, "refused before the handshake (token, foreign Host or Origin), or no "
+                           "subscription in force for a while (after an error message)"),
             (CLOSE_INTERNAL_ERROR, "the stream failed (after an error message saying how)"),
             (CLOSE_TRY_AGAIN_LATER, "too many streams (after a busy error message), or too many requests "
                                      "in progress (max_connections, before the handshake)")]

@@ -1,4 +1,5 @@
-"""HTTP connections that must say what they want: a deadline and a size for each request's head.
+"""Connections as ``edmcgs-serve`` serves them: HTTP requests must say what they want (a deadline and a
+size for each request's head), websocket peers must keep reading.
 
 uvicorn closes a connection idle *between* requests (``timeout_keep_alive``), but arms nothing before a
 connection's first request, cancels even that timer on any byte, and its httptools parser keeps header
@@ -17,6 +18,7 @@ from __future__ import annotations
 import asyncio
 
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
 MAX_HEAD_BYTES = 64 * 1024
 """Largest request head (request line and headers) a connection may send; uvicorn's h11 allows 16 KiB."""
@@ -87,19 +89,69 @@ def head_deadline_protocol(head_timeout_s: float) -> type[HeadDeadlineProtocol]:
     return type("HeadDeadlineProtocol", (HeadDeadlineProtocol,), {"head_timeout_s": float(head_timeout_s)})
 
 
+class DroppingWebSocketProtocol(WebSocketsSansIOProtocol):
+    """uvicorn's websocket protocol, except that a peer which stops reading is dropped, and that the app
+    learns of a connection the protocol ended as of a disconnect.
+
+    A peer that stops reading answers no keepalive ping. uvicorn then writes a close frame and closes
+    the transport gracefully, which waits for the unsent frames to drain (for a peer that reads nothing
+    they never do), and tells the app nothing: its next send waits forever for the transport to take
+    more, and the stream keeps its slot. Here the transport is aborted instead: the connection ends at
+    once, the app's receive sees a disconnect and a waiting send fails. A transport still open
+    CLOSE_GRACE_S after the app ended (a close the peer never reads) is aborted too.
+
+    When the protocol itself closes the connection (a ping unanswered; a message over ``ws_max_size``,
+    compressed or not, closed with 1009), uvicorn fails the app's next send with a RuntimeError ("after
+    sending 'websocket.close'"), which reads as the app's own failure; here it is a disconnect.
+    """
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self._lost = False
+        super().connection_made(transport)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._lost = True
+        super().connection_lost(exc)
+
+    def keepalive_timeout(self) -> None:
+        super().keepalive_timeout()
+        self.disconnected = True
+        self._abort_if_open()
+
+    def handle_parser_exception(self) -> None:
+        super().handle_parser_exception()
+        self.disconnected = True
+
+    async def run_asgi(self) -> None:
+        await super().run_asgi()
+        self.loop.call_later(CLOSE_GRACE_S, self._abort_if_open)
+
+    def _abort_if_open(self) -> None:
+        if not self._lost:
+            self.transport.abort()
+
+
 WS_MAX_BYTES = 1 << 20
 """Largest websocket message a client may send (after decompression); a larger one closes with 1009."""
+PING_INTERVAL_S = 2.0
+PING_TIMEOUT_S = 7.0
+"""Keepalive pings: a peer that leaves one unanswered this long is dropped (within 9 s of its last pong).
+A ping waits behind the frames already queued to the peer: a slow reader still answers in time."""
+CLOSE_GRACE_S = 15.0
+"""How long a websocket whose app has ended may take to close before it is aborted."""
 
 
 def uvicorn_config(app, settings, *, log_level: str = "info", **options):
-    """The uvicorn configuration ``edmcgs-serve`` runs ``app`` with: this module's protocol for the
-    settings' head deadline, websocket messages up to WS_MAX_BYTES, and no connection limit of
-    uvicorn's (it counts idle connections; the app bounds requests in progress instead)."""
+    """The uvicorn configuration ``edmcgs-serve`` runs ``app`` with: this module's protocols (the
+    settings' head deadline; websocket peers that stop reading dropped), websocket messages up to
+    WS_MAX_BYTES, and no connection limit of uvicorn's (it counts idle connections; the app bounds
+    requests in progress instead)."""
     import uvicorn
 
     return uvicorn.Config(app, host=settings.host, port=settings.port, log_level=log_level,
-                          http=head_deadline_protocol(settings.head_timeout_s), ws_max_size=WS_MAX_BYTES,
-                          timeout_graceful_shutdown=3, **options)
+                          http=head_deadline_protocol(settings.head_timeout_s), ws=DroppingWebSocketProtocol,
+                          ws_max_size=WS_MAX_BYTES, ws_ping_interval=PING_INTERVAL_S,
+                          ws_ping_timeout=PING_TIMEOUT_S, timeout_graceful_shutdown=3, **options)
 
 
 def raise_fd_limit() -> int:

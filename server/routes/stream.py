@@ -7,9 +7,15 @@ Three tasks per connection:
 - the *producer* renders frames at the subscription's rate (live: whenever new events arrived, at
   most ``fps`` per second, and without a sensor at ``fps``, following the playback clock; sweep: t0,
   t0 + speed/fps, ... up to t1) and puts each in a slot of size one;
-- the *sender* sends what is in the slot. A client slower than the producer finds the newest frame
-  there: the older one was dropped and counted (``dropped`` in every frame, and the metrics). Nothing
-  queues without bound however slow the client, and a client that stops reading costs one frame.
+- the *sender* sends what is in the slot. The producer renders only while the sender is free: a tick
+  that finds the previous frame still on its way renders nothing and is counted as dropped
+  (``dropped`` in every frame, and the metrics). Nothing queues without bound however slow the client,
+  and a client that stops reading costs no render.
+
+A stream holds one of the ``max_streams`` slots only while a subscription is in force: with none for
+``SUBSCRIBE_WAIT_S`` (from its start, or from a sweep's end) it is sent an error and closed (1008). A
+client that stops reading stops answering the keepalive pings too, and its connection is dropped
+(``server/connections.py``), which ends its session.
 """
 
 from __future__ import annotations
@@ -40,7 +46,13 @@ CLOSE_INTERNAL_ERROR = 1011
 """Close code when the stream itself failed, after an ``error`` message saying how."""
 MIN_FPS = 0.01
 """Slowest frame rate a stream may ask for (a sweep's step is speed / fps)."""
+CLOSE_POLICY = 1008
+"""Close code when the stream went SUBSCRIBE_WAIT_S without a subscription (after an error saying so)."""
 LIVE_IDLE_S = 0.5  # live mode re-checks its subscription at least this often while no events arrive
+SUBSCRIBE_WAIT_S = 5.0
+"""Longest a stream keeps its slot without a subscription in force."""
+FAREWELL_S = 2.0
+"""Longest the closing message and close of a session may take (a client may have stopped reading)."""
 
 
 class LatestSlot:
@@ -78,12 +90,17 @@ class StreamSession:
         self.frames = LatestSlot()
         self.control: deque[dict] = deque(maxlen=16)  # acks and errors; bounded like everything else
         self.wake = asyncio.Event()
+        self.sender_free = asyncio.Event()  # no frame waits for the sender or is being sent
+        self.sender_free.set()
         self.seq = 0
         self.dropped = 0
         self.failure: BaseException | None = None  # what ended the session, when not the client
+        self.unsubscribed_since: float | None = asyncio.get_running_loop().time()  # None: subscribed
+        self.expired = False  # ended for going SUBSCRIBE_WAIT_S without a subscription
 
     async def run(self) -> None:
-        tasks = [asyncio.create_task(c) for c in (self._receive(), self._produce(), self._send())]
+        tasks = [asyncio.create_task(c) for c in (self._receive(), self._produce(), self._send(),
+                                                  self._expire())]
         try:
             done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
             for task in done:
@@ -95,6 +112,17 @@ class StreamSession:
             for task in tasks:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
+
+    async def _expire(self) -> None:
+        """Return (ending the session) once no subscription has been in force for SUBSCRIBE_WAIT_S."""
+        loop = asyncio.get_running_loop()
+        while True:
+            since = self.unsubscribed_since
+            left = SUBSCRIBE_WAIT_S if since is None else since + SUBSCRIBE_WAIT_S - loop.time()
+            if left <= 0:
+                self.expired = True
+                return
+            await asyncio.sleep(left)
 
     # ------------------------------------------------------------------ receiver
     async def _receive(self) -> None:
@@ -137,6 +165,7 @@ class StreamSession:
             raise invalid("t1", f"the sweep ends ({engine.seconds_of(t1):.6f} s) before it starts "
                                 f"({engine.seconds_of(t0):.6f} s)")
         self.sub, self.pose, self.size, self.fps = sub, pose, size, float(sub.fps)
+        self.unsubscribed_since = None
         self.changed.set()
 
     def _sweep_range(self, sub: protocol.Subscription) -> tuple[int, int]:
@@ -177,7 +206,7 @@ class StreamSession:
                 if sweep_t > t1:
                     if not sub.loop:
                         self._control({"type": "end", "seq": self.seq})
-                        self.sub = None
+                        self.sub, self.unsubscribed_since = None, loop.time()
                         continue
                     sweep_t = t0
                 t_us = sweep_t
@@ -188,6 +217,13 @@ class StreamSession:
             next_at = max(next_at + 1.0 / self.fps, loop.time())  # never a burst to catch up
             if self.changed.is_set():
                 continue  # a new subscription while waiting: render what is asked now
+            if not self.sender_free.is_set():
+                # The client has not taken the previous frame yet: render nothing it cannot take (the
+                # tick's frame is dropped: its seq is skipped).
+                self.seq += 1
+                self._drop()
+                await self._sender_free_or_changed()
+                continue
             try:
                 frame = await self.service.pool.run_stream(partial(
                     self.service.render_frame, t_us, self.pose, *self.size, sub.format, sub.render_mode))
@@ -230,12 +266,24 @@ class StreamSession:
             for w in waiters:
                 w.cancel()
 
+    async def _sender_free_or_changed(self) -> None:
+        waiters = [asyncio.create_task(self.changed.wait()), asyncio.create_task(self.sender_free.wait())]
+        try:
+            await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for w in waiters:
+                w.cancel()
+
+    def _drop(self) -> None:
+        self.dropped += 1
+        self.service.metrics.frames_dropped.inc()
+
     def _push(self, frame: dict) -> None:
         frame["seq"] = self.seq
         self.seq += 1
+        self.sender_free.clear()
         if self.frames.put(frame):
-            self.dropped += 1
-            self.service.metrics.frames_dropped.inc()
+            self._drop()
         frame["dropped"] = self.dropped
         self.wake.set()
 
@@ -249,6 +297,8 @@ class StreamSession:
             if frame is not None:
                 await self.ws.send_bytes(protocol.pack(frame))
                 self.service.metrics.frames_sent.inc()
+            if not self.frames.pending:
+                self.sender_free.set()
             while self.control:
                 await self.ws.send_bytes(protocol.pack(self.control.popleft()))
 
@@ -275,12 +325,25 @@ async def stream(ws: WebSocket) -> None:
         await session.run()
     finally:
         service.metrics.stream_clients -= 1
-        with contextlib.suppress(Exception):  # the client may already be gone
-            if session.failure is not None:  # say why, then close with 1011 (internal error)
-                body = protocol.ErrorBody(protocol.ErrorCode.RENDER_FAILED, "the stream failed: "
-                                          f"{type(session.failure).__name__}: {session.failure}"[:300])
-                await ws.send_bytes(protocol.pack(body.to_message()))
-                await ws.close(code=CLOSE_INTERNAL_ERROR, reason="stream failed")
-            else:
-                await ws.close()
+        # The client may be gone, or have stopped reading: a bounded farewell.
+        with contextlib.suppress(Exception):
+            async with asyncio.timeout(FAREWELL_S):
+                await _farewell(ws, session)
         log.debug("stream closed after %.1f s", time.perf_counter() - t0)
+
+
+async def _farewell(ws: WebSocket, session: StreamSession) -> None:
+    """Close the stream, saying why when the server ends it."""
+    if session.failure is not None:  # say why, then close with 1011 (internal error)
+        body = protocol.ErrorBody(protocol.ErrorCode.RENDER_FAILED, "the stream failed: "
+                                  f"{type(session.failure).__name__}: {session.failure}"[:300])
+        await ws.send_bytes(protocol.pack(body.to_message()))
+        await ws.close(code=CLOSE_INTERNAL_ERROR, reason="stream failed")
+    elif session.expired:  # its slot goes to another viewer
+        body = protocol.ErrorBody(protocol.ErrorCode.INVALID_INPUT,
+                                  f"no subscription for {SUBSCRIBE_WAIT_S:g} s: the stream is closed (send "
+                                  "one within that time of opening, or of a sweep's end)", "subscription")
+        await ws.send_bytes(protocol.pack(body.to_message()))
+        await ws.close(code=CLOSE_POLICY, reason="no subscription")
+    else:
+        await ws.close()

@@ -34,3 +34,21 @@ class StubService:
 
     def size(self, width, height):
         return 8, 8
+
+    frame_bytes = 64 * 1024
+    """Size of each stub frame (incompressible)."""
+
+    def render_frame(self, t_us, pose, width, height, fmt):
+        """A frame of ``frame_bytes`` random bytes, counted in ``renders``: a stream's own path (the pool,
+        the producer, the sender) with no model behind it."""
+        import os
+
+        from edmcgs import protocol
+        from edmcgs.server.service import RenderedFrame
+
+        self.renders = getattr(self, "renders", 0) + 1
+        t_us = self.engine.first_us if t_us is None else t_us
+        meta = protocol.FrameMeta(t_us=t_us, t=self.engine.seconds_of(t_us), anchor_us=self.engine.first_us,
+                                  events=0, render_ms=0.1, width=width, height=height, channels=3, format=fmt,
+                                  anchor="checkpoint", projected=False)
+        return RenderedFrame(meta, os.urandom(self.frame_bytes), (t_us - 1000, t_us))
