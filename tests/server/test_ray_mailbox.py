@@ -38,3 +38,19 @@ def test_close_wakes_a_waiting_get_and_unknown_sessions_are_refused():
             box.open("t")
 
     asyncio.run(main())
+
+
+def test_a_sessions_queue_is_bounded_in_bytes_and_takes_one_message_of_any_size():
+    async def main():
+        box = Mailbox(max_pending=64, max_pending_bytes=2 << 20)
+        box.open("s")
+        mib = bytes(1 << 20)
+        assert box.put("s", mib) and box.put("s", mib)
+        assert not box.put("s", b"x"), "2 MiB pending: refused"
+        assert await box.get("s") == [mib, mib]
+        assert box.put("s", bytes(5 << 20)), "an empty queue takes one message, however large"
+        assert not box.put("s", b"x")
+        box.close("s")
+        assert box.pending_bytes == {}
+
+    asyncio.run(main())
