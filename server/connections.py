@@ -16,6 +16,7 @@ progress (``middleware.AccessMiddleware``), not connections.
 from __future__ import annotations
 
 import asyncio
+import socket
 
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
@@ -98,7 +99,8 @@ class DroppingWebSocketProtocol(WebSocketsSansIOProtocol):
     they never do), and tells the app nothing: its next send waits forever for the transport to take
     more, and the stream keeps its slot. Here the transport is aborted instead: the connection ends at
     once, the app's receive sees a disconnect and a waiting send fails. A transport still open
-    CLOSE_GRACE_S after the app ended (a close the peer never reads) is aborted too.
+    CLOSE_GRACE_S after the app ended (a close the peer never reads) is aborted too. The socket's send
+    buffer is WS_SEND_BUFFER, so a ping waits behind little and a slow reader answers it in time.
 
     When the protocol itself closes the connection (a ping unanswered; a message over ``ws_max_size``,
     compressed or not, closed with 1009), uvicorn fails the app's next send with a RuntimeError ("after
@@ -108,6 +110,9 @@ class DroppingWebSocketProtocol(WebSocketsSansIOProtocol):
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._lost = False
         super().connection_made(transport)
+        sock = transport.get_extra_info("socket")
+        if sock is not None:  # frames queue in the app's slot, not by megabytes in the kernel
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, WS_SEND_BUFFER)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._lost = True
@@ -134,9 +139,13 @@ class DroppingWebSocketProtocol(WebSocketsSansIOProtocol):
 WS_MAX_BYTES = 1 << 20
 """Largest websocket message a client may send (after decompression); a larger one closes with 1009."""
 PING_INTERVAL_S = 2.0
-PING_TIMEOUT_S = 7.0
-"""Keepalive pings: a peer that leaves one unanswered this long is dropped (within 9 s of its last pong).
+PING_TIMEOUT_S = 5.0
+"""Keepalive pings: a peer that leaves one unanswered this long is dropped (within 7 s of its last pong).
 A ping waits behind the frames already queued to the peer: a slow reader still answers in time."""
+WS_SEND_BUFFER = 256 * 1024
+"""A websocket's kernel send buffer (Linux doubles it): what waits there ahead of a frame or a ping is
+at most about half a MiB, however slow the peer; the kernel's own sizing queued megabytes on loopback,
+seconds of stale frames for a slow reader, ahead of the ping it must answer in PING_TIMEOUT_S."""
 CLOSE_GRACE_S = 15.0
 """How long a websocket whose app has ended may take to close before it is aborted."""
 

@@ -217,13 +217,17 @@ class StreamSession:
             next_at = max(next_at + 1.0 / self.fps, loop.time())  # never a burst to catch up
             if self.changed.is_set():
                 continue  # a new subscription while waiting: render what is asked now
-            if not self.sender_free.is_set():
-                # The client has not taken the previous frame yet: render nothing it cannot take (the
-                # tick's frame is dropped: its seq is skipped).
-                self.seq += 1
-                self._drop()
-                await self._sender_free_or_changed()
-                continue
+            if not self.sender_free.is_set():  # the previous frame is on its way: a period at most
+                await self._sender_free_or_changed(timeout=1.0 / self.fps)
+                if self.changed.is_set():
+                    continue
+                if not self.sender_free.is_set():
+                    # The client has not taken it: render nothing it cannot take (this tick's frame is
+                    # dropped: its seq is skipped).
+                    self.seq += 1
+                    self._drop()
+                    await self._sender_free_or_changed()
+                    continue
             try:
                 frame = await self.service.pool.run_stream(partial(
                     self.service.render_frame, t_us, self.pose, *self.size, sub.format, sub.render_mode))
@@ -266,10 +270,10 @@ class StreamSession:
             for w in waiters:
                 w.cancel()
 
-    async def _sender_free_or_changed(self) -> None:
+    async def _sender_free_or_changed(self, timeout: float | None = None) -> None:
         waiters = [asyncio.create_task(self.changed.wait()), asyncio.create_task(self.sender_free.wait())]
         try:
-            await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)
+            await asyncio.wait(waiters, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
         finally:
             for w in waiters:
                 w.cancel()
