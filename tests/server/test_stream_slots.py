@@ -80,7 +80,9 @@ def _first_message(port: int) -> dict:
     raise AssertionError("closed without a message")
 
 
-def _until(condition, timeout: float) -> float:
+def _until(condition, timeout: float = 60.0) -> float:
+    """Until ``condition()``; ``timeout`` bounds a hang, not a speed (the slots' timing is in bench.hostile:
+    a loaded machine may take seconds for a first render)."""
     t0 = time.monotonic()
     while not condition():
         assert time.monotonic() - t0 < timeout, "not within the time"
@@ -95,7 +97,7 @@ def test_streams_that_never_subscribe_give_their_slots_back(served):
     try:
         busy = _first_message(port)
         assert busy["type"] == "error" and busy["error"] == "busy"
-        _until(lambda: service.metrics.stream_clients == 0, timeout=5)
+        _until(lambda: service.metrics.stream_clients == 0)
         close = b"\x88" + bytes([2 + len(b"no subscription")]) + struct.pack("!H", 1008) + b"no subscription"
         for s in silent:  # told why, then closed with 1008
             s.settimeout(5)
@@ -113,8 +115,8 @@ def test_streams_that_stop_reading_give_their_slots_back_and_cost_no_renders(ser
     port, service = served
     silent = [_silent(port, SWEEP) for _ in range(SLOTS)]
     try:
-        _until(lambda: getattr(service, "renders", 0) > 0, timeout=5)
-        _until(lambda: service.metrics.stream_clients == 0, timeout=8)
+        _until(lambda: getattr(service, "renders", 0) > 0)
+        _until(lambda: service.metrics.stream_clients == 0)
         renders = service.renders
         time.sleep(1.0)
         assert service.renders == renders, "renders for clients already gone"
@@ -130,7 +132,7 @@ def test_a_client_that_does_not_read_is_not_rendered_for(served):
     port, service = served
     s = _silent(port, SWEEP)
     try:
-        _until(lambda: getattr(service, "renders", 0) > 0, timeout=5)
+        _until(lambda: getattr(service, "renders", 0) > 0)
         time.sleep(2.0)  # its socket buffers fill; the sender waits
         renders = service.renders
         time.sleep(2.0)  # at 60 fps: 120 renders if it were rendered for

@@ -38,7 +38,7 @@ class StubService:
     frame_bytes = 64 * 1024
     """Size of each stub frame (incompressible)."""
 
-    def render_frame(self, t_us, pose, width, height, fmt):
+    def render_frame(self, t_us, pose, width, height, fmt, mode="rgb"):
         """A frame of ``frame_bytes`` random bytes, counted in ``renders``: a stream's own path (the pool,
         the producer, the sender) with no model behind it."""
         import os
