@@ -112,7 +112,7 @@ def drift(recording, checkpoint: Path, steps: int, scale: float, lr: float, fine
             capacity=10**6, fit=False, fit_steps=steps, fit_scale=scale, fit_lr=lr,
             finetune_steps=finetune_steps, finetune_lr=finetune_lr, spawn=spawn, colour_lr=colour_lr,
             transition=moves, project=project), pose=pose)
-        engine = Engine(model, ring, Timebase(model, online), cache_size=4)
+        engine = Engine(Timebase(model, online), ring, cache_size=4)
         engine.timeline = Timeline(start, start)
         anchors = rec.anchors
         # the frames from the checkpoint's last anchor on, as a replay delivers them (that one: what

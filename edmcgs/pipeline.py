@@ -143,7 +143,7 @@ def open_recording(path: str | Path, options: RecordingOptions | None = None, *,
                                     "--anchor-fps / --anchor-every")
         rec = replace(rec, anchors=Frames.empty(rec.height, rec.width), held_out=None)
     if options.intrinsics is not None:
-        rec = replace(rec, intrinsics=_intrinsics(options.intrinsics, rec.width, rec.height))
+        rec = replace(rec, intrinsics=parse_intrinsics(options.intrinsics, rec.width, rec.height))
     if options.poses == AUTO_POSES:
         rec = estimated_poses(rec, progress=progress)
     elif options.poses is not None:
@@ -333,7 +333,7 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     return t_us, c2w
 
 
-def _intrinsics(text: str, width: int, height: int) -> np.ndarray:
+def parse_intrinsics(text: str, width: int, height: int) -> np.ndarray:
     """fx, fy, cx, cy from ``fx,fy,cx,cy`` or a DV calibration file (refusing a lens it cannot model)."""
     if Path(text).suffix.lower() not in (".json", ".xml"):
         try:

@@ -95,13 +95,14 @@ HEADER_RENDER_MS = "X-Edmcgs-Render-Ms"  # server time spent on the render, enco
 HEADER_WIDTH = "X-Edmcgs-Width"  # image width, px
 HEADER_HEIGHT = "X-Edmcgs-Height"  # image height, px
 HEADER_CHANNELS = "X-Edmcgs-Channels"  # 1 (grey) or 3 (RGB)
-HEADER_ANCHOR = "X-Edmcgs-Anchor"  # what the anchor is: checkpoint | predicted | corrected (ANCHOR_KINDS)
+HEADER_ANCHOR = "X-Edmcgs-Anchor"  # what the anchor is: checkpoint | predicted | corrected | frame
 HEADER_PROJECTED = "X-Edmcgs-Projected"  # true | false: projected onto the events since the anchor's frame
 HEADER_MODE = "X-Edmcgs-Mode"  # what the pixels are: rgb | depth | alpha (RENDER_MODES)
 HEADER_DEPTH_NEAR = "X-Edmcgs-Depth-Near"  # depth mode: the camera z (m) grey 255 stands for; else absent
 HEADER_DEPTH_FAR = "X-Edmcgs-Depth-Far"  # depth mode: the camera z (m) grey 1 stands for; else absent
+HEADER_MODEL = "X-Edmcgs-Model"  # the model that rendered: 0 the given checkpoint, n the n-th learnt, none
 HEADERS = (HEADER_T_US, HEADER_T, HEADER_ANCHOR_US, HEADER_EVENTS, HEADER_RENDER_MS, HEADER_WIDTH,
-           HEADER_HEIGHT, HEADER_CHANNELS, HEADER_ANCHOR, HEADER_PROJECTED, HEADER_MODE)
+           HEADER_HEIGHT, HEADER_CHANNELS, HEADER_ANCHOR, HEADER_PROJECTED, HEADER_MODE, HEADER_MODEL)
 """The headers of every GET /render response (a depth render adds ``HEADER_DEPTH_NEAR`` / ``_FAR``)."""
 
 RENDER_MODES = ("rgb", "depth", "alpha")
@@ -147,11 +148,12 @@ FRAME_KEYS = (
     "height",
     "channels",  # 1 (grey) or 3 (RGB)
     "format",  # "jpeg" | "png" | "raw" (msgpack body of /render: "raw")
-    "anchor",  # what the anchor is: "checkpoint" | "predicted" | "corrected" (ANCHOR_KINDS)
+    "anchor",  # what the anchor is: "checkpoint" | "predicted" | "corrected" | "frame" (ANCHOR_KINDS)
     "projected",  # true: the event camera's view projected onto the events since the anchor's frame
     "render_mode",  # what the pixels show: "rgb" | "depth" | "alpha" (RENDER_MODES)
     "depth_near",  # depth: the camera z (m) grey 255 stands for (DEPTH_GREY_NEAR); else null
     "depth_far",  # depth: the camera z (m) grey 1 stands for; else null
+    "model_version",  # the model that rendered: 0 the given checkpoint, n the n-th learnt; null: none yet
     "data",  # bytes: the encoded image, or for "raw" uint8 pixels [height, width, channels] row-major
 )
 LIVE_KEYS = ("arrived_unix_us", "head_arrived_unix_us")
@@ -430,9 +432,11 @@ class TauSource(StrEnum):
     until the first of them."""
 
 
-ANCHOR_KINDS = ("checkpoint", "predicted", "corrected")
+ANCHOR_KINDS = ("checkpoint", "predicted", "corrected", "frame")
 """What the anchor of a render is (``HEADER_ANCHOR`` / a frame map's ``anchor``): one of the
-checkpoint's, an online anchor's prediction (not corrected yet), or an online anchor fitted to its frame."""
+checkpoint's, an online anchor's prediction (not corrected yet), an online anchor fitted to its frame, or
+(a service learning from a cold start, before its first model) the stream's frame, moved by the events
+since it."""
 
 
 TRANSITIONS = ("select", "distilled", "g_phi", "none")
@@ -619,6 +623,9 @@ class FrameMeta:
     ``None``."""
     depth_far: float | None = field(default=None, kw_only=True)
     """Depth: the camera z (m) grey 1 stands for (the 99th percentile); else ``None``."""
+    model_version: int | None = field(default=0, kw_only=True)
+    """The model that rendered: 0 the checkpoint the service was given; 1, 2 ... the models a cold start
+    learnt, in the order they went live; ``None`` none yet (the stream's frame moved by the events)."""
 
     def headers(self) -> dict[str, str]:
         """The ``HEADERS`` of a GET /render response, and a depth render's near and far."""
@@ -626,7 +633,8 @@ class FrameMeta:
                HEADER_EVENTS: str(self.events), HEADER_RENDER_MS: f"{self.render_ms:.3f}",
                HEADER_WIDTH: str(self.width), HEADER_HEIGHT: str(self.height),
                HEADER_CHANNELS: str(self.channels), HEADER_ANCHOR: self.anchor,
-               HEADER_PROJECTED: "true" if self.projected else "false", HEADER_MODE: self.render_mode}
+               HEADER_PROJECTED: "true" if self.projected else "false", HEADER_MODE: self.render_mode,
+               HEADER_MODEL: "none" if self.model_version is None else str(self.model_version)}
         if self.depth_near is not None and self.depth_far is not None:
             out |= {HEADER_DEPTH_NEAR: repr(self.depth_near), HEADER_DEPTH_FAR: repr(self.depth_far)}
         return out
@@ -635,13 +643,15 @@ class FrameMeta:
     def from_headers(cls, headers, format: str) -> FrameMeta:
         """Read the ``HEADERS`` of a GET /render response (any case-insensitive mapping)."""
         near, far = headers.get(HEADER_DEPTH_NEAR), headers.get(HEADER_DEPTH_FAR)
+        version = headers.get(HEADER_MODEL, "0")
         return cls(int(headers[HEADER_T_US]), float(headers[HEADER_T]), int(headers[HEADER_ANCHOR_US]),
                    int(headers[HEADER_EVENTS]), float(headers[HEADER_RENDER_MS]), int(headers[HEADER_WIDTH]),
                    int(headers[HEADER_HEIGHT]), int(headers[HEADER_CHANNELS]), format,
                    headers.get(HEADER_ANCHOR, "checkpoint"), headers.get(HEADER_PROJECTED, "false") == "true",
                    render_mode=headers.get(HEADER_MODE, "rgb"),
                    depth_near=None if near is None else float(near),
-                   depth_far=None if far is None else float(far))
+                   depth_far=None if far is None else float(far),
+                   model_version=None if version == "none" else int(version))
 
     def to_message(self, data: bytes, **stream: Any) -> dict:
         """A frame map (``FRAME_KEYS``): these fields and the image ``data``, plus the websocket's
@@ -661,7 +671,8 @@ class FrameMeta:
                    message.get("anchor", "checkpoint"), bool(message.get("projected", False)),
                    render_mode=message.get("render_mode", "rgb"),
                    depth_near=None if near is None else float(near),
-                   depth_far=None if far is None else float(far))
+                   depth_far=None if far is None else float(far),
+                   model_version=message.get("model_version", 0))
 
 
 # The OpenAPI and AsyncAPI documents are generated from these types (server/wire_schema.py, by pydantic):

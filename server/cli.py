@@ -4,6 +4,8 @@
     edmcgs-serve --replay rec.h5 --checkpoint scene.ckpt --loop
     edmcgs-serve --replay rec.aedat4 --checkpoint scene.ckpt --speed 0.5
     edmcgs-serve --live --checkpoint scene.ckpt              # a DAVIS346 over USB
+    edmcgs-serve --replay street.aedat4                      # no checkpoint: learn one while serving
+    edmcgs-serve --live                                      # (renders at once; a model within a minute)
     edmcgs-serve --checkpoint scene.ckpt                     # no sensor: a checkpoint without events,
                                                              # its span played in a loop (--speed)
     edmcgs-serve --ray scenes.yaml                           # many scenes on Ray Serve (extra: ray)
@@ -34,7 +36,14 @@ def _parser() -> argparse.ArgumentParser:
                                 epilog="Settings without a flag: EDMCGS_MAX_WIDTH, EDMCGS_RENDER_WORKERS, "
                                        "... (see edmcgs.server.settings).")
     p.add_argument("--replay", metavar="FILE", help="recording to replay: .aedat4, or .h5/.hdf5")
-    p.add_argument("--checkpoint", metavar="CKPT", help="EdMCGS checkpoint of the scene")
+    p.add_argument("--checkpoint", metavar="CKPT",
+                   help="EdMCGS checkpoint of the scene (none with --replay or --live: learn one while "
+                        "serving)")
+    p.add_argument("--intrinsics", metavar="FX,FY,CX,CY|CALIB.json",
+                   help="learning without a checkpoint: the camera (default: the recording's, else fx = fy "
+                        "= width, centred)")
+    p.add_argument("--learn-dir", metavar="DIR", help="learning without a checkpoint: where the learnt "
+                                                       "checkpoints go (default ./edmcgs-learned)")
     p.add_argument("--speed", type=float, help="replay speed, a real-time factor (default 1); without a "
                                                "sensor, the speed the span plays at")
     p.add_argument("--loop", action="store_true", default=None, help="replay in a loop")

@@ -122,6 +122,54 @@ class Online(_Body):
     fit: Fit
 
 
+class HeldOut(_Body):
+    """A learnt model's score on frames it was not trained on (the stream's frames between its anchors)."""
+
+    psnr: float
+    ssim: float
+    ssim_3dgs: float | None = None
+    frames: int
+
+
+class LearntModel(_Body):
+    """The model a cold start's learner published last, served since ``live_unix``."""
+
+    version: int
+    """1 for the first model, then one more per publication."""
+    span_us: list[int]
+    """The scene times it learnt: its first anchor and its span's end."""
+    anchors: int
+    steps: int
+    """Training steps behind it (this round's)."""
+    gaussians: int
+    cpu_s: float
+    """The learner's CPU seconds when it was published."""
+    heldout: HeldOut | None
+    """Null: the stream has no frame between its anchors yet."""
+    live_unix: float
+    """When the server swapped it in (Unix seconds)."""
+
+
+class Learning(_Body):
+    """A cold start's learner (``edmcgs-serve --replay REC`` or ``--live`` without a checkpoint)."""
+
+    workdir: str
+    """Where it writes its checkpoints; on stop ``learned.ckpt`` (resumable) and ``learned.h5``."""
+    preset: str
+    anchor_fps: float
+    running: bool
+    error: str | None
+    fed: dict[str, int]
+    """What the server has given it: batches, events, frames."""
+    version: int | None
+    """The model served now (null: none learnt yet: renders are the stream's frames moved by the
+    events)."""
+    model: LearntModel | None
+    started_unix: float | None
+    saved: dict | None
+    """What it saved when it stopped."""
+
+
 class Source(_Body):
     """The event source."""
 
@@ -184,6 +232,8 @@ class Scene(_Body):
     training_views: TrainingViews | None
     """The training cameras (null: the checkpoint has no trajectory)."""
     online: Online | None
+    learning: Learning | None
+    """A cold start's learner (null: the checkpoint was given)."""
     source: Source | None
     playback: Playback | None
     limits: Limits
@@ -200,7 +250,8 @@ class Health(_Body):
     """GET /healthz: ready when the model is loaded and the source delivers (no sensor: once loaded)."""
 
     ready: bool
-    model: str
+    model: Literal["loaded", "learning"]
+    """learning: a cold start before its first model."""
     device: str
     source: Literal["none", "streaming", "ended", "stopped", "error"]
     source_error: str | None

@@ -10,26 +10,36 @@ events: alone it is refused, naming the fix.
 With a sensor, tau(t) comes from the checkpoint's anchors over its span (live/clock.TauRule); past its end
 a source's frames become online anchors (live/anchors.py: predicted by the event transition, corrected in
 the background), so a stream longer than the span renders to its head.
+
+A source without a checkpoint is a cold start (live/learning.py): the stream's frames moved by the events
+since each render at once, and a learner beside the server trains a model on them; each model it
+publishes is built into a timebase here, off the render path, and swapped into the engine whole.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from edmcgs import protocol
 from edmcgs.errors import EdmcgsError, InvalidInputError, RenderError
+from edmcgs.geometry import Intrinsics
 from edmcgs.model.checkpoint import load_checkpoint
+from edmcgs.model.config import preset
+from edmcgs.model.eval.baselines import DEFAULT_CONTRAST
 from edmcgs.model.render import rasterize_fast
 from edmcgs.model.render.jit import compiled
+from edmcgs.pipeline import parse_intrinsics
 from edmcgs.sensor.buffer.anchors import AnchorStore
 from edmcgs.sensor.buffer.ingest import Ingest
 from edmcgs.sensor.buffer.ring import EventRingBuffer
+from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.sources.base import EventSource, SensorBatch
 from edmcgs.sensor.sources.open import open_source
 from edmcgs.sensor.sources.pacing import Pacing
@@ -37,10 +47,13 @@ from edmcgs.server import demo
 from edmcgs.server.encode import encode, event_rgba
 from edmcgs.server.engine import Engine
 from edmcgs.server.live.anchors import OnlineAnchors
+from edmcgs.server.live.anchors import register_metrics as register_online_metrics
 from edmcgs.server.live.clock import Timeline
+from edmcgs.server.live.config import LearnConfig
+from edmcgs.server.live.learning import Learning
 from edmcgs.server.live.playback import Playback
 from edmcgs.server.live.signal import Arrivals, HeadSignal
-from edmcgs.server.live.timebase import Timebase
+from edmcgs.server.live.timebase import FramesTimebase, StreamMeta, Timebase
 from edmcgs.server.metrics import Metrics
 from edmcgs.server.render_pool import RenderPool
 from edmcgs.server.settings import Settings
@@ -51,7 +64,8 @@ log = logging.getLogger("edmcgs.server")
 def _warm_up(engine: Engine) -> float:
     """``engine.warm_up()``, announced first where the renderer's kernels are not in numba's cache yet
     (the start would otherwise look hung)."""
-    if engine.fast and not compiled(*rasterize_fast.KERNELS):
+    model = engine.model
+    if model is not None and model.center.device.type == "cpu" and not compiled(*rasterize_fast.KERNELS):
         log.info("compiling the renderer's kernels (first run only, about %d s; edmcgs warm-up does it "
                  "ahead) ...", rasterize_fast.COMPILE_S)
     return engine.warm_up()
@@ -68,7 +82,8 @@ def invalid(param: str, message: str) -> InvalidInputError:
 class Inputs:
     """What to serve, resolved from the settings."""
 
-    checkpoint: Path
+    checkpoint: Path | None
+    """None with a source: learn the model while serving (a cold start)."""
     replay: Path | None
     live: bool
     loop: bool
@@ -99,10 +114,17 @@ class RenderedFrame:
 class Service:
     """Built by ``open`` (blocking: loads, opens, warms up, starts ingesting); ``close`` undoes it."""
 
-    def __init__(self, settings: Settings, inputs: Inputs, model, source: EventSource | None,
-                 ring: EventRingBuffer, anchors: AnchorStore | None, engine: Engine):
+    def __init__(self, settings: Settings, inputs: Inputs, source: EventSource | None,
+                 ring: EventRingBuffer, engine: Engine, frames: AnchorStore | None = None,
+                 learning: Learning | None = None):
         self.settings, self.inputs = settings, inputs
-        self.model, self.source, self.ring, self.anchors, self.engine = model, source, ring, anchors, engine
+        self.source, self.ring, self.engine, self.frames = source, ring, engine, frames
+        self.learning = learning
+        """A cold start's learner (None: the checkpoint is given); each model it publishes comes here."""
+        if learning is not None:
+            learning.on_model = self._take_model
+        self._swap = threading.Lock()  # the ingest thread's frames and a model swap, one at a time
+        self._origin_set = False
         self.metrics = Metrics()
         self.arrivals = Arrivals()
         self.pool = RenderPool(settings.render_workers, settings.render_queue, settings.stream_workers)
@@ -121,6 +143,8 @@ class Service:
             import torch
 
             torch.set_num_threads(settings.torch_threads)
+        if inputs.checkpoint is None:
+            return cls._open_learning(settings, inputs, source)
         model = load_checkpoint(inputs.checkpoint, settings.device)
         if inputs.sensorless:
             return cls._open_sensorless(settings, inputs, model)
@@ -137,13 +161,13 @@ class Service:
             ring = EventRingBuffer(settings.ring_events)
             # Past the span, the stream's frames become online anchors (live/anchors.py).
             online = OnlineAnchors(model, ring, settings.online) if info.has_frames else None
-            engine = Engine(model, ring, Timebase(model, online), cache_size=settings.deform_cache,
+            engine = Engine(Timebase(model, online), ring, cache_size=settings.deform_cache,
                             raster_threads=settings.raster_threads)
             if info.t_range_us is not None:
                 engine.timeline = replay_timeline(info.t_range_us, meta.t_start_us, meta.t_end_us,
                                                   inputs.loop)
                 retain_passes(ring, engine.timeline)
-            service = cls(settings, inputs, model, source, ring, None, engine)
+            service = cls(settings, inputs, source, ring, engine)
             seconds = _warm_up(engine)
             log.info("model %s on %s: %d Gaussians, warm-up %.1f s; source %s (%dx%d, %s)",
                      inputs.checkpoint, settings.device, len(model.gaussians), seconds, info.sensor,
@@ -166,22 +190,110 @@ class Service:
                 "recording without events) is served without a sensor")
         ring = EventRingBuffer(1)  # never written: there are no events
         playback = Playback(int(meta.anchors_us[0]), meta.t_end_us, settings.speed)
-        engine = Engine(model, ring, cache_size=settings.deform_cache, raster_threads=settings.raster_threads,
-                        playback=playback)
-        service = cls(settings, inputs, model, None, ring, None, engine)
+        engine = Engine(Timebase(model), ring, cache_size=settings.deform_cache,
+                        raster_threads=settings.raster_threads, playback=playback)
+        service = cls(settings, inputs, None, ring, engine)
         seconds = _warm_up(engine)
         log.info("model %s on %s: %d Gaussians, warm-up %.1f s; no sensor (no event branch): the span "
                  "plays in a loop at %gx", inputs.checkpoint, settings.device, len(model.gaussians), seconds,
                  settings.speed)
         return service
 
+    @classmethod
+    def _open_learning(cls, settings: Settings, inputs: Inputs, source: EventSource | None) -> Service:
+        """A source without a checkpoint: serve its frames moved by the events at once, and learn."""
+        pacing = Pacing(factor=settings.speed, loop=inputs.loop, batch_us=settings.replay_batch_us)
+        if inputs.loop:
+            raise InvalidInputError("a cold start learns one pass of the stream: --loop needs a checkpoint")
+        if source is None:
+            source = open_source(inputs.replay, live=inputs.live, pacing=pacing)
+        try:
+            info, extras = source.info, source.extras
+            name = "the camera" if info.live else str(inputs.replay)
+            if not info.has_frames:
+                raise InvalidInputError(f"{name} has no frames: a cold start learns the scene from its "
+                                        "frames and events; give --checkpoint to serve a model trained "
+                                        "beforehand")
+            if info.frame_size is not None and info.frame_size != (info.width, info.height):
+                raise InvalidInputError(f"{name}'s frames are {info.frame_size[0]}x{info.frame_size[1]}, "
+                                        f"its events {info.width}x{info.height}: a cold start needs one "
+                                        "resolution")
+            if settings.intrinsics is not None:
+                intrinsics = tuple(float(v) for v in parse_intrinsics(settings.intrinsics, info.width,
+                                                                        info.height))
+            elif extras.intrinsics is not None:
+                intrinsics = tuple(extras.intrinsics)
+            else:
+                w, h = info.width, info.height
+                intrinsics = (float(w), float(w), (w - 1) / 2, (h - 1) / 2)
+                log.warning("no intrinsics given or stated: assuming fx = fy = width, centred (--intrinsics)")
+            preset(settings.learn_preset).with_overrides(settings.learn_set)  # a typo is said now, not later
+            contrast = extras.contrast_threshold or DEFAULT_CONTRAST
+            ring = EventRingBuffer(settings.ring_events)
+            frames = AnchorStore(settings.frames_kept)
+            origin = info.t_range_us[0] if info.t_range_us is not None else 0  # set by the first frame
+            meta = StreamMeta(origin, Intrinsics(*intrinsics, info.width, info.height), info.width,
+                              info.height, 1, contrast)
+            engine = Engine(FramesTimebase(meta, frames), ring, cache_size=settings.deform_cache,
+                            raster_threads=settings.raster_threads)
+            config = LearnConfig(workdir=settings.learn_dir, intrinsics=intrinsics,
+                                 contrast_threshold=extras.contrast_threshold, preset=settings.learn_preset,
+                                 overrides=tuple(settings.learn_set),
+                                 trajectory=None if extras.trajectory_t_us is None else
+                                 (extras.trajectory_t_us, extras.trajectory_c2w),
+                                 anchor_fps=settings.learn_anchor_fps, first_steps=settings.learn_first_steps,
+                                 publish_s=settings.learn_publish_s)
+            service = cls(settings, inputs, source, ring, engine, frames,
+                          Learning(config, info.width, info.height))
+            seconds = _warm_up(engine)
+            log.info("cold start on %s: learning from %s (%dx%d) into %s, warm-up %.1f s; until the first "
+                     "model, renders are the newest frame moved by the events since", settings.device,
+                     info.sensor, info.width, info.height, config.workdir, seconds)
+            return service
+        except BaseException:
+            source.close()
+            raise
+
+    def _take_model(self, model, report: dict) -> None:
+        """The learner's thread: build a newly learnt model's timebase (its online anchors seeded with the
+        stream's frames past its span), warm it up, and swap it in."""
+        online = OnlineAnchors(model, self.ring, self.settings.online)
+        tb = Timebase(model, online, version=report["version"])
+        self.engine.warm_up(tb)
+        seeded = self._seed(online, model.meta.t_end_us)
+        with self._swap:  # every frame of the stream reaches the online anchors of one timebase or the other
+            self._seed(online, seeded)
+            online.on_fit = self._on_fit
+            online.start()
+            old = self.engine.timebase
+            self.engine.swap(tb)
+        if old.online is not None:
+            old.online.stop()
+
+    def _seed(self, online: OnlineAnchors, after_us: int) -> int:
+        """Give ``online`` the stream's frames after ``after_us``; returns the newest time given."""
+        times = self.frames.times()
+        newest = int(times[-1]) if len(times) else after_us
+        picked = [self.frames.anchor_at(int(t)) for t in times[times > after_us]]
+        if picked and self.engine.timeline is not None:
+            online.on_frames(Frames(np.array([a.t_us for a in picked], np.int64),
+                                    np.stack([a.image for a in picked])), self.engine.timeline.scene_of)
+        return max(newest, after_us)
+
+    def _on_fit(self, seconds: float, before: float, after: float) -> None:
+        self.metrics.fit.observe(seconds)
+        self.metrics.fit_loss.observe(after)
+
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
         """Start ingesting (the replay's real-time clock starts here) and waking live streams on ``loop``."""
         self.signal = HeadSignal(loop)
         if self.online is not None:
+            self.online.on_fit = self._on_fit
             self.online.start()
+        if self.learning is not None:
+            self.learning.start()
         if self.source is not None:
-            self.ingest = Ingest(self.source, self.ring, self.anchors, on_batch=self._on_batch).start()
+            self.ingest = Ingest(self.source, self.ring, self.frames, on_batch=self._on_batch).start()
 
     def close(self) -> None:
         """Stop the ingest thread (joined), close the source, finish running renders."""
@@ -191,6 +303,8 @@ class Service:
                 log.warning("the ingest thread did not stop within 5 s")
         if self.source is not None:
             self.source.close()
+        if self.learning is not None:
+            self.learning.close()
         if self.online is not None:
             self.online.stop()
         self.pool.close()
@@ -202,17 +316,36 @@ class Service:
 
     def _on_batch(self, batch: SensorBatch) -> None:
         """Ingest thread, after each batch is stored."""
-        if self.engine.timeline is None and len(batch.events):
+        has_frames = batch.frames is not None and len(batch.frames)
+        if self.learning is not None:
+            self.learning.feed(batch)
+            if self.engine.timeline is None and (len(batch.events) or has_frames):
+                # learnt from the stream itself: the scene's clock is the stream's
+                first = min(t for t in (batch.events.t[:1].tolist() + (
+                    [int(batch.frames.t_us[0])] if has_frames else [])))
+                self.engine.timeline = Timeline(first, first)
+            if has_frames and self.engine.model is None and not self._origin_set:
+                self._origin_set = True  # the scene starts at its first frame, as its models will
+                tb = self.engine.timebase
+                meta = replace(tb.meta, t_start_us=int(batch.frames.t_us[0]), channels=batch.frames.channels)
+                self.engine.swap(FramesTimebase(meta, tb.frames))
+        elif self.engine.timeline is None and len(batch.events):
             # A camera's clock is known at its first event; align it with the scene's start and loop
             # over the trained span (see live/clock.py).
             # With frames, online anchors carry it past the span instead: no loop.
-            meta = self.model.meta
+            meta = self.engine.meta
             self.engine.timeline = Timeline(int(batch.events.t[0]), meta.t_start_us,
                                             None if self.online is not None
                                             else meta.t_end_us - meta.t_start_us + 1)
-        online, tl = self.online, self.engine.timeline
-        if online is not None and batch.frames is not None and len(batch.frames) and tl is not None:
-            online.on_frames(batch.frames, tl.scene_of)
+        tl = self.engine.timeline
+        if has_frames and tl is not None:
+            with self._swap:
+                online = self.online
+                if online is not None:  # (a swap may have given it this batch's frames already)
+                    newest = online.newest_frame_us
+                    fresh = batch.frames if newest is None else batch.frames.time_slice(newest + 1, 2**62)
+                    if len(fresh):
+                        online.on_frames(fresh, tl.scene_of)
         wm = self.ring.watermark_us
         if wm is not None:
             self.arrivals.record(wm)
@@ -233,7 +366,7 @@ class Service:
         ready = source_state in ("streaming", "ended", "none") and head is not None
         details = {
             "ready": ready,
-            "model": "loaded",
+            "model": "loaded" if self.engine.model is not None else "learning",
             "device": self.settings.device,
             "source": source_state,
             "source_error": None if ingest is None or ingest.error is None else str(ingest.error),
@@ -246,7 +379,7 @@ class Service:
     # ------------------------------------------------------------------ requests
     def size(self, width: int | None, height: int | None) -> tuple[int, int]:
         """Output size: the camera's by default; one side alone keeps the aspect ratio; capped."""
-        native = self.model.meta.intrinsics
+        native = self.engine.meta.intrinsics
         if width is None and height is None:
             width, height = native.width, native.height
         elif height is None:
@@ -284,7 +417,8 @@ class Service:
                                   anchor_us=inst.anchor_us, events=rendered.events, render_ms=round(ms, 3),
                                   width=width, height=height, channels=int(rendered.pixels.shape[2]),
                                   format=fmt, anchor=rendered.anchor, projected=rendered.projected,
-                                  render_mode=rendered.mode, depth_near=near, depth_far=far)
+                                  render_mode=rendered.mode, depth_near=near, depth_far=far,
+                                  model_version=rendered.model_version)
         return RenderedFrame(meta, data, inst.window)
 
     def event_map(self, t_us: int | None, fmt: str) -> tuple[protocol.EventMapMeta, bytes]:
@@ -306,17 +440,21 @@ class Service:
 
     def scene(self) -> dict:
         """The body of GET /scene."""
-        meta, engine = self.model.meta, self.engine
+        engine = self.engine
+        tb = engine.timebase  # one model for the whole answer
+        meta, model = tb.meta, tb.model
         intr = meta.intrinsics
         traj = meta.trajectory
         head = engine.head()
-        ranges = engine.renderable()
+        ranges = engine.renderable(tb)
         info = self.source.info if self.source is not None else None
+        t_end = meta.t_end_us if model is not None else meta.t_start_us if head is None else max(head[1],
+                                                                                                  meta.t_start_us)
         return {
             "t_start_us": meta.t_start_us,
-            "t_end_us": meta.t_end_us,
-            "duration_s": (meta.t_end_us - meta.t_start_us) / 1e6,
-            "anchors_us": [int(a) for a in meta.anchors_us],
+            "t_end_us": t_end,
+            "duration_s": (t_end - meta.t_start_us) / 1e6,
+            "anchors_us": [] if model is None else [int(a) for a in meta.anchors_us],
             "intrinsics": {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
                            "width": intr.width, "height": intr.height},
             "event_size": {"width": meta.event_width, "height": meta.event_height},
@@ -324,15 +462,16 @@ class Service:
                 "t_us": [int(t) for t in traj.t_us], "c2w": [m.reshape(-1).tolist() for m in traj.c2w]},
             "channels": meta.channels,
             "has_event_branch": meta.has_event_branch,
-            "num_gaussians": len(self.model.gaussians),
+            "num_gaussians": 0 if model is None else len(model.gaussians),
             "head_us": None if head is None else head[1],
             "head_t": None if head is None else engine.seconds_of(head[1]),
             "stream_head_us": None if head is None else head[0],
             "renderable": engine.range_dict(ranges[-1]) if ranges else None,
             "renderable_ranges": [engine.range_dict(r) for r in ranges],
             "tau_sources": engine.tau_ranges(),
-            "training_views": training_views(self.model),
+            "training_views": None if model is None else training_views(model),
             "online": self.online_info(),
+            "learning": None if self.learning is None else self.learning.info(),
             "source": None if info is None else {
                 "sensor": info.sensor, "live": info.live, "width": info.width, "height": info.height,
                 "has_frames": info.has_frames, "loop": self.inputs.loop,
@@ -389,8 +528,10 @@ class Service:
                 "queue slot taken.", lambda: self.pool.rejected)
         gauge("edmcgs_renders_in_flight", "Renders running or waiting for a worker.",
               lambda: self.pool.in_flight)
-        if self.online is not None:
-            self.online.register_metrics(self.metrics)
+        if self.online is not None or self.learning is not None:
+            register_online_metrics(self.metrics, lambda: self.online)
+        if self.learning is not None:
+            self.learning.register_metrics(self.metrics)
         gauge("edmcgs_stream_clients", "Open websocket streams.", lambda: self.metrics.stream_clients)
         counter("edmcgs_streams_refused_total", "Websocket streams refused: max_streams open.",
                 lambda: self.metrics.streams_refused)

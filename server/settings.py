@@ -12,13 +12,15 @@ from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from edmcgs.protocol import TRANSITIONS
-from edmcgs.server.live.config import OnlineConfig
+from edmcgs.server.live.config import LearnConfig, OnlineConfig
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 RING_BYTES_PER_EVENT = 13
 """t int64, x and y uint16, p int8: the ring's arrays (sensor/buffer/ring.py)."""
 ONLINE = OnlineConfig()
 """The online anchors' defaults (live/config.py: their one place)."""
+LEARN = LearnConfig()
+"""A cold start's learner's defaults (live/config.py)."""
 
 
 def host_allowlist(host: str, allowed_hosts: list[str] | None) -> list[str] | None:
@@ -49,10 +51,12 @@ class Settings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="EDMCGS_", extra="forbid")
 
-    checkpoint: Path | None = Field(None, description="EdMCGS checkpoint to serve; none: the bundled demo's.")
-    replay: Path | None = Field(None, description="AEDAT4 or HDF5 recording to replay; none with no "
-                                                  "--live: the bundled demo's recording, or, with a "
-                                                  "checkpoint without an event branch, no sensor at all.")
+    checkpoint: Path | None = Field(None, description="EdMCGS checkpoint to serve; none with --replay or "
+                                    "--live: learn one from the stream while serving (a cold start); none "
+                                    "at all: the bundled demo's.")
+    replay: Path | None = Field(None, description="Recording to replay (any format the sensor layer reads); "
+                                                  "none with no --live: the bundled demo's recording, or, "
+                                                  "with a checkpoint without an event branch, no sensor.")
     live: bool = Field(False, description="Read a DAVIS346 over USB instead of replaying a file.")
     speed: float = Field(1.0, gt=0, le=1e6,
         description="Replay speed, a real-time factor (without a sensor: the "
@@ -140,6 +144,24 @@ class Settings(BaseSettings):
                     "pixel: one contrast threshold either side of the frame moved by the events "
                     "(model/online/bounds.py). The model renders what the events leave open. Off: the "
                     "model's render alone.")
+    intrinsics: str | None = Field(None, description="A cold start's camera: fx,fy,cx,cy in pixels, or a DV "
+                                   "calibration file (default: what the recording states, else fx = fy = "
+                                   "width, centred).")
+    frames_kept: int = Field(1024, gt=0, le=1_000_000, description="A cold start's stream frames kept for "
+                             "renders and online anchors (the oldest go first; at 25 Hz, 41 s).")
+    learn_dir: Path = Field(LEARN.workdir, description="Where a cold start's learner writes the checkpoints "
+                            "it publishes, and on stop learned.ckpt (resumable) and learned.h5 (the stream).")
+    learn_preset: str = Field(LEARN.preset, description="The config a cold start's learner trains (edmcgs "
+                              "train --config).")
+    learn_set: list[str] = Field(list(LEARN.overrides), description="key=value changes to that config "
+                                 "(edmcgs train --set; EDMCGS_LEARN_SET is a JSON list).")
+    learn_anchor_fps: float = Field(LEARN.anchor_fps, gt=0, le=1000, description="Frames at this rate are "
+                                    "the learner's anchors; the others are held out and scored.")
+    learn_first_steps: int = Field(LEARN.first_steps, gt=0, le=1_000_000, description="Steps of the "
+                                   "learner's first round (then twice the last, up to the preset's).")
+    learn_publish_s: float = Field(LEARN.publish_s, gt=0, le=86_400, description="Seconds between two "
+                                   "checkpoints the learner publishes within a round (each round's end "
+                                   "publishes one too).")
     raster_threads: int | None = Field(None, gt=0, le=1024,
         description="Threads of the numba rasterizer per render; "
                                        "none: every core (on a 2-core CPU, 2 per render beat 1 at one and at "
@@ -171,8 +193,6 @@ class Settings(BaseSettings):
     def _one_source(self) -> Settings:
         if self.live and self.replay is not None:
             raise ValueError("replay and live are exclusive: give one event source")
-        if (self.live or self.replay is not None) and self.checkpoint is None:
-            raise ValueError("a checkpoint is required with replay or live (the model of that scene)")
         return self  # a checkpoint alone: Service.open checks that it has no event branch
 
     @property
@@ -193,6 +213,11 @@ class Settings(BaseSettings):
     def uses_demo(self) -> bool:
         """True when neither a checkpoint nor a source is given: serve the bundled demo scene."""
         return self.checkpoint is None and self.replay is None and not self.live
+
+    @property
+    def learning(self) -> bool:
+        """True when a source is given without a checkpoint: learn the model while serving."""
+        return self.checkpoint is None and (self.replay is not None or self.live)
 
     @property
     def sensorless(self) -> bool:

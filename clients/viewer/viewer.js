@@ -843,6 +843,14 @@ function shown(frame) {
     }
   }
   if (frame.events !== undefined) $("events").textContent = String(frame.events);
+  if (frame.model_version !== undefined) {
+    $("model").textContent = modelText(frame.model_version, state.scene.learning);
+    if (frame.model_version !== state.modelVersion) {
+      const first = state.modelVersion === undefined;
+      state.modelVersion = frame.model_version;
+      if (!first) reloadScene();  // a learnt model went live: its anchors, trajectory and cameras
+    }
+  }
   wantEvents(frame.t_us);
   if (frame.render_ms !== undefined) $("render-ms").textContent = `${frame.render_ms.toFixed(1)} ms`;
   $("depth-range").textContent = depthText(state.depthRange, state.imageMode);
@@ -857,6 +865,31 @@ function depthText(range, mode) {
   if (!range) return "nothing in view";
   const digits = (v) => (Math.abs(v) >= 10 ? v.toFixed(1) : v.toFixed(3));
   return `${digits(range.near)}–${digits(range.far)} m`;
+}
+
+// Which model rendered: the checkpoint given, the n-th a cold start learnt (with what GET /scene says of
+// it), or none yet (the stream's newest frame moved by the events since).
+function modelText(version, learning) {
+  if (version === null) return "learning… (frame + events)";
+  if (!learning || version === 0) return "checkpoint";
+  const m = learning.model;
+  if (!m || m.version !== version) return `learnt v${version}`;
+  const span = (m.span_us[1] - m.span_us[0]) / 1e6;
+  const psnr = m.heldout && Number.isFinite(m.heldout.psnr) ? `, held-out ${m.heldout.psnr.toFixed(1)} dB` : "";
+  return `learnt v${version} (${span.toFixed(1)} s, ${m.anchors} anchors, step ${m.steps}${psnr})`;
+}
+
+async function reloadScene() {
+  try {
+    const response = await fetch(new URL("scene", location.href), { headers: authHeaders });
+    if (!response.ok) return;
+    state.scene = await response.json();
+    state.cameraPoses = anchorPoses(state.scene.trajectory, state.scene.anchors_us);
+    layoutSlider();
+    paint();
+  } catch (err) {
+    showError(`cannot reload the scene: ${err.message}`);
+  }
 }
 
 // Past the span the anchor is an online one (predicted, or corrected against its frame), and the event
@@ -1221,7 +1254,7 @@ async function start() {
 // The pure parts, for a console or a test page.
 window.edmcgsViewer = {
   state, unpack, poseAt, Orbit, quatFromRot, rotFromQuat, currentPose, renderSize, nearestTrainingView,
-  anchorNote, parsePose, anchorPoses, frustumSegments, pathSegments, pickFrustum, depthText, canvasPoint,
+  anchorNote, modelText, parsePose, anchorPoses, frustumSegments, pathSegments, pickFrustum, depthText, canvasPoint,
   FAR_ANGLE_DEG, FAR_DISTANCE, MAX_FIT_SCALE, FRUSTUM_DEPTH,
 };
 

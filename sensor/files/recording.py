@@ -539,12 +539,20 @@ class RecordingFile:
     def frame_images(self, i0: int, i1: int, group: str = "anchors") -> np.ndarray:
         return self._read(f"{group}/images", lambda: self._f[group]["images"][i0:i1])
 
+    def intrinsics(self) -> np.ndarray | None:
+        """float64 [4] fx, fy, cx, cy, when stored."""
+        f = self._f
+        return self._read("intrinsics", lambda: f["intrinsics"][:] if "intrinsics" in f else None)
+
+    def trajectory(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """(t_us [T], c2w [T, 4, 4]) of the camera, when stored."""
+        f = self._f
+        return self._read("trajectory", lambda: (f["trajectory/t_us"][:], f["trajectory/c2w"][:])
+                          if "trajectory" in f else (None, None))
+
     def read(self) -> Recording:
         """The whole recording in memory."""
-        f = self._f
-        intr = self._read("intrinsics", lambda: f["intrinsics"][:] if "intrinsics" in f else None)
-        traj = self._read("trajectory", lambda: (f["trajectory/t_us"][:], f["trajectory/c2w"][:])
-                          if "trajectory" in f else (None, None))
+        intr, traj = self.intrinsics(), self.trajectory()
         return self._read("recording", lambda: Recording(
             width=self.width, height=self.height, events=self.read_events(), anchors=self.frames("anchors"),
             held_out=self.frames("held_out"), intrinsics=intr, trajectory_t_us=traj[0],

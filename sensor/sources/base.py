@@ -42,7 +42,7 @@ class StreamInfo:
 @dataclass(frozen=True)
 class Extras:
     """What a recording states beside its streams (a ROS bag's or the RPG layout's calibration and ground
-    truth); empty for a camera and for most files."""
+    truth, our HDF5's camera and threshold); empty for a camera and for most files."""
 
     intrinsics: tuple[float, float, float, float] | None = None
     """fx, fy, cx, cy in pixels at the event resolution."""
@@ -52,6 +52,8 @@ class Extras:
     """int64 [T]: times of the ground-truth camera poses, on the stream clock."""
     trajectory_c2w: np.ndarray | None = None
     """float64 [T, 4, 4]: camera-to-world poses at trajectory_t_us."""
+    contrast_threshold: float | None = None
+    """The events' contrast threshold C, when the recording states it."""
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,7 @@ from edmcgs.errors import InvalidInputError, ReplayFormatError, translated
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import RecordingFile, is_recording, open_hdf5
 from edmcgs.sensor.frames import Frames
-from edmcgs.sensor.sources.base import StreamInfo
+from edmcgs.sensor.sources.base import Extras, StreamInfo
 from edmcgs.sensor.sources.pacing import Pacing
 from edmcgs.sensor.sources.replay import Chunk, Replay
 
@@ -62,6 +62,9 @@ class _Layout:
     def frame_images(self, i0: int, i1: int) -> np.ndarray:
         raise NotImplementedError
 
+    def extras(self) -> Extras:
+        return Extras()
+
     def close(self) -> None:
         pass
 
@@ -86,6 +89,12 @@ class _Ours(_Layout):
 
     def frame_images(self, i0, i1):
         return self._rec.frame_images(i0, i1, "anchors")
+
+    def extras(self):
+        intr, (traj_t, traj_c2w) = self._rec.intrinsics(), self._rec.trajectory()
+        return Extras(intrinsics=None if intr is None else tuple(float(v) for v in intr),
+                      trajectory_t_us=traj_t, trajectory_c2w=traj_c2w,
+                      contrast_threshold=self._rec.contrast_threshold)
 
     def close(self):
         self._rec.close()
@@ -189,6 +198,7 @@ class Hdf5Replay(Replay):
             self._layout = self._read("detect the layout", lambda: _detect(self.path, self._f, resolution,
                                                                             self.chunk_events))
             self._frame_t = self._read("read frame times", self._layout.frame_times)
+            self._extras = self._read("read the camera", self._layout.extras)
             self._info = StreamInfo(
                 width=int(self._layout.width), height=int(self._layout.height),
                 sensor=self._layout.sensor, has_frames=self._frame_t is not None and len(self._frame_t) > 0,

@@ -159,6 +159,11 @@ class OnlineAnchors:
         span = self._span_frame
         return span[1] if span is not None and span[0] == stream_us else None
 
+    @property
+    def newest_frame_us(self) -> int | None:
+        """The newest frame taken (stream µs), None before the first."""
+        return self._newest_frame_us
+
     def get(self, stream_us: int) -> OnlineAnchor | None:
         for a in reversed(self._anchors):
             if a.stream_us == stream_us:
@@ -392,27 +397,29 @@ class OnlineAnchors:
                         "before": self.last_loss[0], "after": self.last_loss[1]}},
         }
 
-    def register_metrics(self, metrics: Metrics) -> None:
-        """Their series in the service's metrics: counts read when scraped, each fit observed."""
-        gauge, counter = metrics.readings.gauge, metrics.readings.counter
-        gauge("edmcgs_online_anchors", "Online anchors held past the checkpoint's span.",
-              lambda: float(len(self.anchors())))
-        counter("edmcgs_online_anchors_total", "Online anchors by outcome: predicted, corrected (fitted "
-                "to their frame), expired (out of the bounded store).",
-                lambda: {"predicted": self.predicted, "corrected": self.corrected, "expired": self.expired},
-                "result")
-        counter("edmcgs_online_anchors_skipped_total", "Online anchors not corrected (superseded: a "
-                "newer frame took the one-slot fit queue) or not made (events_gone: their events left "
-                "the ring).", lambda: dict(self.skipped), "reason")
-        counter("edmcgs_frames_refused_total", "Stream frames refused as anchors, by reason (size, "
-                "channels, timestamp: not after the newest frame).", lambda: dict(self.refused), "reason")
-        gauge("edmcgs_online_fit_queue_depth", "Online anchors waiting for or in a fit (0..2).",
-              lambda: float(self.queue_depth))
-        gauge("edmcgs_online_fit_loss", "L1 photometric loss of the last correction, after its steps.",
-              lambda: float("nan") if self.last_loss is None else self.last_loss[1])
 
-        def observe(seconds: float, before: float, after: float) -> None:
-            metrics.fit.observe(seconds)
-            metrics.fit_loss.observe(after)
+def register_metrics(metrics: Metrics, current: Callable[[], OnlineAnchors | None]) -> None:
+    """The online anchors' series in the service's metrics, read when scraped from ``current()``, the
+    online anchors served now (a cold start swaps in new ones with each learnt model: their counts start
+    over, which Prometheus reads as a counter reset)."""
+    gauge, counter = metrics.readings.gauge, metrics.readings.counter
 
-        self.on_fit = observe
+    def read(fn, empty):
+        return lambda: empty if (online := current()) is None else fn(online)
+
+    gauge("edmcgs_online_anchors", "Online anchors held past the checkpoint's span.",
+          read(lambda o: float(len(o.anchors())), 0.0))
+    counter("edmcgs_online_anchors_total", "Online anchors by outcome: predicted, corrected (fitted to their "
+            "frame), expired (out of the bounded store).",
+            read(lambda o: {"predicted": o.predicted, "corrected": o.corrected, "expired": o.expired},
+                 {"predicted": 0, "corrected": 0, "expired": 0}), "result")
+    counter("edmcgs_online_anchors_skipped_total", "Online anchors not corrected (superseded: a newer frame "
+            "took the one-slot fit queue) or not made (events_gone: their events left the ring).",
+            read(lambda o: dict(o.skipped), dict.fromkeys(SKIPPED_REASONS, 0)), "reason")
+    counter("edmcgs_frames_refused_total", "Stream frames refused as anchors, by reason (size, channels, "
+            "timestamp: not after the newest frame).",
+            read(lambda o: dict(o.refused), dict.fromkeys(REFUSED_REASONS, 0)), "reason")
+    gauge("edmcgs_online_fit_queue_depth", "Online anchors waiting for or in a fit (0..2).",
+          read(lambda o: float(o.queue_depth), 0.0))
+    gauge("edmcgs_online_fit_loss", "L1 photometric loss of the last correction, after its steps.",
+          read(lambda o: float("nan") if o.last_loss is None else o.last_loss[1], float("nan")))

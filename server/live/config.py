@@ -1,4 +1,5 @@
-"""How online anchors run past a checkpoint's span: the one place of their defaults.
+"""The live path's configuration, each default in one place: how online anchors run past a checkpoint's
+span (``OnlineConfig``), and how a cold start's learner trains (``LearnConfig``).
 
 The service's settings (``Settings.online_*``, ``EDMCGS_ONLINE_*``; their descriptions are the
 documentation of each field) take their defaults from ``OnlineConfig`` and build one with
@@ -8,6 +9,9 @@ documentation of each field) take their defaults from ``OnlineConfig`` and build
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
 
 from edmcgs.errors import InvalidInputError
 from edmcgs.protocol import TRANSITIONS
@@ -42,3 +46,34 @@ class OnlineConfig:
         if self.transition not in TRANSITIONS:
             raise InvalidInputError(f"transition must be one of {', '.join(TRANSITIONS)}, "
                                     f"got {self.transition!r}")
+
+
+@dataclass(frozen=True)
+class LearnConfig:
+    """How the learner of a cold start trains (``learner.py``); the service's ``EDMCGS_LEARN_*``
+    settings build it."""
+
+    workdir: Path = Path("edmcgs-learned")
+    """Where it writes the checkpoints it publishes, and on stop ``learned.ckpt`` and ``learned.h5``."""
+    intrinsics: tuple[float, float, float, float] | None = None
+    """The frames' camera: fx, fy, cx, cy in pixels (None: fx = fy = width, centred)."""
+    contrast_threshold: float | None = None
+    """The events' C, when the stream states it (else the preset's)."""
+    trajectory: tuple[np.ndarray, np.ndarray] | None = None
+    """The camera's poses (t_us [T], c2w [T, 4, 4]) when the stream states them (else a static camera)."""
+    preset: str = "real"
+    """The configuration trained (``edmcgs train --config``)."""
+    overrides: tuple[str, ...] = ()
+    """``key=value`` changes to it (``edmcgs train --set``)."""
+    anchor_fps: float = 5.0
+    """Frames at this rate are anchors; the others are held out and scored."""
+    min_anchors: int = 3
+    """Anchors before the first round."""
+    first_steps: int = 150
+    """Steps of the first round (then each round twice the one before, up to the preset's iterations)."""
+    publish_s: float = 30.0
+    """Seconds between two published checkpoints within a round (each round's end publishes too)."""
+    eval_frames: int = 8
+    """Held-out frames scored at each publication."""
+    threads: int = 1
+    """CPU threads of the learner process."""

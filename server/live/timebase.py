@@ -1,21 +1,30 @@
-"""The engine's one seam to the live path: where every render starts.
+"""The engine's one seam to the live path: where every render starts, and the model it renders.
 
-For a scene time t the timebase decides tau(t) (``clock.TauRule``: within the checkpoint's span its own
-anchors, ``EdMCGS.tau``; past it the online anchors; elsewhere the stream's frames) and says what
-stands at tau (a ``Start``): the checkpoint's anchor, from which the model deforms by the events since
-it, or an online anchor, whose state the transition moves by them. It also knows the event camera's
-pose at t and what is renderable up to the head. The engine (engine.py) composes these with the ring,
-the cache and the rasterizer and never asks which kind of anchor it has.
+For a scene time t a timebase decides tau(t) and says what stands at tau (a ``Start``):
+
+- ``Timebase``, a checkpoint's: by ``clock.TauRule``, within the span its own anchors (``EdMCGS.tau``),
+  past it the online anchors. At tau stands the checkpoint's anchor, from which the model deforms by the
+  events since it, or an online anchor, whose state the transition moves by them.
+- ``FramesTimebase``, before any model (a cold start, ``server/live/learning.py``): tau is the stream's
+  newest frame, and the event camera's view is that frame moved by the events since it
+  (``model/online/bounds.integrate``), the best render without a model.
+
+A timebase also knows the event camera's pose at t and what is renderable up to the head. The engine
+(engine.py) composes it with the ring, the cache and the rasterizer, takes it once per render, and is
+handed a new one whole when a newer model arrives (``Engine.swap``).
 """
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
 
 from edmcgs.errors import WindowUnavailable
-from edmcgs.model.dynamic import EdMCGS
+from edmcgs.geometry import Intrinsics
+from edmcgs.luminance import LOG_EPS
+from edmcgs.model.dynamic import EdMCGS, SceneMeta
 from edmcgs.model.motion.gaussians import GaussianState
 from edmcgs.model.online import state_of, with_spawned
 from edmcgs.protocol import TauSource
@@ -38,10 +47,18 @@ class Start:
     """The online anchor (None: the checkpoint's)."""
     frame: np.ndarray | None = None
     """The stream's frame at tau, when renders of the event camera's view are projected onto the events
-    since it (past the span, ``OnlineConfig.project``); else None."""
+    since it (past the span, ``OnlineConfig.project``), or moved by them (no model); else None."""
 
 
 CHECKPOINT = Start("checkpoint", None)
+_SERIALS = itertools.count()
+
+
+def _stream_tau(frames: AnchorStore, stream_t: int) -> int | None:
+    try:
+        return frames.tau(stream_t)
+    except WindowUnavailable as exc:  # evicted
+        raise TimeNotRenderable(str(exc)) from None
 
 
 class Timebase:
@@ -49,8 +66,13 @@ class Timebase:
     the last renderable time); stream_anchors: the stream's frames, tau where no other anchor rules."""
 
     def __init__(self, model: EdMCGS, online: OnlineAnchors | None = None,
-                 stream_anchors: AnchorStore | None = None):
+                 stream_anchors: AnchorStore | None = None, *, version: int = 0):
         self.model, self.online, self.stream_anchors = model, online, stream_anchors
+        self.version = version
+        """The model's: 0 a checkpoint given, n the n-th a cold start learnt (protocol.FrameMeta)."""
+        self.meta: SceneMeta = model.meta
+        self.serial = next(_SERIALS)
+        """Told apart from every other timebase of the process (the engine's cache keys on it)."""
         meta = model.meta
         self.origin_us = int(meta.t_start_us)
         self.scene_anchors = np.asarray(meta.anchors_us, dtype=np.int64)
@@ -75,11 +97,12 @@ class Timebase:
         if source is TauSource.ONLINE:
             return self.online.tau(stream_t, scene_t)
         if source is TauSource.STREAM and self.stream_anchors is not None:
-            try:
-                return self.stream_anchors.tau(stream_t)
-            except WindowUnavailable as exc:
-                raise TimeNotRenderable(str(exc)) from None
+            return _stream_tau(self.stream_anchors, stream_t)
         return None
+
+    def extent(self, head_scene_us: int | None) -> tuple[int, int]:
+        """The first and last scene µs a render may ask for (a sweep's default ends)."""
+        return self.span.first_us, self.rule.end(head_scene_us)
 
     def tau_ranges(self, head_scene_us: int | None) -> list[tuple[TauSource, int, int]]:
         """GET /scene's ``tau_sources``: (source, first µs, last µs inclusive) in order."""
@@ -140,3 +163,65 @@ class Timebase:
                     return a.pose
         trajectory = self.model.meta.trajectory
         return None if trajectory is None else trajectory.at(int(t_us))
+
+
+@dataclass(frozen=True)
+class StreamMeta:
+    """What a scene without a model knows of itself (what the engine reads of a ``SceneMeta``): the
+    stream's camera, from its first frame on."""
+
+    t_start_us: int
+    """The first frame's time: the scene's origin, as the model learnt from the stream will have it."""
+    intrinsics: Intrinsics
+    """The frames' camera (given, or assumed: ``pipeline.recording_intrinsics``)."""
+    event_width: int
+    event_height: int
+    channels: int
+    """Of the frames: 1 (grey) or 3 (RGB)."""
+    contrast_threshold: float
+    """C of the integration: the recording's when it states one."""
+    log_eps: float = LOG_EPS
+    trajectory = None
+    has_event_branch = False
+
+
+class FramesTimebase:
+    """Before any model: tau(t) is the stream's newest frame at or before t (``frames``, filled by the
+    ingest thread), and the event camera's view at t is that frame moved by the events since it."""
+
+    model = None
+    online = None
+    version = None
+
+    def __init__(self, meta: StreamMeta, frames: AnchorStore):
+        self.meta, self.frames = meta, frames
+        self.origin_us = int(meta.t_start_us)
+        self.serial = next(_SERIALS)
+
+    def resolve(self, t_us: int | None, head: tuple[int, int], timeline: Timeline) -> Instant:
+        span = Span(self.origin_us, max(self.origin_us, head[1]))
+        query = clock.locate(t_us, head[0], timeline, span, self.origin_us, head[1])
+        return clock.instant(query, _stream_tau(self.frames, query.stream_t), timeline, span, self.origin_us)
+
+    def tau_ranges(self, head_scene_us: int | None) -> list[tuple[TauSource, int, int]]:
+        if head_scene_us is None or head_scene_us < self.origin_us:
+            return []
+        return [(TauSource.STREAM, self.origin_us, int(head_scene_us))]
+
+    def extent(self, head_scene_us: int | None) -> tuple[int, int]:
+        return self.origin_us, max(self.origin_us, int(head_scene_us or self.origin_us))
+
+    def renderable(self, head: tuple[int, int], timeline: Timeline,
+                   stats: RingStats) -> list[tuple[int, int]]:
+        """From the oldest retained frame whose events since are all in the ring, to the head."""
+        times = self.frames.times()
+        if stats.overflowed or stats.expired:
+            times = times[times > (stats.oldest_us if stats.oldest_us is not None else head[0])]
+        times = times[times <= head[0]]
+        return [] if not len(times) else [(timeline.scene_of(int(times[0])), head[1])]
+
+    def start(self, instant: Instant) -> Start:
+        return Start("frame", None, None, self.frames.anchor_at(instant.window[0]).image)
+
+    def pose(self, t_us: int) -> np.ndarray | None:
+        return None  # nothing knows the camera's motion before a model (or poses) does

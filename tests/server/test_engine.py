@@ -7,12 +7,12 @@ import pytest
 
 from edmcgs.errors import InvalidInputError
 from edmcgs.model.checkpoint import load_checkpoint
-from edmcgs.sensor.buffer.anchors import AnchorStore
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import read_recording
 from edmcgs.server.engine import Engine
 from edmcgs.server.live.clock import Timeline, TimeNotRenderable
+from edmcgs.server.live.timebase import Timebase
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +25,7 @@ def _engine(scene, capacity: int, loop: bool) -> tuple[Engine, Events]:
     rec, model = scene
     events = rec.events
     start, end = rec.t_range_us
-    engine = Engine(model, EventRingBuffer(capacity), cache_size=4)
+    engine = Engine(Timebase(model), EventRingBuffer(capacity), cache_size=4)
     engine.timeline = Timeline(start, start, end + 1 - start if loop else None)
     return engine, events
 
@@ -88,10 +88,7 @@ def test_nothing_renderable_before_events(scene):
 def test_at_a_pass_boundary_the_first_anchor_comes_from_the_pass_that_has_it(scene):
     """The ring is complete up to the end of pass 1, whose next anchor (pass 2's first) has not arrived:
     t = the first anchor must be served from pass 1, not fail for want of pass 2's frame."""
-    rec, _ = scene
     engine, events = _engine(scene, capacity=10**6, loop=True)
-    engine.anchors = AnchorStore(16)
-    engine.anchors.add_frames(rec.anchors)
     t0, period = engine.first_us, engine.timeline.period_us
     engine.ring.push(events, complete_until_us=t0 + period)
     inst = engine.resolve(t0)

@@ -155,7 +155,7 @@ def _engine_past_the_span(rec, model) -> tuple[Engine, OnlineAnchors, int]:
     """An engine with predicted online anchors (no fits) fed up to a head five frames past the span."""
     ring = EventRingBuffer(10**6)
     online = OnlineAnchors(model, ring, OnlineConfig(fit=False))
-    engine = Engine(model, ring, Timebase(model, online), cache_size=4)
+    engine = Engine(Timebase(model, online), ring, cache_size=4)
     start = rec.t_range_us[0]
     engine.timeline = tl = Timeline(start, start)
     head = model.meta.t_end_us + 5 * STEP_US + 20_000
@@ -316,7 +316,7 @@ def test_a_windowed_checkpoint_renders_past_its_span_from_online_anchors(windowe
         service.close()
     ring = EventRingBuffer(10**6)
     online = OnlineAnchors(model, ring, OnlineConfig(fit=False))
-    engine = Engine(model, ring, Timebase(model, online), cache_size=4)
+    engine = Engine(Timebase(model, online), ring, cache_size=4)
     start = rec.t_range_us[0]
     engine.timeline = tl = Timeline(start, start)
     head = model.meta.t_end_us + 4 * STEP_US + 20_000
@@ -369,7 +369,7 @@ def test_fine_tuning_g_phi_learns_from_corrections_and_touches_only_the_span_pas
                                                     finetune_steps=4, finetune_lr=1e-3, transition="g_phi"))
     start = rec.t_range_us[0]
     tl = Timeline(start, start)
-    engine = Engine(model, ring, Timebase(model, online), cache_size=4)
+    engine = Engine(Timebase(model, online), ring, cache_size=4)
     engine.timeline = tl
     _feed(online, ring, rec, int(model.meta.t_end_us) + 3 * STEP_US + 1, tl)
     inside = int(model.meta.anchors_us[1]) + STEP_US // 2
@@ -417,7 +417,7 @@ def test_the_transition_past_the_span_is_the_one_that_predicted_the_recent_frame
     assert np.mean(moves.evidence["none"]) < np.mean(moves.evidence["g_phi"])
     assert moves.kind == "none" and moves.module is None and moves.version == 1
     # from now on a render past the span holds its anchor's state, whatever the events since
-    engine = Engine(model, ring, Timebase(model, online), cache_size=4)
+    engine = Engine(Timebase(model, online), ring, cache_size=4)
     engine.timeline = tl
     last = online.anchors()[-1]
     assert len(ring.slice(last.stream_us, horizon - 1)) > 0
@@ -487,7 +487,7 @@ def test_corrections_learn_colours_that_carry_to_the_next_anchors(long_scene):
     nxt = online.anchors()[1]
     assert not nxt.corrected and nxt.colors is fitted.colors  # the prediction inherits them
     # and the served render past that anchor draws them
-    engine = Engine(model, ring, Timebase(model, online), cache_size=4)
+    engine = Engine(Timebase(model, online), ring, cache_size=4)
     engine.timeline = tl
     instant = engine.resolve(nxt.t_us)
     state, _ = engine.state(instant)

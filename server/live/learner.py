@@ -1,0 +1,250 @@
+"""The learner: a process of its own beside the server (``learning.py`` starts and feeds it) that trains
+EdMCGS on the stream's frames and events as they arrive, and publishes checkpoints the server swaps in.
+
+    inbox ──> the stream so far (events, frames) ──> rounds, each over every anchor received when it
+              began (frames at ``anchor_fps``; the frames between them held out and scored):
+              a model lifted from those anchors, its networks warm-started from the round before
+              (model/train/warm.py), trained ``steps`` (``first_steps``, then twice the round before,
+              up to the preset's iterations), published every ``publish_s`` and at the round's end.
+              A round that ends with no new anchor goes on training the same model.
+    stop ──>  the model and the stream saved: ``learned.ckpt`` (with its train state beside it) and
+              ``learned.h5``; ``edmcgs train learned.h5 -o learned.ckpt --resume`` continues the run and
+              ``edmcgs-serve --replay learned.h5 --checkpoint learned.ckpt`` serves it.
+
+Messages in: ("batch", t, x, y, p, frame_t, frame_images) | ("stop",). Out: dicts with a ``kind``:
+"published" (path, version, span, steps, loss, held-out scores, seconds), "progress", "saved", "error".
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import queue
+import signal
+import time
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from edmcgs.errors import EdmcgsError
+from edmcgs.server.live.config import LearnConfig
+
+LEARNED_CKPT = "learned.ckpt"
+LEARNED_REC = "learned.h5"
+IDLE_WAIT_S = 0.2
+"""How long the learner waits for the stream when it has nothing to train yet."""
+CHUNK_STEPS = 5
+"""Training steps between two looks at the inbox."""
+REFILL_S = 0.01
+"""How long an emptied inbox is waited on for more (``_drain``)."""
+
+
+@dataclass
+class Round:
+    trainer: object
+    steps: int
+    """Where this round's training stops (then a new round, or the same model trains on)."""
+    anchors: int
+    """Anchors the round was built from."""
+
+
+class Stream:
+    """The stream received so far: events in chunks (joined when a round reads them) and every frame."""
+
+    def __init__(self, width: int, height: int):
+        self.width, self.height = width, height
+        self._events: list[tuple[np.ndarray, ...]] = []
+        self._frame_t: list[np.ndarray] = []
+        self._frame_images: list[np.ndarray] = []
+        self.events = 0
+        self.frames = 0
+
+    def add(self, t, x, y, p, frame_t, frame_images) -> None:
+        if len(t):
+            self._events.append((t, x, y, p))
+            self.events += len(t)
+        if frame_t is not None and len(frame_t):
+            self._frame_t.append(frame_t)
+            self._frame_images.append(frame_images)
+            self.frames += len(frame_t)
+
+    def frame_times(self) -> np.ndarray:
+        return np.concatenate(self._frame_t) if self._frame_t else np.zeros(0, np.int64)
+
+    def recording(self, config: LearnConfig):
+        """The stream so far as a recording with what ``config`` knows of the camera, its frames split into
+        anchors at ``anchor_fps`` and held-out frames (pipeline.split_frames)."""
+        from edmcgs.pipeline import split_frames
+        from edmcgs.sensor.events import Events
+        from edmcgs.sensor.files.recording import Recording
+        from edmcgs.sensor.frames import Frames
+
+        if len(self._events) > 1:  # joined once: later rounds read one array per column
+            self._events = [tuple(np.concatenate(c) for c in zip(*self._events, strict=True))]
+        if len(self._frame_t) > 1:
+            self._frame_t = [np.concatenate(self._frame_t)]
+            self._frame_images = [np.concatenate(self._frame_images)]
+        events = Events(*self._events[0]) if self._events else Events.empty()
+        frames = Frames(self._frame_t[0], self._frame_images[0])
+        intrinsics, trajectory = config.intrinsics, config.trajectory
+        rec = Recording(self.width, self.height, events, frames,
+                        intrinsics=None if intrinsics is None else np.asarray(intrinsics, np.float64),
+                        trajectory_t_us=None if trajectory is None else trajectory[0],
+                        trajectory_c2w=None if trajectory is None else trajectory[1],
+                        contrast_threshold=config.contrast_threshold, sensor="learned from a stream")
+        return split_frames(rec, fps=config.anchor_fps)
+
+
+class Learner:
+    """The rounds (the module's docstring): ``step`` trains a little and says what to publish."""
+
+    def __init__(self, config: LearnConfig, stream: Stream, outbox):
+        self.config, self.stream, self.outbox = config, stream, outbox
+        self.round: Round | None = None
+        self.model = None
+        self.data = None
+        self.version = 0
+        self.published_at = 0.0  # set when the first round starts
+        self.cpu_start = time.process_time()
+
+    def anchors_available(self) -> int:
+        """Anchors a round built now would have (frames at ``anchor_fps`` so far)."""
+        t = self.stream.frame_times()
+        if not len(t):
+            return 0
+        return math.floor((t[-1] - t[0]) * self.config.anchor_fps / 1e6) + 1
+
+    def step(self) -> bool:
+        """Train one chunk, starting a round first when due; False when there is nothing to train yet."""
+        rnd = self.round
+        if rnd is None:
+            if self.anchors_available() < self.config.min_anchors:
+                return False
+            self._new_round()
+            self.published_at = time.monotonic()
+        elif rnd.trainer.step >= rnd.steps:  # the round is over
+            if self.anchors_available() > rnd.anchors:
+                self._new_round()
+            else:  # no new anchor: the same model trains on (past its schedule's end, at its end)
+                rnd.steps *= 2
+        rnd = self.round
+        for _ in range(CHUNK_STEPS):
+            rnd.trainer.train_step()
+        if rnd.trainer.step >= rnd.steps or time.monotonic() - self.published_at >= self.config.publish_s:
+            self.publish()
+        return True
+
+    def _new_round(self) -> None:
+        from edmcgs.model.train.trainer import Trainer
+        from edmcgs.model.train.warm import warm_start
+        from edmcgs.pipeline import build_config, new_model, training_data
+
+        cfg = self.config
+        rec = self.stream.recording(cfg)
+        data = training_data(rec)
+        base = build_config(cfg.preset, list(cfg.overrides), rec)
+        previous = self.round
+        steps = cfg.first_steps if previous is None else min(2 * previous.steps, base.iterations)
+        if previous is not None and previous.steps >= base.iterations:
+            steps = base.iterations
+        # the schedules (learning-rate decay, the event branch's warm-in) run over the round's steps
+        model = new_model(data, base.replace(iterations=max(steps, 1)))
+        if self.model is not None:
+            warm_start(model, self.model)
+        self.model, self.data = model, data
+        self.round = Round(Trainer(model, data, progress=False), steps, len(data.anchors_t_us))
+
+    def publish(self, path: Path | None = None) -> Path:
+        """Save the current model (a final checkpoint: what the server loads) and report it."""
+        from edmcgs.model.checkpoint import save_checkpoint
+
+        self.version += 1
+        path = path or self.config.workdir / f"learned-{self.version:04d}.ckpt"
+        trainer = self.round.trainer
+        model = trainer.model
+        was_training = model.training
+        model.eval()
+        save_checkpoint(model, path)
+        model.train(was_training)
+        scores = trainer.evaluate(self.config.eval_frames) if self.data.evaluable().size else None
+        meta = model.meta
+        self.outbox.put({"kind": "published", "path": str(path), "version": self.version,
+                         "span_us": [int(meta.t_start_us), int(meta.t_end_us)],
+                         "anchors": len(meta.anchors_us), "steps": trainer.step,
+                         "round_steps": self.round.steps,
+                         "gaussians": len(model.gaussians), "heldout": scores,
+                         "cpu_s": time.process_time() - self.cpu_start,
+                         "frames": self.stream.frames, "events": self.stream.events})
+        self.published_at = time.monotonic()
+        # the server may still be reading the one before this one
+        for old in sorted(self.config.workdir.glob("learned-*.ckpt"))[:-2]:
+            old.unlink(missing_ok=True)
+        return path
+
+    def save(self) -> dict:
+        """What continuing needs: the model with its train state beside it, and the stream as a recording."""
+        from edmcgs.model.checkpoint import save_checkpoint
+        from edmcgs.model.train.resume import write_sidecar
+        from edmcgs.sensor.files.recording import write_recording
+
+        cfg = self.config
+        out = {"kind": "saved", "checkpoint": None, "recording": None}
+        if self.stream.frames:
+            rec = self.stream.recording(cfg)
+            write_recording(cfg.workdir / LEARNED_REC, rec)
+            out["recording"] = str(cfg.workdir / LEARNED_REC)
+        if self.round is not None:
+            trainer, path = self.round.trainer, cfg.workdir / LEARNED_CKPT
+            trainer.model.eval()
+            digest = save_checkpoint(trainer.model, path)
+            write_sidecar(path, trainer.train_state(), digest)
+            out.update(checkpoint=str(path), steps=trainer.step, version=self.version)
+        return out
+
+
+def _drain(inbox, wait: float) -> list:
+    """Every message waiting (for the first, up to ``wait`` s), so that training never lags the stream by
+    a queue. The pipe under the queue holds a few dozen kB: the server's side refills it as it is read, so
+    the next message is waited for briefly before the queue counts as empty."""
+    out = []
+    try:
+        out.append(inbox.get(timeout=wait) if wait > 0 else inbox.get_nowait())
+        while True:
+            out.append(inbox.get(timeout=REFILL_S))
+    except queue.Empty:
+        return out
+
+
+def main(inbox, outbox, config: LearnConfig, width: int, height: int) -> None:
+    """The learner process: ``learning.Learning`` starts it with its queues."""
+    import numba
+    import torch
+
+    # Ctrl-C (and a service manager's SIGTERM) reach the whole process group: the server says when to stop,
+    # after it has stopped serving, and the learner saves then (or when the server is gone)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
+    parent = os.getppid()
+    torch.set_num_threads(config.threads)
+    numba.set_num_threads(min(config.threads, numba.config.NUMBA_NUM_THREADS))
+    stream = Stream(width, height)
+    learner = Learner(config, stream, outbox)
+    idle = True
+    try:
+        while True:
+            for msg in _drain(inbox, IDLE_WAIT_S if idle else 0.0):
+                if msg[0] == "stop":
+                    outbox.put(learner.save())
+                    return
+                stream.add(*msg[1:])
+            if os.getppid() != parent:  # the server died without a word: keep what was learnt
+                learner.save()
+                return
+            idle = not learner.step()
+    except EdmcgsError as exc:
+        outbox.put({"kind": "error", "error": str(exc)})
+    except Exception as exc:  # reported, never silent: the server keeps serving what it has
+        outbox.put({"kind": "error", "error": f"{type(exc).__name__}: {exc}",
+                    "traceback": traceback.format_exc()})

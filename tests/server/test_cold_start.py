@@ -1,0 +1,184 @@
+"""A cold start in process (server/live/learning.py, learner.py, timebase.FramesTimebase): before any model
+the event camera's view is the newest frame moved by the events since, and nothing else renders; the
+learner's rounds publish models over the anchors received so far, warm-started from the round before;
+the engine swaps a newer model in whole, and a render already running finishes on the one it began."""
+
+from __future__ import annotations
+
+import queue
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from edmcgs.geometry import Intrinsics
+from edmcgs.model.checkpoint import load_checkpoint
+from edmcgs.model.online.bounds import integrate
+from edmcgs.model.train.warm import warm_start
+from edmcgs.pipeline import build_config, new_model, training_data
+from edmcgs.sensor.buffer.anchors import AnchorStore
+from edmcgs.sensor.buffer.ring import EventRingBuffer
+from edmcgs.sensor.event_map import accumulate
+from edmcgs.sensor.files.recording import read_recording
+from edmcgs.server.engine import Engine
+from edmcgs.server.errors import NotReady
+from edmcgs.server.live.clock import Timeline
+from edmcgs.server.live.config import LearnConfig
+from edmcgs.server.live.learner import Learner, Stream
+from edmcgs.server.live.timebase import FramesTimebase, StreamMeta, Timebase
+from tests.support.server import build_scene
+
+W, H = 64, 48
+TINY = ("init_points=300", "num_control_points=16", "deform_width=16", "deform_depth=2")
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """A 1 s recording at 64x48, a frame every 50 ms (anchors every 100 ms: every other one held out)."""
+    rec_path, ckpt = build_scene(tmp_path_factory.mktemp("cold"), width=W, height=H, duration_s=1.0,
+                                 anchor_every_s=0.1, frames_per_anchor=2, event_rate=20_000, init_points=300,
+                                 control_points=16, event_branch_seed=0)
+    return read_recording(rec_path), ckpt
+
+
+def _frames_engine(rec, until_us: int) -> tuple[Engine, AnchorStore]:
+    """An engine before any model, fed as the ingest thread feeds it up to ``until_us``."""
+    t0 = int(rec.anchors.t_us[0])
+    ring, frames = EventRingBuffer(10**6), AnchorStore(64)
+    ring.push(rec.events.time_slice(t0, until_us), complete_until_us=until_us)
+    frames.add_frames(rec.anchors.time_slice(t0, until_us))
+    meta = StreamMeta(t0, Intrinsics(60.0, 60.0, 31.5, 23.5, W, H), W, H, 3, 0.2)
+    engine = Engine(FramesTimebase(meta, frames), ring, cache_size=4)
+    engine.timeline = Timeline(t0, t0)
+    return engine, frames
+
+
+def test_before_any_model_the_camera_view_is_the_newest_frame_moved_by_the_events_since(scene):
+    rec, _ = scene
+    t0 = int(rec.anchors.t_us[0])
+    head = t0 + 320_000
+    engine, frames = _frames_engine(rec, head + 1)
+    out = engine.render(None, None, W, H)
+    tau = frames.tau(head)
+    assert out.instant.t_us == head and out.instant.anchor_us == tau == t0 + 300_000
+    assert out.anchor == "frame" and out.model_version is None and out.projected
+    emap = accumulate(rec.events.time_slice(tau, head), W, H)
+    assert np.abs(emap).sum() > 0
+    want = np.rint(np.clip(integrate(frames.anchor_at(tau).image, emap, 0.2), 0, 1) * 255)
+    assert np.abs(out.pixels.astype(int) - want.astype(int)).max() <= 1
+    assert engine.render(None, None, 32, 24).pixels.shape == (24, 32, 3)  # any size
+    assert engine.renderable() == [(t0, head)]
+    assert [s.value for s, *_ in engine.timebase.tau_ranges(head)] == ["stream"]
+    # nothing else renders without a model: a pose, another mode, the Gaussians
+    with pytest.raises(NotReady, match="no model has been learnt yet"):
+        engine.render(None, np.eye(4), W, H)
+    with pytest.raises(NotReady):
+        engine.render(None, None, W, H, mode="depth")
+    with pytest.raises(NotReady):
+        engine.state(out.instant)
+
+
+def test_a_swap_serves_the_new_model_and_a_running_render_finishes_on_its_own(scene):
+    rec, ckpt = scene
+    engine, _ = _frames_engine(rec, int(rec.anchors.t_us[0]) + 400_001)
+    before = engine.timebase
+    model = load_checkpoint(ckpt)
+    engine.swap(Timebase(model, version=3))
+    t = int(model.meta.anchors_us[2]) + 30_000
+    out = engine.render(t, None, W, H)
+    assert out.anchor == "checkpoint" and out.model_version == 3 and not out.projected
+    # a render that took the old timebase before the swap resolves and renders with it alone
+    old = engine.resolve(None, before)
+    assert before.start(old).kind == "frame"
+    # the cache tells the two apart: the same instant under each timebase is its own entry
+    assert before.serial != engine.timebase.serial
+
+
+def test_warm_start_copies_the_shared_networks_and_only_a_layer_of_the_same_placement(scene):
+    rec, _ = scene
+    data = training_data(rec)
+    cfg = build_config("real", list(TINY), rec)
+    a, b = new_model(data, cfg), new_model(data, cfg.replace(seed=1))
+    with torch.no_grad():
+        for p in a.parameters():
+            p.add_(0.01)
+        a.event_scale.fill_(0.5)
+    copied = warm_start(b, a)
+    assert copied == ["prior", "encoder", "transition", "background layer"]
+    for name in ("prior", "encoder", "transition", "bg_layer"):
+        for x, y in zip(getattr(a, name).state_dict().values(), getattr(b, name).state_dict().values(),
+                        strict=True):
+            assert torch.equal(x, y), name
+    assert float(b.event_scale) == 0.5
+    assert not torch.equal(a.gaussians.means, b.gaussians.means)  # lifted from its own anchors
+    wider = new_model(data, cfg.replace(deform_width=32))
+    assert "prior" not in warm_start(wider, a)  # shapes differ: left as initialised
+
+
+class _Outbox(list):
+    def put(self, item):
+        self.append(item)
+
+
+def _feed(stream: Stream, rec, lo_us: int, hi_us: int) -> None:
+    ev, frames = rec.events.time_slice(lo_us, hi_us), rec.anchors.time_slice(lo_us, hi_us)
+    stream.add(ev.t, ev.x, ev.y, ev.p, frames.t_us, frames.images)
+
+
+def test_the_learner_publishes_rounds_over_the_anchors_received_and_saves_what_resumes(scene, tmp_path):
+    rec, _ = scene
+    t0 = int(rec.anchors.t_us[0])
+    config = LearnConfig(workdir=tmp_path, intrinsics=(60.0, 60.0, 31.5, 23.5), preset="demo",
+                         overrides=TINY, anchor_fps=10.0, min_anchors=3, first_steps=10, publish_s=1e9,
+                         eval_frames=2)
+    stream, outbox = Stream(W, H), _Outbox()
+    learner = Learner(config, stream, outbox)
+    assert not learner.step()  # nothing yet
+    _feed(stream, rec, t0, t0 + 250_000)  # anchors at 0, 0.1, 0.2 s; frames between held out
+    while not outbox:
+        assert learner.step()
+    first = outbox[-1]
+    assert first["kind"] == "published" and first["version"] == 1 and first["steps"] == 10
+    assert first["anchors"] == 3 and first["span_us"][0] == t0
+    assert first["heldout"]["frames"] == 2 and np.isfinite(first["heldout"]["psnr"])
+    assert load_checkpoint(first["path"]).meta.anchors_us.tolist() == [t0, t0 + 100_000, t0 + 200_000]
+    _feed(stream, rec, t0 + 250_000, rec.t_range_us[1] + 1)  # the rest of the stream
+    while len(outbox) < 2:
+        learner.step()
+    second = outbox[-1]
+    assert second["version"] == 2 and second["anchors"] == 11 and second["steps"] == 20  # twice the first
+    saved = learner.save()
+    assert Path(saved["checkpoint"]).name == "learned.ckpt" and saved["steps"] == learner.round.trainer.step
+    assert (tmp_path / "learned.ckpt.train-state").is_file()
+    back = read_recording(saved["recording"])
+    assert len(back.anchors) == 11 and len(back.held_out) == 10 and len(back.events) == len(rec.events)
+    kept = sorted(p.name for p in tmp_path.glob("learned-*.ckpt"))
+    assert kept == ["learned-0001.ckpt", "learned-0002.ckpt"]
+
+
+def test_the_learner_process_reports_and_saves_when_told_to_stop(scene, tmp_path):
+    """The process itself (spawned as the service spawns it): fed, it publishes; told to stop, it saves."""
+    from edmcgs.sensor.sources.base import SensorBatch
+    from edmcgs.server.live.learning import Learning
+
+    rec, _ = scene
+    config = LearnConfig(workdir=tmp_path, intrinsics=(60.0, 60.0, 31.5, 23.5), preset="demo",
+                         overrides=TINY, anchor_fps=10.0, first_steps=5, publish_s=1e9, eval_frames=1)
+    taken = queue.Queue()
+    learning = Learning(config, W, H)
+    learning.on_model = lambda model, report: taken.put((model, report))
+    learning.start()
+    try:
+        t0 = int(rec.anchors.t_us[0])
+        for lo in range(t0, int(rec.t_range_us[1]) + 1, 100_000):
+            hi = lo + 100_000
+            learning.feed(SensorBatch(rec.events.time_slice(lo, hi), rec.anchors.time_slice(lo, hi),
+                                      t_end_us=hi))
+        model, report = taken.get(timeout=120)
+        assert report["version"] == 1 and len(model.meta.anchors_us) == report["anchors"] >= 3
+        assert learning.info()["model"]["version"] == 1 and learning.info()["running"]
+    finally:
+        saved = learning.close()
+    assert saved is not None and Path(saved["checkpoint"]).is_file() and Path(saved["recording"]).is_file()
+    assert not learning.process.is_alive() and learning.error is None
