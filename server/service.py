@@ -366,7 +366,7 @@ class Service:
         ready = source_state in ("streaming", "ended", "none") and head is not None
         details = {
             "ready": ready,
-            "model": "loaded" if self.engine.model is not None else "learning",
+            "model": "learning" if self.learning is not None and self.engine.model is None else "loaded",
             "device": self.settings.device,
             "source": source_state,
             "source_error": None if ingest is None or ingest.error is None else str(ingest.error),

@@ -116,7 +116,7 @@ class SceneReplica:
         service = self._service
         if service.source is None or service.source.info.live:
             return
-        meta = service.model.meta
+        meta = service.engine.meta
         budget = min(SPAN_WAIT_S, (meta.t_end_us - meta.t_start_us) / 1e6 / settings.speed + 5.0)
         deadline = time.monotonic() + budget
         while time.monotonic() < deadline:

@@ -29,7 +29,7 @@ class _Failing:
 
 
 def _health_of(ingest: Ingest) -> dict:
-    stub = types.SimpleNamespace(ingest=ingest, source=object(), ring=EventRingBuffer(4),
+    stub = types.SimpleNamespace(ingest=ingest, source=object(), ring=EventRingBuffer(4), learning=None,
                                  engine=types.SimpleNamespace(head=lambda: None),
                                  settings=types.SimpleNamespace(device="cpu"), started_unix=0.0)
     return Service.health(stub)[1]

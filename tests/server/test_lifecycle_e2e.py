@@ -39,14 +39,14 @@ def _wait_renderable(client: Client, t: float) -> None:
 def test_a_failing_render_is_a_500_and_the_server_lives_on(scene_files):
     def faulty(settings: Settings) -> Service:
         service = Service.open(settings)
-        render = service.model.render
+        render = service.engine.model.render
 
         def render_or_fail(state, c2w, intrinsics, **kw):
             if intrinsics.width == 13:  # an injected fault, on one size only
                 raise RuntimeError("injected rasterizer fault")
             return render(state, c2w, intrinsics, **kw)
 
-        service.model.render = render_or_fail
+        service.engine.model.render = render_or_fail
         return service
 
     with ThreadServer(create_app(_settings(scene_files), service_factory=faulty)) as srv, \
@@ -73,13 +73,13 @@ def test_beyond_workers_and_queue_renders_get_503_with_retry_after(scene_files):
 
     def slow(settings: Settings) -> Service:
         service = Service.open(settings)
-        render = service.model.render
+        render = service.engine.model.render
 
         def gated_render(*args, **kw):
             gate.wait(60)
             return render(*args, **kw)
 
-        service.model.render = gated_render
+        service.engine.model.render = gated_render
         return service
 
     settings = _settings(scene_files, render_workers=1, render_queue=1)
@@ -148,8 +148,8 @@ def test_cli_errors_are_one_line(scene_files, aedat4, tmp_path):
     missing = _cli("--replay", str(rec), "--checkpoint", str(tmp_path / "nope.ckpt"), "--port", "0")
     assert missing.returncode == 1
     assert "does not exist" in missing.stderr and "Traceback" not in missing.stderr
-    no_ckpt = _cli("--replay", str(rec), "--port", "0")
-    assert no_ckpt.returncode == 2 and "checkpoint is required" in no_ckpt.stderr
+    looped = _cli("--replay", str(rec), "--loop", "--port", "0")  # no checkpoint: a cold start
+    assert looped.returncode == 1 and "a cold start learns one pass of the stream" in looped.stderr
     wrong_size = _cli("--replay", aedat4, "--checkpoint", str(ckpt), "--port", "0")
     assert wrong_size.returncode == 1
     assert "320x240" in wrong_size.stderr and "64x48" in wrong_size.stderr
