@@ -258,7 +258,7 @@ class Service:
         """The learner's thread: build a newly learnt model's timebase (its online anchors seeded with the
         stream's frames past its span), warm it up, and swap it in."""
         online = OnlineAnchors(model, self.ring, self.settings.online)
-        tb = Timebase(model, online, version=report["version"])
+        tb = Timebase(model, online, self.frames, version=report["version"])
         self.engine.warm_up(tb)
         seeded = self._seed(online, model.meta.t_end_us)
         with self._swap:  # every frame of the stream reaches the online anchors of one timebase or the other

@@ -63,11 +63,13 @@ def _stream_tau(frames: AnchorStore, stream_t: int) -> int | None:
 
 class Timebase:
     """model: the served checkpoint; online: its online anchors past the span (None: the span's end is
-    the last renderable time); stream_anchors: the stream's frames, tau where no other anchor rules."""
+    the last renderable time); frames: the stream's frames where the service keeps them (a cold start,
+    whose model learnt them): renders of the event camera's view within the span are then projected onto
+    the one at their anchor, as they are past it."""
 
     def __init__(self, model: EdMCGS, online: OnlineAnchors | None = None,
-                 stream_anchors: AnchorStore | None = None, *, version: int = 0):
-        self.model, self.online, self.stream_anchors = model, online, stream_anchors
+                 frames: AnchorStore | None = None, *, version: int = 0):
+        self.model, self.online, self.frames = model, online, frames
         self.version = version
         """The model's: 0 a checkpoint given, n the n-th a cold start learnt (protocol.FrameMeta)."""
         self.meta: SceneMeta = model.meta
@@ -77,8 +79,7 @@ class Timebase:
         self.origin_us = int(meta.t_start_us)
         self.scene_anchors = np.asarray(meta.anchors_us, dtype=np.int64)
         self.span = Span(int(self.scene_anchors[0]), int(meta.t_end_us))
-        self.rule = clock.TauRule(self.span, stream_frames=stream_anchors is not None or online is not None,
-                                  online=online is not None)
+        self.rule = clock.TauRule(self.span, stream_frames=online is not None, online=online is not None)
 
     # ------------------------------------------------------------------ time
     def resolve(self, t_us: int | None, head: tuple[int, int], timeline: Timeline) -> Instant:
@@ -96,8 +97,6 @@ class Timebase:
             return stream_t - (scene_t - self.model.tau(scene_t))
         if source is TauSource.ONLINE:
             return self.online.tau(stream_t, scene_t)
-        if source is TauSource.STREAM and self.stream_anchors is not None:
-            return _stream_tau(self.stream_anchors, stream_t)
         return None
 
     def extent(self, head_scene_us: int | None) -> tuple[int, int]:
@@ -134,15 +133,28 @@ class Timebase:
     # ------------------------------------------------------------------ what stands at tau
     def start(self, instant: Instant) -> Start:
         """What the render at ``instant`` starts from (cheap: a lookup, no computation)."""
-        online = self.online
-        if online is None or instant.t_us <= self.span.end_us:
-            return CHECKPOINT
-        anchor = online.get(instant.window[0])
-        frame = online.frame_at(instant.window[0]) if online.config.project else None
-        if anchor is None:  # past the span before the first online anchor: the checkpoint's last one
-            return Start("checkpoint", None, None, frame)
+        online, tau = self.online, instant.window[0]
+        past = online is not None and instant.t_us > self.span.end_us
+        anchor = online.get(tau) if past else None
+        frame = None
+        if online is None or online.config.project:
+            frame = anchor.frame if anchor is not None else self._frame(tau, past)
+        if anchor is None:  # within the span, or past it before the first online anchor
+            return CHECKPOINT if frame is None else Start("checkpoint", None, None, frame)
         return Start("corrected" if anchor.corrected else "predicted",
                      (anchor.version, online.transitions.version), anchor, frame)
+
+    def _frame(self, tau_stream: int, past: bool) -> np.ndarray | None:
+        """The stream's frame at ``tau_stream`` (the checkpoint's anchor), where it is kept: in ``frames``,
+        or past the span the one online anchors took at the span's last anchor; else None."""
+        if self.frames is not None:
+            try:
+                kept = self.frames.anchor_at(tau_stream)
+            except WindowUnavailable:
+                kept = None
+            if kept is not None and kept.t_us == tau_stream:
+                return kept.image
+        return self.online.frame_at(tau_stream) if past else None
 
     def state(self, start: Start, instant: Instant, event_map: np.ndarray | None,
               pose: np.ndarray | None) -> GaussianState:

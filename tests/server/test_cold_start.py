@@ -88,6 +88,13 @@ def test_a_swap_serves_the_new_model_and_a_running_render_finishes_on_its_own(sc
     t = int(model.meta.anchors_us[2]) + 30_000
     out = engine.render(t, None, W, H)
     assert out.anchor == "checkpoint" and out.model_version == 3 and not out.projected
+    # with the stream's frames kept (a cold start's), its view within the span is projected onto the
+    # frame at its anchor too, as past the span; any other pose is the model's alone
+    engine.swap(Timebase(model, None, before.frames, version=4))
+    kept = engine.render(t, None, W, H)
+    assert kept.projected and kept.model_version == 4
+    assert kept.instant.anchor_us == int(model.meta.anchors_us[2])
+    assert not engine.render(t, model.meta.trajectory.at(t) @ _shifted(0.01), W, H).projected
     # a render that took the old timebase before the swap resolves and renders with it alone
     old = engine.resolve(None, before)
     assert before.start(old).kind == "frame"
@@ -114,6 +121,12 @@ def test_warm_start_copies_the_shared_networks_and_only_a_layer_of_the_same_plac
     assert not torch.equal(a.gaussians.means, b.gaussians.means)  # lifted from its own anchors
     wider = new_model(data, cfg.replace(deform_width=32))
     assert "prior" not in warm_start(wider, a)  # shapes differ: left as initialised
+
+
+def _shifted(dx: float) -> np.ndarray:
+    m = np.eye(4)
+    m[0, 3] = dx
+    return m
 
 
 class _Outbox(list):

@@ -1,0 +1,266 @@
+"""A cold start as a user lives it: a recording replayed in real time through ``edmcgs-serve --replay REC``
+with no checkpoint, every held-out frame's live render scored against wall-clock time since start.
+
+    .venv/bin/python -m bench.cold_start --recording traffic.h5 [--minutes 12] [--every 20]
+        [--offline CACHE] [--json PATH] [--csv PATH] [--plot PATH]
+
+The server replays the recording's anchor frames (what a camera at the anchor rate gives) and its
+events; its ``held_out`` frames are the ground truth. Every ``--every`` seconds each held-out time is
+rendered by the running service (``GET /render?t_us=...``, the event camera's own view) and scored
+(PSNR over all pixels, and over the moving ones as ``bench.online`` counts them) beside what needs no
+model, on the same frames: hold the last frame, the events integrated onto it, that frame projected into
+the bounds the events put on each pixel, and (not causal) the blend of the frames either side. By 1 s
+band of scene time, the live render against the events integrated, at each round.
+
+Also measured: the first render after the first frame reached the server, when the first learnt model
+went live (from the first anchor), ``GET /render`` latency while the learner runs, the websocket's frame
+rate, the learner's CPU. With ``--offline CACHE``: the recording trained offline by ``edmcgs train
+--config real`` (bench.traffic's cached run, one thread), and at the end the learner's saved model and
+the offline one scored on the held-out frames by the same code (``bench.traffic.score``), with the
+learner's CPU seconds beside the offline run's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import signal
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench.online import MOVING, _psnr
+from bench.results import table, write_json
+
+TARGETS = {"first_render_s": ("<=", 2.0), "first_model_s": ("<=", 60.0), "render_p50_ms": ("<=", 15.0),
+           "stream_fps": (">=", 30.0), "live_minus_integrate_worst_band_db": (">=", 0.0),
+           "live_minus_integrate_worst_band_moving_db": (">=", 0.0),
+           "learnt_minus_offline_db": (">=", -0.5)}
+BASELINES = ("hold_last", "integrate", "hold_projected", "blend")
+
+
+def baselines(rec) -> tuple[list[dict], np.ndarray]:
+    """Per held-out frame: its time, truth, moving mask and the no-model renders (``BASELINES``)."""
+    from edmcgs.model.eval.baselines import DEFAULT_CONTRAST
+    from edmcgs.model.online.bounds import integrate, project
+    from edmcgs.sensor.event_map import accumulate
+
+    contrast = DEFAULT_CONTRAST if rec.contrast_threshold is None else rec.contrast_threshold
+    anchor_t = rec.anchors.t_us
+    still = np.median(rec.anchors.images, axis=0) / 255.0
+    frames = []
+    for j in range(len(rec.held_out)):
+        t = int(rec.held_out.t_us[j])
+        k = int(np.searchsorted(anchor_t, t, side="right")) - 1
+        if k < 0:
+            continue
+        truth = rec.held_out.images[j] / 255.0
+        frame = rec.anchors.images[k] / 255.0
+        events = accumulate(rec.events.time_slice(int(anchor_t[k]), t), rec.width, rec.height)
+        images = {"hold_last": frame, "integrate": integrate(frame, events, contrast),
+                  "hold_projected": project(frame, frame, events, contrast)}
+        if k + 1 < len(anchor_t):
+            w = (t - int(anchor_t[k])) / float(anchor_t[k + 1] - anchor_t[k])
+            images["blend"] = (1 - w) * frame + w * rec.anchors.images[k + 1] / 255.0
+        moving = np.abs(truth - still).max(-1) > MOVING
+        scores = {}
+        for name, image in images.items():
+            scores[name] = _psnr(image, truth)
+            scores[f"{name}_moving"] = _psnr(image[moving], truth[moving]) if moving.any() else None
+        frames.append({"t_us": t, "truth": truth, "moving": moving, "scores": scores})
+    return frames, still
+
+
+def score_round(client, frames: list[dict], started: float, head_us: int) -> list[dict]:
+    """Every held-out frame the stream has reached (``head_us``) rendered by the service now and scored,
+    beside its baselines."""
+    rows = []
+    for f in frames:
+        if f["t_us"] > head_us:
+            break
+        t0 = time.perf_counter()
+        image, meta = client.render(t_us=f["t_us"], format="msgpack")
+        latency_ms = (time.perf_counter() - t0) * 1e3
+        image = image / 255.0
+        m = f["moving"]
+        rows.append({"wall_s": time.monotonic() - started, "t_us": f["t_us"], "model": meta.model_version,
+                     "anchor": meta.anchor, "latency_ms": latency_ms, "render_ms": meta.render_ms,
+                     "live": _psnr(image, f["truth"]),
+                     "live_moving": _psnr(image[m], f["truth"][m]) if m.any() else None, **f["scores"]})
+    return rows
+
+
+def bands(rows: list[dict], origin_us: int, width_s: float = 1.0) -> list[dict]:
+    """Per 1 s band of scene time: the mean live and integrated PSNR (all and moving pixels)."""
+    out = []
+    index = np.array([(r["t_us"] - origin_us) // int(width_s * 1e6) for r in rows])
+    for k in np.unique(index):
+        sel = [r for r, i in zip(rows, index, strict=True) if i == k]
+        band = {"from_s": float(k * width_s), "frames": len(sel)}
+        for name in ("live", "integrate"):
+            band[name] = float(np.mean([r[name] for r in sel]))
+            moving = [r[f"{name}_moving"] for r in sel if r[f"{name}_moving"] is not None]
+            band[f"{name}_moving"] = float(np.mean(moving)) if moving else None
+        out.append(band)
+    return out
+
+
+def stream_fps(url: str, seconds: float = 5.0) -> float:
+    """Frames per second a websocket delivers sweeping the renderable span at 60 fps in a loop (a sweep
+    renders every frame, where a live stream waits for the head)."""
+    from edmcgs.clients.client import Client
+
+    with Client(url) as client, client.stream({"mode": "sweep", "t0": 0.0, "fps": 60, "loop": True,
+                                               "format": "jpeg"}) as stream:
+        first = stream.receive(timeout=30)
+        n, t0 = 0, time.monotonic()
+        while first is not None and time.monotonic() - t0 < seconds:
+            if stream.receive(timeout=5) is not None:
+                n += 1
+        return n / max(time.monotonic() - t0, 1e-9)
+
+
+def run(rec_path: Path, minutes: float, every: float, workdir: Path, env: dict) -> dict:
+    from edmcgs.clients.client import Client
+    from edmcgs.sensor.files.recording import read_recording
+    from tests.support.server import ServerProcess
+
+    rec = read_recording(rec_path)
+    frames, _ = baselines(rec)
+    first_frame_s = (int(rec.anchors.t_us[0]) - rec.t_range_us[0]) / 1e6
+    srv = ServerProcess(["--replay", str(rec_path), "--learn-dir", str(workdir)], env=env)
+    rows, models, rounds = [], {}, []
+    try:
+        srv.wait_ready()
+        started, started_unix = time.monotonic(), time.time()  # the replay started with the service
+        with Client(srv.url) as client:
+            while True:  # the first render of the camera's view after the first frame arrived
+                try:
+                    client.render(format="msgpack")
+                    break
+                except Exception:
+                    time.sleep(0.02)
+            first_render_s = max(0.0, time.monotonic() - started - first_frame_s)
+            fps = None  # measured once a model is live, while the learner goes on
+            deadline = started + minutes * 60
+            while time.monotonic() < deadline:
+                tick = time.monotonic()
+                scene = client.scene()
+                learning = scene["learning"]
+                if learning["model"] is not None:
+                    models.setdefault(learning["model"]["version"], learning["model"])
+                    if fps is None:
+                        fps = stream_fps(srv.url)
+                batch = score_round(client, frames, started, scene["head_us"] or 0)
+                if batch:
+                    rows += batch
+                    rounds.append({"wall_s": batch[0]["wall_s"], "model": batch[0]["model"],
+                                   "learnt": learning["model"],
+                                   "bands": bands(batch, int(rec.anchors.t_us[0]))})
+                    print(f"{rounds[-1]['wall_s']:7.1f} s  model {batch[0]['model']}: live "
+                          f"{np.mean([r['live'] for r in batch]):.2f} dB, integrate "
+                          f"{np.mean([r['integrate'] for r in batch]):.2f}", file=sys.stderr)
+                time.sleep(max(0.0, every - (time.monotonic() - tick)))
+    finally:
+        srv.stop(signal.SIGINT, timeout=300)
+    first_model = min(models.values(), key=lambda m: m["version"], default=None)
+    return {"rows": rows, "rounds": rounds, "models": sorted(models.values(), key=lambda m: m["version"]),
+            "first_render_s": first_render_s, "stream_fps": fps,
+            "first_model_s": None if first_model is None else
+            first_model["live_unix"] - started_unix - first_frame_s,
+            "render_p50_ms": float(np.median([r["latency_ms"] for r in rows])) if rows else None,
+            "log": srv.log()}
+
+
+def offline(rec_path: Path, cache: Path, learnt_ckpt: Path) -> dict:
+    """The offline real preset's run (cached) and both models scored on the held-out frames."""
+    from bench.traffic import score, train
+    from edmcgs.model.checkpoint import load_checkpoint
+    from edmcgs.pipeline import open_recording, training_data
+
+    run_info = train(rec_path, "offline", [], cache)
+    data = training_data(open_recording(rec_path))
+    models = {"offline": load_checkpoint(cache / run_info["checkpoint"]),
+              "learnt": load_checkpoint(learnt_ckpt)}
+    scores, _ = score(data, models, static_camera=True)
+    return {"offline_run": run_info, "scores": scores}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="bench.cold_start", description=__doc__.split("\n\n")[0])
+    p.add_argument("--recording", type=Path, required=True)
+    p.add_argument("--minutes", type=float, default=12.0, help="how long the service runs (default 12)")
+    p.add_argument("--every", type=float, default=20.0, help="seconds between scoring rounds (default 20)")
+    p.add_argument("--preset", default="real", help="the config the learner trains (default real)")
+    p.add_argument("--offline", type=Path, metavar="CACHE",
+                   help="also train offline (cached here) and compare")
+    p.add_argument("--json", type=Path)
+    p.add_argument("--csv", type=Path, help="every scored render")
+    p.add_argument("--plot", type=Path, help="PSNR against wall-clock time since start (PNG)")
+    args = p.parse_args(argv)
+    env = {"EDMCGS_LEARN_PRESET": args.preset}
+    with tempfile.TemporaryDirectory() as tmp:
+        workdir = Path(tmp) / "learnt"
+        r = run(args.recording, args.minutes, args.every, workdir, env)
+        results = {k: v for k, v in r.items() if k not in ("rows", "log")}
+        last = r["rounds"][-1]["bands"] if r["rounds"] else []
+        every_band = [b for rnd in r["rounds"] for b in rnd["bands"]]
+        if every_band:
+            results["live_minus_integrate_worst_band_db"] = min(b["live"] - b["integrate"]
+                                                                for b in every_band)
+            moving = [b["live_moving"] - b["integrate_moving"] for b in every_band
+                      if b["live_moving"] is not None and b["integrate_moving"] is not None]
+            results["live_minus_integrate_worst_band_moving_db"] = min(moving) if moving else None
+            results["last_round_bands"] = last
+        if args.offline is not None:
+            saved = workdir / "learned.ckpt"
+            if not saved.is_file():
+                raise SystemExit(f"the learner saved no checkpoint; its log:\n{r['log'][-4000:]}")
+            results["offline"] = offline(args.recording, args.offline, saved)
+            s = results["offline"]["scores"]
+            results["learnt_minus_offline_db"] = s["learnt"]["psnr"] - s["offline"]["psnr"]
+            results["learner_cpu_s"] = r["models"][-1]["cpu_s"] if r["models"] else None
+            results["offline_cpu_s"] = results["offline"]["offline_run"]["cpu_s"]
+    if args.csv is not None and r["rows"]:
+        args.csv.parent.mkdir(parents=True, exist_ok=True)
+        with open(args.csv, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(r["rows"][0]))
+            w.writeheader()
+            w.writerows(r["rows"])
+    if args.plot is not None and r["rows"]:
+        plot(r["rows"], args.plot)
+    write_json(args.json, results)
+    print(table(results, TARGETS))
+    print(json.dumps({k: results[k] for k in ("models",) if k in results}, indent=1)[:2000])
+    return 0
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    """Mean PSNR of each scoring round against wall-clock time, beside the no-model renders."""
+    from matplotlib.figure import Figure
+
+    from bench.figures import save
+
+    walls = sorted({round(r["wall_s"]) for r in rows})
+    fig = Figure(figsize=(8, 4.5), layout="constrained")
+    ax = fig.subplots()
+    for key, label, colour in (("live", "live render (cold start)", "#1b6ca8"),
+                               ("integrate", "events integrated onto the last frame", "#66a182"),
+                               ("hold_projected", "last frame projected onto the events", "#c2a83e"),
+                               ("hold_last", "hold the last frame", "#888888")):
+        means = [np.mean([r[key] for r in rows if round(r["wall_s"]) == w]) for w in walls]
+        ax.plot(walls, means, marker="o", ms=3, color=colour, label=label)
+    ax.set_xlabel("wall-clock time since the service started (s)")
+    ax.set_ylabel("mean PSNR over the held-out frames (dB)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save(fig, path)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
