@@ -44,6 +44,8 @@ REFILL_S = 0.01
 @dataclass
 class Round:
     trainer: object
+    recording: object
+    """What the round learns from: the stream when it began (saved with its model, a resumable pair)."""
     steps: int
     """Where this round's training stops (then a new round, or the same model trains on)."""
     anchors: int
@@ -154,7 +156,7 @@ class Learner:
         if self.model is not None:
             warm_start(model, self.model)
         self.model, self.data = model, data
-        self.round = Round(Trainer(model, data, progress=False), steps, len(data.anchors_t_us))
+        self.round = Round(Trainer(model, data, progress=False), rec, steps, len(data.anchors_t_us))
 
     def publish(self, path: Path | None = None) -> Path:
         """Save the current model (a final checkpoint: what the server loads) and report it."""
@@ -184,7 +186,9 @@ class Learner:
         return path
 
     def save(self) -> dict:
-        """What continuing needs: the model with its train state beside it, and the stream as a recording."""
+        """What continuing needs: the model with its train state beside it, and the recording it learns
+        from (the stream when its round began: ``edmcgs train --resume`` checks they belong together);
+        before any round, the stream so far."""
         from edmcgs.model.checkpoint import save_checkpoint
         from edmcgs.model.train.resume import write_sidecar
         from edmcgs.sensor.files.recording import write_recording
@@ -192,7 +196,7 @@ class Learner:
         cfg = self.config
         out = {"kind": "saved", "checkpoint": None, "recording": None}
         if self.stream.frames:
-            rec = self.stream.recording(cfg)
+            rec = self.stream.recording(cfg) if self.round is None else self.round.recording
             write_recording(cfg.workdir / LEARNED_REC, rec)
             out["recording"] = str(cfg.workdir / LEARNED_REC)
         if self.round is not None:

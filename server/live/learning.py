@@ -114,9 +114,10 @@ class Learning:
         if self.process.is_alive():
             self.inbox.put(("stop",))
             self._saved.wait(timeout)
-        self.process.join(5.0)
+        self.process.join(30.0)  # torch's teardown takes seconds on a loaded machine
         if self.process.is_alive():
             self.process.kill()
+            self.process.join(5.0)
         for q in (self.inbox, self.outbox):
             q.close()
             q.cancel_join_thread()  # what the learner did not read is not waited for

@@ -164,8 +164,9 @@ def test_the_learner_publishes_rounds_over_the_anchors_received_and_saves_what_r
     saved = learner.save()
     assert Path(saved["checkpoint"]).name == "learned.ckpt" and saved["steps"] == learner.round.trainer.step
     assert (tmp_path / "learned.ckpt.train-state").is_file()
-    back = read_recording(saved["recording"])
+    back = read_recording(saved["recording"])  # what the model learnt from: a pair train --resume takes
     assert len(back.anchors) == 11 and len(back.held_out) == 10 and len(back.events) == len(rec.events)
+    assert back.anchors.t_us.tolist() == load_checkpoint(saved["checkpoint"]).meta.anchors_us.tolist()
     kept = sorted(p.name for p in tmp_path.glob("learned-*.ckpt"))
     assert kept == ["learned-0001.ckpt", "learned-0002.ckpt"]
 
