@@ -75,7 +75,9 @@ class SceneConfig(BaseModel):
         if self.demo and (self.checkpoint or self.replay or self.live):
             raise ValueError("demo: true serves the bundled scene; give no checkpoint, replay or live")
         if not self.demo and self.checkpoint is None:
-            raise ValueError("give a checkpoint (or demo: true)")
+            raise ValueError("give a checkpoint (or demo: true): a scene learnt from a cold start is served "
+                             "by the single-process edmcgs-serve (--replay or --live without --checkpoint), "
+                             "whose learnt checkpoint a scene here can then serve")
         if self.live and self.speed != 1.0:
             raise ValueError(f"speed {self.speed}: a live scene runs at the camera's pace (a replay played "
                              "as a camera is stamped with the wall clock); give speed 1 or leave it out")
