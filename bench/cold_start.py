@@ -127,7 +127,7 @@ def stream_fps(url: str, seconds: float = 5.0) -> float:
 def run(rec_path: Path, minutes: float, every: float, workdir: Path, env: dict) -> dict:
     from edmcgs.clients.client import Client
     from edmcgs.sensor.files.recording import read_recording
-    from tests.support.server import ServerProcess
+    from harness.server import ServerProcess
 
     rec = read_recording(rec_path)
     frames, _ = baselines(rec)

@@ -29,7 +29,7 @@ from websockets.sync.client import connect
 
 from bench.results import table, write_json
 from edmcgs import protocol
-from tests.support.server import ServerProcess, metric_values
+from harness.server import ServerProcess, metric_values
 
 TARGETS = {f"{name}_{key}": target for name in ("unsubscribed", "stalled")
            for key, target in (("slots_back_s", ("<=", 10.0)), ("cores", ("<=", 0.05)),

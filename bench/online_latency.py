@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.results import table, write_json
-from tests.support.server import ServerProcess, metric_values
+from harness.server import ServerProcess, metric_values
 
 
 def main(argv=None) -> None:

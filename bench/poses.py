@@ -12,7 +12,7 @@ Scenes (``--scenes``, default all):
   structure from motion can at best follow the figure's torso, which bobs by up to 0.17 m with each
   jump, so even a camera that tracked the torso exactly is off by 0.043 m RMS after the alignment
   (0.87 % of the 4 s path; 1.74 % of the 2 s one): the 1 % target sits at that floor.
-- ``rigid-small``: ``lego`` frozen at one instant along its arc (``tests.support.pose_scenes``; the
+- ``rigid-small``: ``lego`` frozen at one instant along its arc (``harness.pose_scenes``; the
   scene of the pose test), 26 frames, 173x130, the camera given.
 - ``rigid-60``: the same at 346x260, 60 frames at 25 Hz (the time target: <= 2 min on 2 cores).
 - ``traffic-pan``: ``edmcgs synth traffic-pan``'s street (cars crossing; 346x260, 60 frames at 25 Hz,
@@ -45,7 +45,7 @@ from edmcgs.errors import EdmcgsError
 from edmcgs.geometry import Intrinsics
 from edmcgs.poses import estimate_poses
 from edmcgs.synth.scene import make_scene, render
-from tests.support.pose_scenes import rigid_sweep, trajectory_error
+from harness.pose_scenes import rigid_sweep, trajectory_error
 
 REAL = Path(__file__).resolve().parents[1] / "tests" / "data" / "test-frame.aedat4"
 SCENES = ("jumpingjack-sweep", "jumpingjack-orbit", "rigid-small", "rigid-60", "traffic-pan", "test-frame")

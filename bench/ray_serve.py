@@ -29,7 +29,7 @@ import httpx
 import numpy as np
 
 from bench.results import table, write_json
-from tests.support.server import ServerProcess
+from harness.server import ServerProcess
 
 TARGETS = {"kill_failed_requests": ("<=", 0)}
 T = 0.5  # seconds into the demo's span: every render's time (within the checkpoint's anchors)
@@ -98,7 +98,7 @@ def single_process(results: dict, seconds: float, clients: int) -> None:
 
 
 def ray_phase(results: dict, replicas: int, seconds: float, clients: int, kill: bool) -> None:
-    from tests.support.ray_serve import LocalServe, scene_entry
+    from harness.ray_serve import LocalServe, scene_entry
 
     scenes = [{**scene_entry(n, None, None, replicas=replicas, raster_threads=None),
                "cpus_per_replica": 1.0 / replicas} for n in ("a", "b")]

@@ -43,7 +43,7 @@ FAST_TARGET = {1: ("<=", 5.0), 2: ("<=", 3.2)}
 
 
 def _scene(n: int, width: int, height: int):
-    from tests.support.scenes import random_scene
+    from harness.scenes import random_scene
 
     scene = random_scene(n, 346, 260, seed=n, sh_degree=3, px_sigma=(0.7, 4.0), margin=0.0)
     scene["intrinsics"] = scene["intrinsics"].scaled(width, height)

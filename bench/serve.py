@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.results import table, write_json
-from tests.support.server import ServerProcess, build_scene, metric_values
+from harness.server import ServerProcess, build_scene, metric_values
 
 TARGETS = {"render_p50_ms": ("<=", 8.0), "render_rps_4_clients": (">=", 200.0),
            "render_p99_ms_4_clients": ("<=", 150.0), "stream_fps": (">=", 60.0),

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.results import table, write_json
-from tests.support.server import ServerProcess
+from harness.server import ServerProcess
 
 SIZES = ((173, 130), (346, 260), (562, 423), (865, 650))
 """The demo camera's size, twice it, and 'fit' in windows about 1280x560 and 1000x760 wide."""

@@ -11,9 +11,9 @@ cd "$(dirname "$0")/.."
 max_examples="${1:-1200}"
 .venv/bin/python -m pip install -q --disable-pip-version-check -c requirements/constraints.txt -e '.[dev,fuzz]'
 work="$(mktemp -d)"
-port="$(.venv/bin/python -c 'from tests.support.server import free_port; print(free_port())')"
+port="$(.venv/bin/python -c 'from harness.server import free_port; print(free_port())')"
 .venv/bin/python -c "
-from tests.support.server import build_scene, WIDTH, HEIGHT
+from harness.server import build_scene, WIDTH, HEIGHT
 build_scene('$work', width=WIDTH, height=HEIGHT, event_rate=20_000, init_points=2000, control_points=64)"
 .venv/bin/edmcgs-serve --replay "$work/scene.h5" --checkpoint "$work/scene.ckpt" --loop --port "$port" \
     > "$work/server.log" 2>&1 &

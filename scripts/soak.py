@@ -9,7 +9,7 @@ the latency of a probe (GET /healthz, then GET /render) every half second.
 line, opening a new one whenever the server closes one (it does after its head_timeout_s). ``--token``
 runs the server with EDMCGS_TOKEN and every client with it. Exits non-zero when a /render answered 503,
 anything answered 5xx, a probe did not answer 200 (or took longer than ``--probe-limit-s``), or RSS grew
-5 % or more after the warm-up. The scene is the tests' tiny synthetic one (tests.support.server).
+5 % or more after the warm-up. The scene is the tests' tiny synthetic one (harness.server).
 All load goes to 127.0.0.1; every loop ends with the run.
 """
 
@@ -33,7 +33,7 @@ import websockets
 
 from edmcgs import protocol
 from edmcgs.server.connections import raise_fd_limit
-from tests.support.server import HEIGHT, TOKEN, WIDTH, ServerProcess, build_scene
+from harness.server import HEIGHT, TOKEN, WIDTH, ServerProcess, build_scene
 
 PROBE_EVERY_S = 0.5
 IDLE_CHECK_S = 1.0

@@ -7,7 +7,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 FOLDERS = {"edmcgs": "edmcgs", "sensor": "edmcgs.sensor", "model": "edmcgs.model", "synth": "edmcgs.synth",
-           "server": "edmcgs.server", "clients": "edmcgs.clients", "bench": "bench", "tests": "tests"}
+           "server": "edmcgs.server", "clients": "edmcgs.clients", "bench": "bench", "harness": "harness",
+           "tests": "tests"}
 BASE = ("edmcgs.errors", "edmcgs.atomic", "edmcgs.geometry", "edmcgs.luminance",
         "edmcgs.filekind")
 """Shared by every layer: the error tree, atomic file output, the camera / pose / quaternion maths and
@@ -55,7 +56,7 @@ def _imports(path: Path) -> set[str]:
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             subs = {f"{node.module}.{a.name}" for a in node.names} & MODULES.keys()
             names.update(subs or {node.module})
-    return {n for n in names if n.split(".")[0] in ("edmcgs", "bench", "tests")}
+    return {n for n in names if n.split(".")[0] in ("edmcgs", "bench", "harness", "tests")}
 
 
 def _within(name: str, *prefixes: str) -> bool:
@@ -196,13 +197,17 @@ def test_no_module_imports_a_cli_module():
     assert bad == []
 
 
-def test_bench_imports_test_support_never_tests():
-    allowed = ("bench", "edmcgs", "tests.support")
-    assert _violations("bench", allowed) == []
+def test_bench_imports_the_harness_never_tests():
+    assert _violations("bench", ("bench", "edmcgs", "harness")) == []
+
+
+def test_the_harness_imports_only_the_package():
+    """What tests, benchmarks and scripts share imports none of them."""
+    assert _violations("harness", ("harness", "edmcgs")) == []
 
 
 def test_test_support_imports_no_test_module_and_no_bench():
-    assert _violations("tests.support", ("tests.support", "edmcgs")) == []
+    assert _violations("tests.support", ("tests.support", "harness", "edmcgs")) == []
 
 
 def test_tests_import_support_never_each_other():

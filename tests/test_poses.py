@@ -21,7 +21,7 @@ from edmcgs.sensor.files.recording import Recording, read_recording, write_recor
 from edmcgs.sensor.frames import Frames
 from edmcgs.synth.scene import make_scene
 from edmcgs.synth.traffic import TrafficScene
-from tests.support.pose_scenes import rigid_sweep, trajectory_error
+from harness.pose_scenes import rigid_sweep, trajectory_error
 
 REAL = Path(__file__).parent / "data" / "test-frame.aedat4"
 

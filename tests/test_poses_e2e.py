@@ -8,7 +8,7 @@ from edmcgs.model.checkpoint import load_checkpoint
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import Recording, write_recording
 from edmcgs.sensor.frames import Frames
-from tests.support.pose_scenes import rigid_sweep, trajectory_error
+from harness.pose_scenes import rigid_sweep, trajectory_error
 
 TINY = ["init_points=500", "num_control_points=24", "deform_width=32", "deform_depth=2", "iterations=4",
         "substeps=4", "max_pair_steps=4", "eval_every=4", "eval_frames=1", "checkpoint_every=4"]

@@ -10,7 +10,7 @@ pytest.importorskip("ray", reason="the 'ray' extra is not installed")
 from bench.report.training import train_on_ray, train_run
 from edmcgs.options import RecordingOptions
 from edmcgs.pipeline import open_recording
-from tests.support.server import build_scene
+from harness.server import build_scene
 
 pytestmark = pytest.mark.slow
 

@@ -14,8 +14,9 @@ from edmcgs.model.motion.background import BackgroundLayer
 from edmcgs.model.render.rasterize_fast import rasterize_fast
 from edmcgs.model.train.density import GradientStats, densify_and_prune
 from edmcgs.model.train.trainer import Trainer, write_history_csv
+from harness.server import randomize_event_branch
 from tests.support import tiny_scene
-from tests.support.models import TINY, build, one_torch_thread, randomize_event_branch  # noqa: F401
+from tests.support.models import TINY, build, one_torch_thread  # noqa: F401
 
 LAYERED = TINY.replace(bg_layer=True, anchor_windows=True, event_act="leaky", dynamic_threshold=0.06,
                        lambda_next=1.0, init_opacity=0.7)

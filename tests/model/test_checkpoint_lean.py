@@ -12,8 +12,9 @@ from edmcgs.geometry import world_to_camera
 from edmcgs.model.checkpoint import VERSION, load_checkpoint, read_checkpoint, save_checkpoint
 from edmcgs.model.motion import leanness
 from edmcgs.synth.orbit import look_at
+from harness.server import randomize_event_branch
 from tests.support import tiny_scene
-from tests.support.models import TINY, build, perturb_prior, randomize_event_branch
+from tests.support.models import TINY, build, perturb_prior
 
 
 def test_a_final_checkpoint_records_frozen_points_and_one_static_pose(tmp_path):

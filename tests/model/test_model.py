@@ -18,8 +18,9 @@ from edmcgs.model.checkpoint import (
 )
 from edmcgs.model.motion.event_branch import FIELD
 from edmcgs.model.train.trainer import Trainer
+from harness.server import randomize_event_branch
 from tests.support import tiny_scene
-from tests.support.models import TINY, build, randomize_event_branch, states_equal
+from tests.support.models import TINY, build, states_equal
 
 
 def test_untrained_model_meta_and_tau():

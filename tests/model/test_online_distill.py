@@ -17,7 +17,8 @@ from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.server.demo import files
 from edmcgs.server.live.anchors import OnlineAnchors
 from edmcgs.server.live.config import OnlineConfig
-from tests.support.models import build, randomize_event_branch
+from harness.server import randomize_event_branch
+from tests.support.models import build
 
 
 @pytest.fixture(scope="module")

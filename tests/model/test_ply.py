@@ -12,8 +12,9 @@ from edmcgs.model.checkpoint import load_checkpoint, save_checkpoint
 from edmcgs.model.motion.gaussians import GaussianState
 from edmcgs.model.ply import ply_bytes, write_ply
 from edmcgs.model.render.sh import SH_C0
+from harness.server import randomize_event_branch
 from tests.support import tiny_scene
-from tests.support.models import TINY, build, randomize_event_branch
+from tests.support.models import TINY, build
 
 HEAD = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
 TAIL = ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]

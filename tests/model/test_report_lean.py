@@ -12,8 +12,9 @@ from edmcgs.model.motion import leanness
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import Recording
 from edmcgs.sensor.frames import Frames
+from harness.server import randomize_event_branch
 from tests.support import tiny_scene
-from tests.support.models import TINY, build, perturb_prior, randomize_event_branch
+from tests.support.models import TINY, build, perturb_prior
 
 
 def _half_frozen(tmp_path, **kwargs):

@@ -7,8 +7,9 @@ from edmcgs.geometry import quat_to_rotmat, world_to_camera
 from edmcgs.model.motion.gaussians import GaussianState
 from edmcgs.model.motion.skin_plan import _skin_torch, build_plan, skin
 from edmcgs.model.motion.skinning import lbs
+from harness.server import randomize_event_branch
 from tests.support import tiny_scene
-from tests.support.models import build, perturb_prior, randomize_event_branch
+from tests.support.models import build, perturb_prior
 
 
 def reference(model, t_us, emap):

@@ -7,7 +7,7 @@ import pytest
 
 from edmcgs.cli import main
 from edmcgs.model.checkpoint import load_checkpoint
-from tests.support.server import build_scene
+from harness.server import build_scene
 
 TINY = ["init_points=300", "num_control_points=16", "deform_width=16", "deform_depth=2", "iterations=2",
         "substeps=2", "max_pair_steps=2", "eval_every=0", "checkpoint_every=0", "train_scale=1.0"]

@@ -9,7 +9,7 @@ pytest.importorskip("ray", reason="the 'ray' extra is not installed")
 
 from edmcgs.cli import main
 from edmcgs.model.checkpoint import load_checkpoint
-from tests.support.server import build_scene
+from harness.server import build_scene
 
 pytestmark = pytest.mark.slow
 

@@ -12,7 +12,7 @@ from edmcgs.model.render.composite import composite, make_plan
 from edmcgs.model.render.composite_fast import composite_fast
 from edmcgs.model.render.projection import ewa_project, screen_rect
 from edmcgs.model.render.rasterize import rasterize
-from tests.support.scenes import random_scene, with_values
+from harness.scenes import random_scene, with_values
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
 BG = [0.1, 0.2, 0.3]

@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from edmcgs.model.render.project_fast import project_fast, sh_color_fast
 from edmcgs.model.render.projection import ewa_project
 from edmcgs.model.render.sh import sh_to_color
-from tests.support.scenes import at_camera_depth, random_scene, with_values
+from harness.scenes import at_camera_depth, random_scene, with_values
 
 NEAR = 0.01
 

@@ -9,7 +9,7 @@ from edmcgs.errors import InvalidInputError, PoseError
 from edmcgs.geometry import Intrinsics
 from edmcgs.model.render import composite, reference
 from edmcgs.model.render.rasterize import rasterize
-from tests.support.scenes import at_camera_depth, random_scene, with_values
+from harness.scenes import at_camera_depth, random_scene, with_values
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
 BG = [0.1, 0.2, 0.3]

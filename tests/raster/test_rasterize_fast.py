@@ -16,7 +16,7 @@ from edmcgs.geometry import Intrinsics
 from edmcgs.model.render import reference
 from edmcgs.model.render.rasterize import rasterize
 from edmcgs.model.render.rasterize_fast import rasterize_fast
-from tests.support.scenes import at_camera_depth, random_scene, with_values
+from harness.scenes import at_camera_depth, random_scene, with_values
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
 BG = [0.1, 0.2, 0.3]

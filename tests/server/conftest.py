@@ -10,7 +10,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.support.server import HEIGHT, TOKEN, WIDTH, ServerProcess, build_scene
+from harness.server import HEIGHT, TOKEN, WIDTH, ServerProcess, build_scene
 
 
 @pytest.fixture(scope="session")

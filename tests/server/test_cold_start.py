@@ -27,7 +27,7 @@ from edmcgs.server.live.clock import Timeline
 from edmcgs.server.live.config import LearnConfig
 from edmcgs.server.live.learner import Learner, Stream
 from edmcgs.server.live.timebase import FramesTimebase, StreamMeta, Timebase
-from tests.support.server import build_scene
+from harness.server import build_scene
 
 W, H = 64, 48
 TINY = ("init_points=300", "num_control_points=16", "deform_width=16", "deform_depth=2")

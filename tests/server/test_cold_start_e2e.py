@@ -14,7 +14,7 @@ import httpx
 
 from edmcgs import protocol
 from edmcgs.train_cli import main as train_main
-from tests.support.server import ServerProcess, build_scene, metric_values
+from harness.server import ServerProcess, build_scene, metric_values
 
 LEARN = {"EDMCGS_LEARN_PRESET": "demo", "EDMCGS_LEARN_FIRST_STEPS": "5", "EDMCGS_LEARN_ANCHOR_FPS": "10",
          "EDMCGS_LEARN_SET": json.dumps(["init_points=300", "num_control_points=16", "deform_width=16",

@@ -11,7 +11,7 @@ import pytest
 
 from edmcgs.server.app import create_app
 from edmcgs.server.settings import Settings
-from tests.support.server import ThreadServer
+from harness.server import ThreadServer
 from tests.support.stub import StubService
 from tests.support.viewer import chromium
 

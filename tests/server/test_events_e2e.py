@@ -14,7 +14,7 @@ from edmcgs.clients.client import TimeUnavailable
 from edmcgs.model.checkpoint import load_checkpoint
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.files.recording import read_recording
-from tests.support.server import HEIGHT, TOKEN, WIDTH
+from harness.server import HEIGHT, TOKEN, WIDTH
 
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 

@@ -10,7 +10,7 @@ import httpx
 import numpy as np
 import pytest
 
-from tests.support.server import ServerProcess
+from harness.server import ServerProcess
 
 DAMAGES = ("truncate_half", "truncate_tail", "flip_bits", "zero_range", "flip_mid_stream", "xor_block")
 """xor_block: 200 bytes inverted at 60 % of the file, the damage that made dv-processing's LZ4 decoder spin

@@ -14,7 +14,7 @@ import httpx
 import pytest
 
 from edmcgs.server.settings import Settings
-from tests.support.server import free_port
+from harness.server import free_port
 from tests.support.stub import StubService
 
 HEAD_TIMEOUT_S = 1.0

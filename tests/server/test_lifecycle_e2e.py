@@ -20,8 +20,8 @@ from edmcgs.server import demo
 from edmcgs.server.app import create_app
 from edmcgs.server.service import Service
 from edmcgs.server.settings import Settings
+from harness.server import ServerProcess, ThreadServer, build_scene, metric_values
 from tests.support.recordings import write_dvxplorer
-from tests.support.server import ServerProcess, ThreadServer, build_scene, metric_values
 
 
 def _settings(scene_files, **extra) -> Settings:

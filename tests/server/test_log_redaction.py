@@ -13,7 +13,7 @@ from urllib.parse import quote, unquote, unquote_plus
 import pytest
 
 from edmcgs.server.settings import Settings
-from tests.support.server import free_port
+from harness.server import free_port
 from tests.support.stub import StubService
 
 SECRET = "Tk9secretVALUE"

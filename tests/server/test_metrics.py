@@ -11,7 +11,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from edmcgs.server.app import create_app
 from edmcgs.server.metrics import CONTENT_TYPE, Metrics
 from edmcgs.server.settings import Settings
-from tests.support.server import metric_values
+from harness.server import metric_values
 from tests.support.stub import StubService
 
 

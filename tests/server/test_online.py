@@ -24,7 +24,7 @@ from edmcgs.server.live.anchors import OnlineAnchors
 from edmcgs.server.live.clock import Timeline
 from edmcgs.server.live.config import OnlineConfig
 from edmcgs.server.live.timebase import Timebase
-from tests.support.server import build_scene
+from harness.server import build_scene
 
 STEP_US = 50_000
 

@@ -13,7 +13,7 @@ import pytest
 
 from edmcgs import protocol
 from edmcgs.clients.client import Client
-from tests.support.server import HEIGHT, WIDTH, ServerProcess, build_scene, metric_values
+from harness.server import HEIGHT, WIDTH, ServerProcess, build_scene, metric_values
 
 TRAIN_S, DURATION_S = 0.5, 2.5  # the stream is 5x the checkpoint's span
 

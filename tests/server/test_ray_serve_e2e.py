@@ -16,8 +16,8 @@ import pytest
 pytest.importorskip("ray.serve", reason="the 'ray' extra is not installed")
 
 from edmcgs import protocol
-from tests.support.ray_serve import LocalServe, scene_entry
-from tests.support.server import HEIGHT, WIDTH, build_scene
+from harness.ray_serve import LocalServe, scene_entry
+from harness.server import HEIGHT, WIDTH, build_scene
 
 pytestmark = pytest.mark.slow
 

@@ -12,7 +12,7 @@ from PIL import Image
 from edmcgs import protocol
 from edmcgs.clients.client import Client, InvalidRequest, TimeUnavailable, Unauthorized, depth_metres
 from edmcgs.sensor.files.recording import read_recording
-from tests.support.server import HEIGHT, TOKEN, WIDTH, metric_values
+from harness.server import HEIGHT, TOKEN, WIDTH, metric_values
 
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 # A pose looking at the scene from 5 cm to the right and tilted by ~11 degrees about y.

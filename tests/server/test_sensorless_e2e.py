@@ -14,7 +14,7 @@ import pytest
 from edmcgs.clients.client import Client, TimeUnavailable
 from edmcgs.model.checkpoint import load_checkpoint, read_checkpoint
 from edmcgs.server.encode import to_uint8
-from tests.support.server import HEIGHT, WIDTH, ServerProcess, build_scene, metric_values
+from harness.server import HEIGHT, WIDTH, ServerProcess, build_scene, metric_values
 
 SPEED = 2.0  # the playback clock runs at twice real time
 

@@ -26,7 +26,7 @@ from edmcgs.pipeline import split_at, training_data
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.files.recording import read_recording
 from edmcgs.server.encode import to_uint8
-from tests.support.server import HEIGHT, WIDTH, ServerProcess, build_scene
+from harness.server import HEIGHT, WIDTH, ServerProcess, build_scene
 
 FRAMES_PER_ANCHOR = 5
 SECOND_PASS_TO_MS = 500

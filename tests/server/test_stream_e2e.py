@@ -14,7 +14,7 @@ from websockets.sync.client import connect
 from edmcgs import protocol
 from edmcgs.clients.client import InvalidRequest
 from edmcgs.sensor.files.recording import read_recording
-from tests.support.server import HEIGHT, TOKEN, WIDTH, metric_values
+from harness.server import HEIGHT, TOKEN, WIDTH, metric_values
 
 SIDE_POSE = [0.05, 0.0, 0.0, 0.995, 0.0, 0.0998, 0.0]
 

@@ -21,7 +21,7 @@ from edmcgs import protocol
 from edmcgs.server import connections
 from edmcgs.server.routes import stream
 from edmcgs.server.settings import Settings
-from tests.support.server import free_port
+from harness.server import free_port
 from tests.support.stub import StubService
 
 SLOTS = 3

@@ -18,8 +18,9 @@ from edmcgs.model.data import EventGrid, TrainingData
 from edmcgs.model.dynamic import EdMCGS
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.events import Events
+from harness.server import randomize_event_branch
 from tests.support import tiny_scene
-from tests.support.models import TINY, randomize_event_branch
+from tests.support.models import TINY
 
 T0 = 1_700_000_000_000_000
 DAY = 86_400_000_000

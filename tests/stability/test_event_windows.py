@@ -21,8 +21,9 @@ from edmcgs.model.train.trainer import Trainer
 from edmcgs.pipeline import new_model
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.events import Events
+from harness.server import randomize_event_branch
 from tests.support import tiny_scene
-from tests.support.models import TINY, build, randomize_event_branch, states_equal
+from tests.support.models import TINY, build, states_equal
 
 MID_GAP = tiny_scene.T0 + 50_000  # between the first two anchors (0 and 100 ms)
 

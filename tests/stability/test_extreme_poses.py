@@ -16,9 +16,9 @@ from edmcgs.geometry import Intrinsics, pose_from_quat, world_to_camera
 from edmcgs.model.render import reference
 from edmcgs.model.render.rasterize import rasterize
 from edmcgs.model.render.rasterize_fast import rasterize_fast
+from harness.scenes import random_scene
 from tests.support import tiny_scene
 from tests.support.models import build
-from tests.support.scenes import random_scene
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
 BG = np.array([0.1, 0.2, 0.3])

@@ -21,15 +21,6 @@ def build(cfg=TINY, **kwargs) -> tuple[EdMCGS, object]:
     return model, data
 
 
-def randomize_event_branch(model: EdMCGS, seed: int = 0) -> None:
-    """Give g_phi and Phi non-trivial weights, as after training."""
-    gen = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for p in [*model.encoder.parameters(), *model.transition.parameters()]:
-            p.copy_(torch.randn(p.shape, generator=gen) * 0.3)
-        model.event_scale.fill_(1.0)
-
-
 def states_equal(a, b) -> bool:
     fields = ("means", "quats", "scales", "opacities", "colors")
     return all(torch.equal(getattr(a, f), getattr(b, f)) for f in fields)

@@ -41,7 +41,7 @@ def page(browser):
 
 @pytest.fixture(scope="package")
 def served(tmp_path_factory):
-    from tests.support.server import TOKEN, ServerProcess, build_scene
+    from harness.server import TOKEN, ServerProcess, build_scene
 
     rec, ckpt = build_scene(tmp_path_factory.mktemp("viewer-scene"), width=VIEW_W, height=VIEW_H,
                             event_rate=20_000, init_points=2000, control_points=64)

@@ -112,12 +112,21 @@ def build_scene(folder: str | os.PathLike, *, width: int = 346, height: int = 26
                                trajectory=Trajectory(traj_t, traj_c2w), event_size=(width, height),
                                config=config)
     if event_branch_seed is not None:
-        from tests.support.models import randomize_event_branch  # imports pytest: only when asked
-
         randomize_event_branch(model, event_branch_seed)
     ckpt_path = folder / "scene.ckpt"
     save_checkpoint(model, ckpt_path)
     return Path(rec_path), ckpt_path
+
+
+def randomize_event_branch(model, seed: int = 0) -> None:
+    """Give g_phi and Phi non-trivial weights, as after training."""
+    import torch
+
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in [*model.encoder.parameters(), *model.transition.parameters()]:
+            p.copy_(torch.randn(p.shape, generator=gen) * 0.3)
+        model.event_scale.fill_(1.0)
 
 
 # ------------------------------------------------------------------------------- a real server

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import httpx
 
-from tests.support.server import free_port
+from harness.server import free_port
 
 
 def scene_entry(name: str, checkpoint: Path | None, replay: Path | None, *, replicas: int = 1,
