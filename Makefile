@@ -1,7 +1,7 @@
 # The two commands of the README, and the checks of CONTRIBUTING.md.
 PY := .venv/bin/python
 
-.PHONY: serve test check lint lock fuzz bench demo
+.PHONY: serve test check lint lock fuzz bench demo docs
 
 serve:  ## set up, then serve the bundled demo scene on http://127.0.0.1:8000
 	scripts/bootstrap.sh
@@ -14,6 +14,10 @@ test:   ## set up, then run the whole test suite (two workers; the 25 slowest te
 check:  ## the inner loop: everything but the slow end-to-end cases (real servers, the browser)
 	scripts/bootstrap.sh --test
 	$(PY) -m pytest -n 2 --dist loadgroup -m "not slow" -q
+
+docs:   ## the docs site into site/ (mkdocs.yml, pages in docs/, benchmark figures read from reports/), offline
+	scripts/bootstrap.sh --docs
+	.venv/bin/mkdocs build --strict
 
 lint:
 	.venv/bin/ruff check .

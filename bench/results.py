@@ -3,6 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
+import platform
+import shlex
+import sys
+import time
 from pathlib import Path
 
 from edmcgs.atomic import atomic_output
@@ -29,10 +34,43 @@ def table(results: dict, targets: dict[str, tuple[str, float]]) -> str:
     return "\n".join(rows)
 
 
+def machine() -> str:
+    """This machine in words: architecture, CPUs and their model, and the GPU where torch uses one."""
+    model = ""
+    try:
+        with open("/proc/cpuinfo") as info:
+            names = (line.split(":", 1)[1].strip() for line in info if line.startswith("model name"))
+            model = next(names, "")
+    except OSError:
+        pass
+    words = [f"{platform.machine()}, {os.cpu_count()} CPUs" + (f" ({model})" if model else "")]
+    torch = sys.modules.get("torch")  # only where the benchmark already loaded it
+    if torch is not None and torch.cuda.is_available():
+        words.append(torch.cuda.get_device_name())
+    return ", ".join(words)
+
+
+def run_info() -> dict:
+    """How this process ran, for its JSON's ``run`` block (what ``bench.pages`` shows beside each figure):
+    the command as typed from the repository root, the machine, the date (UTC) and the load average."""
+    main = sys.modules.get("__main__")
+    spec = getattr(main, "__spec__", None)
+    if spec is not None:
+        head = ["python", "-m", spec.name.removesuffix(".__main__")]
+    else:
+        head = ["python", sys.argv[0]]
+    return {"command": shlex.join(head + sys.argv[1:]), "machine": machine(),
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+            "load_average_1m": round(os.getloadavg()[0], 2)}
+
+
 def write_json(path: Path | None, data) -> None:
-    """Write ``data`` as indented JSON to ``path`` (parents created); nothing when ``path`` is None."""
+    """Write ``data`` as indented JSON to ``path`` (parents created); nothing when ``path`` is None. A dict
+    gets a ``run`` block (``run_info``) unless it has one."""
     if path is None:
         return
+    if isinstance(data, dict) and "run" not in data:
+        data = {**data, "run": run_info()}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_output(path) as tmp:

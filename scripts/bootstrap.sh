@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Set up .venv on a fresh machine, pinned by requirements/constraints.txt (refresh: make lock).
 #   scripts/bootstrap.sh          what serving needs
-#   scripts/bootstrap.sh --test   also the dev tools, the ray and bench extras and the system packages the
-#                                 tests drive (Chromium)
+#   scripts/bootstrap.sh --test   also the dev tools, the ray, bench and docs extras and the system packages
+#                                 the tests drive (Chromium)
+#   scripts/bootstrap.sh --docs   what serving needs and the docs extra (make docs: mkdocs), no warm-up
 # PyTorch: the CPU build from PyTorch's own CPU index where it is reachable (PyPI's torch wheel for
 # Linux is the CUDA build, several GB), else the machine's own torch==2.13.0 wheel. EDMCGS_TORCH_SPEC
 # brings another build (e.g. EDMCGS_TORCH_SPEC=torch==2.13.0 EDMCGS_TORCH_INDEX= for CUDA from PyPI).
@@ -15,7 +16,10 @@ PYTHON=${PYTHON:-python3}
 TORCH_SPEC=${EDMCGS_TORCH_SPEC:-torch==2.13.0}
 TORCH_INDEX=${EDMCGS_TORCH_INDEX-https://download.pytorch.org/whl/cpu}
 mode=serve extras=""
-if [[ "${1:-}" == "--test" ]]; then mode=test extras="[dev,ray,bench]"; fi
+case "${1:-}" in
+  --test) mode=test extras="[dev,ray,bench,docs]" ;;
+  --docs) mode=docs extras="[docs]" ;;
+esac
 
 if [[ $mode == test ]] && ! command -v chromium >/dev/null 2>&1; then
   if [[ $(id -u) -eq 0 ]] && command -v apt-get >/dev/null 2>&1; then
@@ -44,8 +48,10 @@ if ! .venv/bin/python -c "import torch" 2>/dev/null; then
 fi
 "${pip[@]}" -c requirements/constraints.txt -e ".$extras"
 # The numba kernels into numba's on-disk cache, so that the first edmcgs-serve / edmcgs train starts at
-# once instead of compiling for a minute; seconds when the cache already holds them.
-echo "bootstrap: compiling the numba kernels once (about a minute the first time)"
-.venv/bin/edmcgs warm-up
+# once instead of compiling for a minute; seconds when the cache already holds them. The docs need none.
+if [[ $mode != docs ]]; then
+  echo "bootstrap: compiling the numba kernels once (about a minute the first time)"
+  .venv/bin/edmcgs warm-up
+fi
 echo "$want" > "$stamp"
 echo "bootstrap: .venv ready for $mode ($(.venv/bin/python -c 'import torch; print("torch", torch.__version__)'))"

@@ -11,10 +11,10 @@ pip=("$scratch/venv/bin/python" -m pip install -q --disable-pip-version-check)
 "${pip[@]}" --upgrade pip
 "${pip[@]}" --index-url https://download.pytorch.org/whl/cpu --timeout 5 --retries 0 torch==2.13.0 2>/dev/null \
   || "${pip[@]}" torch==2.13.0
-"${pip[@]}" -e '.[dev,ray,bench]'
+"${pip[@]}" -e '.[dev,ray,bench,docs]'
 {
-  echo "# Pinned versions of everything pyproject.toml installs (runtime, dev, ray and bench extras), used by"
-  echo "# scripts/bootstrap.sh and docker/Dockerfile. Refresh with: make lock"
+  echo "# Pinned versions of everything pyproject.toml installs (runtime, dev, ray, bench and docs extras), used"
+  echo "# by scripts/bootstrap.sh and docker/Dockerfile. Refresh with: make lock"
   "$scratch/venv/bin/python" -m pip freeze --all --exclude-editable \
     | grep -viE '^(torch|nvidia-|triton|edmcgs)[=-]' | grep -v '^-e ' | sort -f
 } > requirements/constraints.txt

@@ -50,6 +50,7 @@ from bench.report.stability import (
     sparse_anchor_rows,
 )
 from bench.report.training import load_run_model, train_on_ray, train_run
+from bench.results import run_info
 from edmcgs.atomic import atomic_output
 from edmcgs.model.eval.lpips import LPIPS, find_weights
 from edmcgs.pipeline import training_data
@@ -254,7 +255,8 @@ def write_outputs(out: Path, s: ReportSettings, r: dict, *, command: str, minute
                "curves": curves, "render_knobs": r["knobs"], "render_context": r["context"],
                "stability": r["stability"], "time_resolution": r["time_resolution"], "lean": r["lean"],
                "lean_context": r["lean_context"], "online": r["online"],
-               "online_predictions": r["online_predictions"], "online_context": r["online_context"]}
+               "online_predictions": r["online_predictions"], "online_context": r["online_context"],
+               "run": run_info() | {"command": command}}
     with atomic_output(out / "report.json") as tmp:
         tmp.write_text(json.dumps(payload, indent=1, default=str))
     return text
