@@ -9,7 +9,7 @@ provenance (the command, the machine, the date), which the page lists at its end
 KEY steps into dicts by name and lists by index, or picks the list item whose fields match:
 ``rows[width=346,gaussians=8000].median_ms``. A key holding spaces or dots is quoted as a whole
 (``"stages_ms.anchor: deform"``). FORMAT is a format spec (``.2f``, ``,d``), optionally scaled:
-``.1f/60`` (seconds as minutes), ``.0f*1000``. Placeholders inside fenced code are left alone.
+``.1f/60`` (seconds as minutes), ``.0f*1000``. Placeholders in code (fenced or `spans`) are left alone.
 
 Provenance: a file's own ``run`` block (``{"command", "machine", "date"}``: ``bench.results.write_json``
 stamps every benchmark's JSON with it), else its entry in ``reports/sources.toml``, which holds the
@@ -33,6 +33,7 @@ from edmcgs.errors import InvalidInputError
 
 PLACEHOLDER = re.compile(r"\{\{\s*(.+?)\s*\}\}")
 FENCE = re.compile(r"^\s*(```|~~~)")
+CODE_SPAN = re.compile(r"(`+)(?:.+?)\1")
 SELECT = re.compile(r"^(?P<name>[^\[\]]*)\[(?P<where>[^\[\]]+)\]$")
 SCALE = re.compile(r"^(?P<spec>.*?)(?P<op>[/*])(?P<by>[0-9.e+-]+)$")
 SOURCES = "sources.toml"
@@ -125,7 +126,7 @@ class Figures:
         for line in markdown.splitlines(keepends=True):
             if FENCE.match(line):
                 fenced = not fenced
-            out.append(line if fenced else PLACEHOLDER.sub(lambda m: self._expand(m.group(1), used), line))
+            out.append(line if fenced else _outside_code(line, lambda m: self._expand(m.group(1), used)))
         text = "".join(out)
         return text + self._sources(used) if used else text
 
@@ -174,6 +175,15 @@ class Figures:
                          + (f" {source.note}" if source.note else "")
                          + f"\n\n```bash\n{source.command.strip()}\n```\n")
         return "".join(parts)
+
+
+def _outside_code(line: str, expand) -> str:
+    """``line`` with its placeholders expanded, but not those inside `code spans`."""
+    out, at = [], 0
+    for span in CODE_SPAN.finditer(line):
+        out += [PLACEHOLDER.sub(expand, line[at:span.start()]), span[0]]
+        at = span.end()
+    return "".join([*out, PLACEHOLDER.sub(expand, line[at:])])
 
 
 def _source(name: str, fields: dict, where: str) -> Source:

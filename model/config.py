@@ -328,7 +328,8 @@ def _demo() -> EdmcgsConfig:
     # 1500 iterations, the event-loss renders at half resolution. With 20x fewer steps than the paper,
     # the event loss weighs 1.0, not 0.05 (held-out PSNR rises with it up to 1.0, then the anchors lose).
     # Phi reads I_E pooled 4x4: its 23-px receptive field then spans 92 px of the event camera, the scale
-    # of a limb's path between anchors, and Phi runs on a map 16x smaller. Figures: README, reports/.
+    # of a limb's path between anchors, and Phi runs on a map 16x smaller. Figures:
+    # docs/benchmarks/accuracy.md.
     return EdmcgsConfig(
         init_points=3000, max_gaussians=30000, num_control_points=256, deform_width=128, deform_depth=4,
         iterations=1500, train_scale=1.0, event_render_scale=0.5, eval_every=500, checkpoint_every=500,
@@ -344,7 +345,7 @@ def _real() -> EdmcgsConfig:
     # window, and carried through the gap by the events. The motion is learnt from the event loss taken
     # from the anchor (anchored_pairs 1: the anchor state is exact, so the events since it say where the
     # edges went) plus the next anchor frame seen through a 6-level pyramid (alone, with free start
-    # times, it pushes movers off the frame). Figures: README ("Real data").
+    # times, it pushes movers off the frame). Figures: docs/benchmarks/real.md.
     return _demo().replace(
         bg_layer=True, anchor_windows=True, event_act="leaky", dynamic_threshold=0.04, init_opacity=0.8,
         init_points=60000, max_gaussians=60000, densify_from=0.0, densify_until=0.0,
