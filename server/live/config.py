@@ -71,6 +71,9 @@ class LearnConfig:
     """Anchors before the first round."""
     first_steps: int = 150
     """Steps of the first round (then each round twice the one before, up to the preset's iterations)."""
+    first_scale: float = 0.5
+    """The first round renders and supervises at this fraction of the frames' size (a model live sooner;
+    the later rounds train at the preset's)."""
     publish_s: float = 30.0
     """Seconds between two published checkpoints within a round (each round's end publishes too)."""
     eval_frames: int = 8

@@ -4,8 +4,9 @@ EdMCGS on the stream's frames and events as they arrive, and publishes checkpoin
     inbox ──> the stream so far (events, frames) ──> rounds, each over every anchor received when it
               began (frames at ``anchor_fps``; the frames between them held out and scored):
               a model lifted from those anchors, its networks warm-started from the round before
-              (model/train/warm.py), trained ``steps`` (``first_steps``, then twice the round before,
-              up to the preset's iterations), published every ``publish_s`` and at the round's end.
+              (model/train/warm.py), trained ``steps`` (``first_steps`` at ``first_scale`` of the frames'
+              size, then twice the round before at full size, up to the preset's iterations), published
+              every ``publish_s`` and at the round's end.
               A round that ends with no new anchor goes on training the same model.
     stop ──>  the model and the stream saved: ``learned.ckpt`` (with its train state beside it) and
               ``learned.h5``; ``edmcgs train learned.h5 -o learned.ckpt --resume`` continues the run and
@@ -151,8 +152,10 @@ class Learner:
         steps = cfg.first_steps if previous is None else min(2 * previous.steps, base.iterations)
         if previous is not None and previous.steps >= base.iterations:
             steps = base.iterations
-        # the schedules (learning-rate decay, the event branch's warm-in) run over the round's steps
-        model = new_model(data, base.replace(iterations=max(steps, 1)))
+        # the schedules (learning-rate decay, the event branch's warm-in) run over the round's steps; the
+        # first round renders at first_scale of the frames' size, so that a model is live soon
+        scale = base.train_scale if previous is not None else min(base.train_scale, cfg.first_scale)
+        model = new_model(data, base.replace(iterations=max(steps, 1), train_scale=scale))
         if self.model is not None:
             warm_start(model, self.model)
         self.model, self.data = model, data
