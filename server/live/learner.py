@@ -13,7 +13,8 @@ EdMCGS on the stream's frames and events as they arrive, and publishes checkpoin
               ``edmcgs-serve --replay learned.h5 --checkpoint learned.ckpt`` serves it.
 
 Messages in: ("batch", t, x, y, p, frame_t, frame_images) | ("stop",). Out: dicts with a ``kind``:
-"published" (path, version, span, steps, loss, held-out scores, seconds), "progress", "saved", "error".
+"published" (path, version, span, anchors, steps, Gaussians, held-out scores, CPU seconds), "saved"
+(what ``save`` wrote), "error".
 """
 
 from __future__ import annotations
@@ -63,6 +64,8 @@ class Stream:
         self._frame_images: list[np.ndarray] = []
         self.events = 0
         self.frames = 0
+        self.first_frame_us: int | None = None
+        self.last_frame_us: int | None = None
 
     def add(self, t, x, y, p, frame_t, frame_images) -> None:
         if len(t):
@@ -72,9 +75,9 @@ class Stream:
             self._frame_t.append(frame_t)
             self._frame_images.append(frame_images)
             self.frames += len(frame_t)
-
-    def frame_times(self) -> np.ndarray:
-        return np.concatenate(self._frame_t) if self._frame_t else np.zeros(0, np.int64)
+            if self.first_frame_us is None:
+                self.first_frame_us = int(frame_t[0])
+            self.last_frame_us = int(frame_t[-1])
 
     def recording(self, config: LearnConfig):
         """The stream so far as a recording with what ``config`` knows of the camera, its frames split into
@@ -114,10 +117,10 @@ class Learner:
 
     def anchors_available(self) -> int:
         """Anchors a round built now would have (frames at ``anchor_fps`` so far)."""
-        t = self.stream.frame_times()
-        if not len(t):
+        first, last = self.stream.first_frame_us, self.stream.last_frame_us
+        if first is None:
             return 0
-        return math.floor((t[-1] - t[0]) * self.config.anchor_fps / 1e6) + 1
+        return math.floor((last - first) * self.config.anchor_fps / 1e6) + 1
 
     def step(self) -> bool:
         """Train one chunk, starting a round first when due; False when there is nothing to train yet."""
@@ -192,8 +195,7 @@ class Learner:
         """What continuing needs: the model with its train state beside it, and the recording it learns
         from (the stream when its round began: ``edmcgs train --resume`` checks they belong together);
         before any round, the stream so far."""
-        from edmcgs.model.checkpoint import save_checkpoint
-        from edmcgs.model.train.resume import write_sidecar
+        from edmcgs.model.train.resume import save_final
         from edmcgs.sensor.files.recording import write_recording
 
         cfg = self.config
@@ -205,8 +207,7 @@ class Learner:
         if self.round is not None:
             trainer, path = self.round.trainer, cfg.workdir / LEARNED_CKPT
             trainer.model.eval()
-            digest = save_checkpoint(trainer.model, path)
-            write_sidecar(path, trainer.train_state(), digest)
+            save_final(trainer.model, path, trainer.train_state())  # the two as one unit
             out.update(checkpoint=str(path), steps=trainer.step, version=self.version)
         return out
 
