@@ -15,6 +15,7 @@ import argparse
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -69,6 +70,23 @@ def check_aps(fps: float, duration_s: float, exposure_us: int, subframes: int, r
 def held_out_per_interval(fps: float) -> int:
     """APS frames between two anchors at ``fps``."""
     return round(APS_HZ / fps) - 1
+
+
+def add_recording_flags(p: argparse.ArgumentParser, defaults, *, name: str, seed_help: str) -> None:
+    """The flags every DAVIS346-like scene's builder takes: its rate, length, size, seed and output, the
+    APS readout, the event pixels and the simulation's steps, the output's compression and the progress
+    bar. ``defaults``: the scene's config (fps, duration_s, exposure_us, read_noise_dn, sampling)."""
+    p.add_argument("--fps", type=float, default=defaults.fps, help="anchor rate, dividing 25 (default 5)")
+    p.add_argument("-o", "--output", type=Path, help=f"output file (default: {name}_FPSfps_SIZE.h5)")
+    p.add_argument("--seed", type=int, default=0, help=f"seed of {seed_help} (default 0)")
+    p.add_argument("--size", choices=("full", "small"), default="full",
+                   help="full: 346x260, the DAVIS346 (default); small: 173x130")
+    p.add_argument("--duration", "--seconds", type=float, default=defaults.duration_s,
+                   help=f"sequence length in seconds (default {defaults.duration_s:g})")
+    add_sensor_flags(p, exposure_us=defaults.exposure_us, read_noise_dn=defaults.read_noise_dn,
+                     dt_min_us=defaults.sampling.dt_min_us, dt_max_us=defaults.sampling.dt_max_us)
+    p.add_argument("--compress", action="store_true", help="gzip the event columns (smaller, slower replay)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
 
 
 def add_sensor_flags(p: argparse.ArgumentParser, *, exposure_us: int, read_noise_dn: float,

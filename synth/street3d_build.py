@@ -40,7 +40,7 @@ from edmcgs.synth.davis import (
     APS_HZ,
     DAVIS346_SIMULATOR,
     ImuConfig,
-    add_sensor_flags,
+    add_recording_flags,
     aps_frame,
     check_aps,
     held_out_per_interval,
@@ -195,22 +195,11 @@ def _parser() -> argparse.ArgumentParser:
         "simulated events with mismatch, refractory period, noise and hot pixels, IMU samples, the true "
         "trajectory, and a second camera's novel views at the held-out times."))
     p.add_argument("scene", choices=("street3d",))
-    p.add_argument("--fps", type=float, default=d.fps, help="anchor rate, dividing 25 (default 5)")
-    p.add_argument("-o", "--output", type=Path, help="output file (default: street3d_FPSfps_SIZE.h5)")
-    p.add_argument("--seed", type=int, default=0,
-                   help="seed of the street, traffic, hand, noise, IMU and events (default 0)")
-    p.add_argument("--size", choices=sorted(SIZES), default="full",
-                   help="full: 346x260, the DAVIS346 (default); small: 173x130")
-    p.add_argument("--duration", "--seconds", type=float, default=d.duration_s,
-                   help=f"sequence length in seconds (default {d.duration_s:g})")
+    add_recording_flags(p, d, name="street3d", seed_help="the street, traffic, hand, noise, IMU and events")
     p.add_argument("--subframes", type=int, default=d.subframes,
                    help=f"renders averaged over each exposure (default {d.subframes})")
-    add_sensor_flags(p, exposure_us=d.exposure_us, read_noise_dn=d.read_noise_dn,
-                     dt_min_us=d.sampling.dt_min_us, dt_max_us=d.sampling.dt_max_us)
     p.add_argument("--imu-hz", type=float, default=d.imu.rate_hz, help="IMU sample rate (default 1000)")
     p.add_argument("--sheet", type=Path, help="also write a PNG contact sheet of the recording here")
-    p.add_argument("--compress", action="store_true", help="gzip the event columns (smaller, slower replay)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     return p
 
 

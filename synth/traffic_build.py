@@ -33,7 +33,7 @@ from edmcgs.synth.build import TRAJECTORY_STEP_US, frame_times, save
 from edmcgs.synth.davis import (
     APS_HZ,
     DAVIS346_SIMULATOR,
-    add_sensor_flags,
+    add_recording_flags,
     aps_frame,
     check_aps,
     held_out_per_interval,
@@ -163,17 +163,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--pan", action="store_true", help="pan the camera (the same as traffic-pan)")
     p.add_argument("--pan-px-s", type=float, default=d.pan_px_s,
                    help=f"pan speed at the image centre, px/s at 346x260 (default {d.pan_px_s:g})")
-    p.add_argument("--fps", type=float, default=d.fps, help="anchor rate, dividing 25 (default 5)")
-    p.add_argument("-o", "--output", type=Path, help="output file (default: SCENE_FPSfps_SIZE.h5)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the scene, read noise and events (default 0)")
-    p.add_argument("--size", choices=sorted(SIZES), default="full",
-                   help="full: 346x260, the DAVIS346 (default); small: 173x130")
-    p.add_argument("--duration", "--seconds", type=float, default=d.duration_s,
-                   help=f"sequence length in seconds (default {d.duration_s:g})")
-    add_sensor_flags(p, exposure_us=d.exposure_us, read_noise_dn=d.read_noise_dn, dt_min_us=250,
-                     dt_max_us=4000)
-    p.add_argument("--compress", action="store_true", help="gzip the event columns (smaller, slower replay)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_recording_flags(p, d, name="SCENE", seed_help="the scene, read noise and events")
     return p
 
 
