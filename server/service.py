@@ -267,6 +267,8 @@ class Service:
             online.start()
             old = self.engine.timebase
             self.engine.swap(tb)
+        if self.signal is not None:  # live streams render the head again, with the new model
+            self.signal.notify()
         if old.online is not None:
             old.online.stop()
 

@@ -187,6 +187,7 @@ class StreamSession:
         next_at = loop.time()
         sweep_t = 0
         last_window_end: int | None = None  # live: the stream time the previous frame reached
+        last_serial: int | None = None  # live: the timebase (the model) the previous frame was rendered by
         while True:
             self.changed.clear()  # from here on, a new subscription wakes any wait below
             sub = self.sub
@@ -195,10 +196,13 @@ class StreamSession:
                 continue
             if sub.mode == "live":
                 head = engine.head()
-                if head is None or (last_window_end is not None and head[0] <= last_window_end):
+                # a frame when the head moves on, or when a newer model (a cold start's) is swapped in
+                if head is None or (last_window_end is not None and head[0] <= last_window_end
+                                    and engine.timebase.serial == last_serial):
                     await self._wait_for_events()
                     continue
                 t_us = None
+                last_serial = engine.timebase.serial
             else:
                 t0, t1 = self._sweep_range(sub)
                 if self.restart:
@@ -261,7 +265,8 @@ class StreamSession:
             self._push(message)
 
     async def _wait_for_events(self) -> None:
-        """Until the ingest thread stores events, the subscription changes, or LIVE_IDLE_S passes."""
+        """Until the ingest thread stores events (or a newer model is swapped in), the subscription
+        changes, or LIVE_IDLE_S passes."""
         waiters = [asyncio.create_task(self.changed.wait()),
                    asyncio.create_task(self.service.signal.wait(LIVE_IDLE_S))]
         try:

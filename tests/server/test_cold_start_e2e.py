@@ -13,6 +13,7 @@ import time
 import httpx
 
 from edmcgs import protocol
+from edmcgs.clients.client import Client
 from edmcgs.train_cli import main as train_main
 from harness.server import ServerProcess, build_scene, metric_values
 
@@ -28,7 +29,18 @@ def test_a_cold_start_serves_at_once_learns_swaps_in_its_model_and_saves_it(tmp_
     learnt = tmp_path / "learnt"
     srv = ServerProcess(["--replay", str(rec), "--learn-dir", str(learnt)], env=LEARN)
     statuses: list[int] = []
+    versions: list[int | None] = []  # of a live stream's frames, opened before the first model
     stop = threading.Event()
+
+    def watch_live():  # the replay ends long before the model: the swap alone must bring a new frame
+        with Client(srv.url) as client, client.stream({"mode": "live", "fps": 10}) as stream:
+            while not stop.is_set():
+                try:
+                    frame = stream.receive(timeout=5)
+                except TimeoutError:  # the ended replay's head stands still: no frame meanwhile
+                    continue
+                if frame is not None:
+                    versions.append(frame.model_version)
 
     def keep_rendering():  # a client rendering the head all along, the swap included
         with httpx.Client(base_url=srv.url, timeout=30) as client:
@@ -45,6 +57,8 @@ def test_a_cold_start_serves_at_once_learns_swaps_in_its_model_and_saves_it(tmp_
         assert posed.status_code == 503 and "no model has been learnt yet" in posed.json()["detail"]
         renderer = threading.Thread(target=keep_rendering, daemon=True)
         renderer.start()
+        watcher = threading.Thread(target=watch_live, daemon=True)
+        watcher.start()
         deadline = time.monotonic() + MODEL_S
         while (scene := httpx.get(srv.url + "/scene", timeout=30).json())["learning"]["version"] is None:
             assert time.monotonic() < deadline, f"no model after {MODEL_S} s:\n{srv.log()}"
@@ -55,9 +69,15 @@ def test_a_cold_start_serves_at_once_learns_swaps_in_its_model_and_saves_it(tmp_
         lo, hi = learning["model"]["span_us"]
         assert scene["tau_sources"][0] == {"source": "checkpoint", "t_us_min": lo, "t_us_max": hi,
                                            "t_min": 0.0, "t_max": (hi - lo) / 1e6}
+        deadline = time.monotonic() + 60
+        while not any(v is not None for v in versions):  # the live stream renders the head again
+            assert time.monotonic() < deadline, f"no frame of a learnt model on the live stream: {versions}"
+            time.sleep(0.2)
+        assert versions[0] is None  # before the model: the frame moved by the events
         time.sleep(1.0)  # the renderer goes on past the swap
         stop.set()
         renderer.join(30)
+        watcher.join(30)
         inside = httpx.get(srv.url + "/render", params={"t_us": (lo + hi) // 2}, timeout=30)
         assert inside.status_code == 200 and inside.headers[protocol.HEADER_ANCHOR] == "checkpoint"
         assert int(inside.headers[protocol.HEADER_MODEL]) >= learning["version"]  # (newer ones go on)
