@@ -110,8 +110,11 @@ class Online(_Body):
     predicted: int
     corrected: int
     expired: int
+    restarted: int
+    """Anchors that started the chain again: the events since the one before had left the ring, or
+    spanned more than a second (a cold start's model learnt far behind the head)."""
     skipped: dict[str, int]
-    """Not corrected or not made, by reason (superseded, events_gone)."""
+    """Not corrected, by reason (superseded: a newer frame took the one-slot fit queue)."""
     refused: dict[str, int]
     """Stream frames refused as anchors, by reason."""
     queue_depth: int

@@ -273,10 +273,12 @@ class Service:
             old.online.stop()
 
     def _seed(self, online: OnlineAnchors, after_us: int) -> int:
-        """Give ``online`` the stream's frames after ``after_us``; returns the newest time given."""
+        """Give ``online`` the stream's newest frames after ``after_us`` (as many as it keeps: the chain
+        past a model learnt far behind the head starts again at the first, ``OnlineAnchors._predict``);
+        returns the newest time given."""
         times = self.frames.times()
         newest = int(times[-1]) if len(times) else after_us
-        picked = [self.frames.anchor_at(int(t)) for t in times[times > after_us]]
+        picked = [self.frames.anchor_at(int(t)) for t in times[times > after_us][-online.config.capacity:]]
         if picked and self.engine.timeline is not None:
             online.on_frames(Frames(np.array([a.t_us for a in picked], np.int64),
                                     np.stack([a.image for a in picked])), self.engine.timeline.scene_of)

@@ -47,7 +47,10 @@ from edmcgs.server.metrics import Metrics
 log = logging.getLogger("edmcgs.server")
 
 REFUSED_REASONS = ("size", "channels", "timestamp")
-SKIPPED_REASONS = ("superseded", "events_gone")
+SKIPPED_REASONS = ("superseded",)
+MAX_GAP_US = 1_000_000
+"""An anchor farther than this from the one before it starts the chain again (``_predict``): the
+transition learnt gaps of one anchor period, and seconds of events say little it can use."""
 SWITCH_INTERVAL_S = 0.0005
 """The GIL switch interval while fitting (see ``start``)."""
 
@@ -110,6 +113,8 @@ class OnlineAnchors:
         self.refused = dict.fromkeys(REFUSED_REASONS, 0)
         self.skipped = dict.fromkeys(SKIPPED_REASONS, 0)
         self.predicted = 0
+        self.restarted = 0
+        """Anchors that started the chain again (the events since the one before gone, or too long)."""
         self.corrected = 0
         self.expired = 0
         self.last_fit_s: float | None = None
@@ -232,16 +237,23 @@ class OnlineAnchors:
         with self._lock:
             prev_stream = self.tau(t - 1, scene_t - 1)
             prev = self.get(prev_stream)
-            try:
-                events = self.ring.slice(prev_stream, t)
-            except WindowUnavailable:
-                self.skipped["events_gone"] += 1
-                return
-            emap = (accumulate(events, model.meta.event_width, model.meta.event_height)
-                    if len(events) else None)
+            events = None
+            if t - prev_stream <= MAX_GAP_US:
+                try:
+                    events = self.ring.slice(prev_stream, t)
+                except WindowUnavailable:  # left the ring
+                    pass
             c2w = pose if pose is not None else self.pose(scene_t)  # the event camera at the frame
-            base = model_online.checkpoint_motion(model, scene_t) if prev is None else prev.motion
-            motion = self.advance(base, emap, c2w)
+            if events is None:
+                # The chain starts again here (a ring that dropped its events, a model learnt far behind
+                # the head): the model's own motion at this time, corrected against the frame.
+                self.restarted += 1
+                prev, motion = None, model_online.checkpoint_motion(model, scene_t)
+            else:
+                emap = (accumulate(events, model.meta.event_width, model.meta.event_height)
+                        if len(events) else None)
+                base = model_online.checkpoint_motion(model, scene_t) if prev is None else prev.motion
+                motion = self.advance(base, emap, c2w)
             anchor = OnlineAnchor(t, scene_t, motion, False, 0, pose, None if prev is None else prev.spawned,
                                   None if prev is None else prev.colors, _frozen(image))
             self._publish((*self._anchors, anchor))
@@ -356,9 +368,12 @@ class OnlineAnchors:
 
     def _since_previous(self, anchor: OnlineAnchor) -> tuple[model_online.Motion, np.ndarray | None] | None:
         """(the motion of the anchor before ``anchor`` as it stands now, the event map between them; None
-        without events), or None when those events have left the ring."""
+        without events), or None when those events have left the ring or span more than MAX_GAP_US (the
+        chain started again at ``anchor``)."""
         model = self.model
         prev_stream = self.tau(anchor.stream_us - 1, anchor.t_us - 1)
+        if anchor.stream_us - prev_stream > MAX_GAP_US:
+            return None
         prev = self.get(prev_stream)
         base = prev.motion if prev is not None else model_online.checkpoint_motion(model, anchor.t_us)
         try:
@@ -386,6 +401,7 @@ class OnlineAnchors:
                         for a in anchors],
             "capacity": cfg.capacity,
             "predicted": self.predicted, "corrected": self.corrected, "expired": self.expired,
+            "restarted": self.restarted,
             "skipped": dict(self.skipped), "refused": dict(self.refused),
             "queue_depth": self.queue_depth,
             "project": cfg.project,
@@ -411,10 +427,11 @@ def register_metrics(metrics: Metrics, current: Callable[[], OnlineAnchors | Non
           read(lambda o: float(len(o.anchors())), 0.0))
     counter("edmcgs_online_anchors_total", "Online anchors by outcome: predicted, corrected (fitted to their "
             "frame), expired (out of the bounded store).",
-            read(lambda o: {"predicted": o.predicted, "corrected": o.corrected, "expired": o.expired},
-                 {"predicted": 0, "corrected": 0, "expired": 0}), "result")
+            read(lambda o: {"predicted": o.predicted, "corrected": o.corrected, "expired": o.expired,
+                            "restarted": o.restarted},
+                 {"predicted": 0, "corrected": 0, "expired": 0, "restarted": 0}), "result")
     counter("edmcgs_online_anchors_skipped_total", "Online anchors not corrected (superseded: a newer frame "
-            "took the one-slot fit queue) or not made (events_gone: their events left the ring).",
+            "took the one-slot fit queue).",
             read(lambda o: dict(o.skipped), dict.fromkeys(SKIPPED_REASONS, 0)), "reason")
     counter("edmcgs_frames_refused_total", "Stream frames refused as anchors, by reason (size, channels, "
             "timestamp: not after the newest frame).",

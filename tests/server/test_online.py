@@ -112,9 +112,32 @@ def test_the_store_is_bounded_and_expires_with_the_events(long_scene):
     lo = rec.t_range_us[0]
     for hi in range(lo + STEP_US, rec.t_range_us[1], STEP_US):
         _feed(online, ring, rec, hi, tl, from_us=hi - STEP_US)
-    assert ring.stats().overflowed > 0 and online.skipped["events_gone"] == 0
+    assert ring.stats().overflowed > 0 and online.restarted == 0
     assert 0 < len(online.anchors()) < online.predicted == 38
     assert all(a.stream_us > ring.stats().oldest_us for a in online.anchors())
+
+
+def test_a_chain_whose_events_are_gone_starts_again_and_renders_to_the_head(long_scene):
+    """Frames past the span whose events since the anchor before left the ring (or span more than a
+    second: a learnt model far behind the head) start the chain again at their own time, so the head
+    still renders; without them the chain stayed dead."""
+    rec, model = long_scene
+    start = rec.t_range_us[0]
+    ring = EventRingBuffer(10**6)
+    online = OnlineAnchors(model, ring, OnlineConfig(fit=False))
+    engine = Engine(Timebase(model, online), ring, cache_size=4)
+    engine.timeline = tl = Timeline(start, start)
+    late = int(model.meta.t_end_us) + 1_200_000  # more than a second past the span's last anchor
+    # the ring holds the events of the last 0.3 s only; frames from ``late`` on
+    ring.push(rec.events.time_slice(late - 300_000, late + 400_000), complete_until_us=late + 400_000)
+    sel = (rec.anchors.t_us >= late) & (rec.anchors.t_us < late + 400_000)
+    online.on_frames(Frames(rec.anchors.t_us[sel], rec.anchors.images[sel]), tl.scene_of)
+    assert online.restarted == 1 and online.predicted == int(sel.sum()) > 1
+    out = engine.render(None, None, 64, 48)
+    assert out.anchor == "predicted" and out.instant.anchor_us == online.anchors()[-1].t_us
+    restart = online.anchors()[0]
+    want = model_online.checkpoint_motion(model, restart.t_us)
+    assert all(torch.equal(a, b) for a, b in zip(restart.motion, want, strict=True))
 
 
 def test_a_fit_that_falls_behind_skips_and_counts_and_corrections_publish(long_scene):
