@@ -885,6 +885,7 @@ async function reloadScene() {
     if (!response.ok) return;
     state.scene = await response.json();
     state.cameraPoses = anchorPoses(state.scene.trajectory, state.scene.anchors_us);
+    $("model").textContent = modelText(state.modelVersion, state.scene.learning);
     layoutSlider();
     paint();
   } catch (err) {

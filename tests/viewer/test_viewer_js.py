@@ -295,6 +295,16 @@ def test_the_anchor_readout_says_what_an_online_anchor_is_and_whether_the_view_i
     assert viewer.evaluate(note, {"anchor": "corrected", "projected": True}) == " (corrected, events-bounded)"
 
 
+def test_the_model_readout_says_which_model_renders_and_what_it_learnt(viewer):
+    text = "([v, learning]) => window.edmcgsViewer.modelText(v, learning)"
+    learnt = {"model": {"version": 3, "span_us": [0, 2_500_000], "anchors": 13, "steps": 600,
+                        "heldout": {"psnr": 31.234}}}
+    assert viewer.evaluate(text, [None, {}]) == "learning… (frame + events)"
+    assert viewer.evaluate(text, [0, None]) == "checkpoint"  # a checkpoint given: no learner
+    assert viewer.evaluate(text, [3, learnt]) == "learnt v3 (2.5 s, 13 anchors, step 600, held-out 31.2 dB)"
+    assert viewer.evaluate(text, [4, learnt]) == "learnt v4"  # newer than what /scene said last
+
+
 def test_a_typed_pose_reads_both_forms_with_the_quaternion_w_first(viewer):
     parse = "(text) => window.edmcgsViewer.parsePose(text)"
     rng = np.random.default_rng(11)
