@@ -7,6 +7,7 @@ import types
 
 import numba
 import numpy as np
+import torch
 
 from edmcgs.model.render import rasterize, rasterize_fast
 from edmcgs.model.render.jit import compiled
@@ -37,7 +38,7 @@ def test_serve_and_train_announce_a_compile_only_when_one_is_coming(monkeypatch,
     from edmcgs import train_cli
     from edmcgs.server import service
 
-    engine = types.SimpleNamespace(fast=True, warm_up=lambda: 1.5)
+    engine = types.SimpleNamespace(model=types.SimpleNamespace(center=torch.zeros(1, 3)), warm_up=lambda: 1.5)
     for cached in (True, False):
         monkeypatch.setattr(service, "compiled", lambda *kernels, c=cached: c)
         monkeypatch.setattr("edmcgs.model.render.jit.compiled", lambda *kernels, c=cached: c)
