@@ -106,10 +106,13 @@ class EventGrid:
     times: np.ndarray   # [G, S + 1] int64; times[n, 0] is anchor n, times[n, S] the gap's end
     cum: Tensor         # [G, S + 1, He, We] float32; cum[n, k] = I_E over [times[n, 0], times[n, k])
     ends_at_anchor: np.ndarray  # [G] bool, True where times[n, S] is anchor n + 1
+    nonzero: np.ndarray  # [G, S + 1] bool, True where cum[n, k] has a non-zero pixel (known on the host,
+                         # so that training on a GPU never reads a map back to ask)
     """
 
     def __init__(self, times: np.ndarray, cum: torch.Tensor, ends_at_anchor: np.ndarray):
         self.times, self.cum, self.ends_at_anchor = times, cum, ends_at_anchor
+        self.nonzero = (cum != 0).flatten(2).any(-1).cpu().numpy()
 
     @classmethod
     def build(cls, data: TrainingData, substeps: int, *, progress: bool = False) -> EventGrid:

@@ -226,8 +226,8 @@ class EdMCGS(nn.Module):
         return (points - self.center) / self.extent
 
     def control_motion(self, t: float, event_map: Tensor | None = None, ev_w2c: Tensor | None = None, *,
-                       static: bool = False,
-                       since: float | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
+                       static: bool = False, since: float | None = None,
+                       nonzero: bool | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
         """Control-point transforms at normalised time ``t``.
 
         event_map: Tensor  # [He, We] float32 signed polarity sum over [tau(t), t), or None (empty)
@@ -235,6 +235,8 @@ class EdMCGS(nn.Module):
         static: the identity motion (warm-up of the canonical set)
         since: normalised time of the anchor the motion starts from (anchor windows): the prior's motion
                is taken relative to it, f(x, t) - f(x, since), so the state at the anchor is canonical
+        nonzero: whether ``event_map`` has a non-zero entry, when the caller knows it (training's event
+                 grid does); None: looked at here, which on a GPU waits for the device
         returns (translations [M, 3], rotations [M, 4] unit, event displacement [M, 3] or None)
         """
         cp = self.control.positions
@@ -248,7 +250,8 @@ class EdMCGS(nn.Module):
         trans = d_mu * self.extent
         rot = quat_normalize(identity_rotations(cp.shape[0], device=cp.device) + d_q)
         event_disp = None
-        if self.transition is not None and event_map is not None and bool(torch.any(event_map != 0)):
+        if self.transition is not None and event_map is not None and (
+                bool(torch.any(event_map != 0)) if nonzero is None else nonzero):
             feats = self.encoder(self.config.contrast_threshold * event_map[None, None])[0]
             if self.config.local_sampling:
                 if ev_w2c is None:

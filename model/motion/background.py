@@ -50,6 +50,7 @@ class BackgroundLayer(nn.Module):
         self.register_buffer("ref_rot", ref_rot.double().reshape(3, 3))
         self.register_buffer("ref_k", ref_k.double().reshape(4))
         self.register_buffer("origin", origin.double().reshape(2))
+        self._host_copy: tuple | None = None
 
     @classmethod
     def empty(cls, channels: int, height: int, width: int) -> BackgroundLayer:
@@ -93,11 +94,16 @@ class BackgroundLayer(nn.Module):
     def texel_coords(self, c2w_rot: Tensor | np.ndarray, intr: Intrinsics) -> Tensor | None:
         """[H, W, 2] float64 texture coordinates (column, row) of a camera's pixels, or None when the
         camera has the reference's rotation and intrinsics (pixel (u, v) is texel (u - u0, v - v0))."""
-        rot = torch.as_tensor(np.asarray(c2w_rot, dtype=np.float64) if not isinstance(c2w_rot, Tensor)
-                              else c2w_rot.double(), device=self.ref_rot.device).reshape(3, 3)
-        k = self.ref_k.tolist()
+        ref_rot, k, _ = self._host()
         same_k = np.allclose(k, [intr.fx, intr.fy, intr.cx, intr.cy], rtol=0, atol=1e-9)
-        if same_k and bool(torch.allclose(rot, self.ref_rot, rtol=0, atol=1e-12)):
+        if isinstance(c2w_rot, Tensor):
+            rot = c2w_rot.double().to(self.ref_rot.device).reshape(3, 3)
+            same = same_k and bool(torch.allclose(rot, self.ref_rot, rtol=0, atol=1e-12))
+        else:  # a rotation on the host is compared on the host: no wait for a GPU
+            rot_np = np.asarray(c2w_rot, dtype=np.float64).reshape(3, 3)
+            same = same_k and np.allclose(rot_np, ref_rot, rtol=0, atol=1e-12)
+            rot = torch.as_tensor(rot_np, device=self.ref_rot.device)
+        if same:
             return None
         d = _rays(intr, self.ref_rot.device) @ (self.ref_rot.T @ rot).T  # [H, W, 3] in the reference frame
         z = d[..., 2].clamp_min(1e-6)
@@ -105,12 +111,22 @@ class BackgroundLayer(nn.Module):
         v = k[1] * d[..., 1] / z + k[3] - self.origin[1]
         return torch.stack([u, v], -1)
 
+    def _host(self) -> tuple[np.ndarray, list[float], list[float]]:
+        """(ref_rot, ref_k, origin) on the host, read from the buffers once per change of them (a load
+        or a move copies into them or replaces them; the cache holds the tensors, so ids stay unique)."""
+        bufs = (self.ref_rot, self.ref_k, self.origin)
+        key = tuple((id(b), b._version) for b in bufs)
+        if self._host_copy is None or self._host_copy[0] != key:
+            self._host_copy = (key, bufs, (self.ref_rot.cpu().numpy().copy(), self.ref_k.tolist(),
+                                           self.origin.tolist()))
+        return self._host_copy[2]
+
     def image(self, c2w_rot: Tensor | np.ndarray, intr: Intrinsics) -> Tensor:
         """[H, W, C]: the layer seen by a camera with rotation ``c2w_rot`` [3, 3] and intrinsics ``intr``."""
         tex = self.colors()
         coords = self.texel_coords(c2w_rot, intr)
         if coords is None:
-            u0, v0 = (-round(float(x)) for x in self.origin)
+            u0, v0 = (-round(x) for x in self._host()[2])
             return tex[:, v0:v0 + intr.height, u0:u0 + intr.width].permute(1, 2, 0)
         _, ht, wt = tex.shape
         grid = torch.stack([2.0 * coords[..., 0] / max(wt - 1, 1) - 1.0,

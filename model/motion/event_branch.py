@@ -45,8 +45,9 @@ class EventEncoder(nn.Module):
         self.limit = float(limit)
         self.pool = int(pool)
         self.act = act
-        self.dead_fraction = float("nan")
-        """Fraction of the second layer's channels never above 0 on the last map (training health)."""
+        self.dead: Tensor | None = None
+        """Fraction of the second layer's channels never above 0 on the last map with gradients on (a
+        training-health scalar tensor, left on the map's device: reading it is the caller's sync)."""
         self.conv1 = nn.Conv2d(1, 16, 7, stride=2, padding=3, bias=False)
         self.conv2 = nn.Conv2d(16, 32, 5, stride=2, padding=2, bias=False)
         self.conv3 = nn.Conv2d(32, FEATURES, 3, stride=1, padding=1, bias=False)
@@ -60,10 +61,15 @@ class EventEncoder(nn.Module):
             x = F.avg_pool2d(x, self.pool, ceil_mode=True)
         h = self._act(self.conv1(x))
         h = self.conv2(h)
-        if torch.is_grad_enabled():  # a training statistic: inference skips its reduction and sync
+        if torch.is_grad_enabled():  # a training statistic: inference skips its reduction
             with torch.no_grad():
-                self.dead_fraction = float((h.amax(dim=(0, 2, 3)) <= 0).float().mean())
+                self.dead = (h.amax(dim=(0, 2, 3)) <= 0).float().mean()
         return self.conv3(self._act(h))
+
+    @property
+    def dead_fraction(self) -> float:
+        """``dead`` as a number (NaN before the first map with gradients on)."""
+        return float("nan") if self.dead is None else float(self.dead)
 
     def _act(self, x: Tensor) -> Tensor:
         # Both fix 0: a bias-free Phi maps an empty window to exactly 0 either way.

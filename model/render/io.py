@@ -106,17 +106,27 @@ def check_inputs(means, quats, scales, opacities, colors, w2c, intrinsics, backg
     if isinstance(near, bool) or not isinstance(near, (int, float)) or not math.isfinite(near) or near <= 0:
         raise InvalidInputError(f"near must be a finite number > 0, got {near!r}")
 
+    device_bg = (is_torch and isinstance(background, torch.Tensor) and background.device == means.device
+                 and means.device.type != "cpu")
+    device_flags = None
     if is_torch and (means.device.type != "cpu" or means.dtype not in (torch.float32, torch.float64)):
+        # Every check as one flag on the device, read back at once: one host sync per render, not eight.
         with torch.no_grad():
-            for name, value in named.items():
-                if not bool(torch.isfinite(value).all()):
-                    raise InvalidInputError(f"{name} contains NaN or Inf")
-            if not bool((scales >= 0).all()):
-                raise InvalidInputError("scales must be >= 0 (linear scales, not log-scales)")
-            if not bool(((opacities >= 0) & (opacities <= 1)).all()):
-                raise InvalidInputError("opacities must lie in [0, 1] (activated, not logits)")
-            if not bool((quats != 0).any(-1).all()):
-                raise InvalidInputError("quats has a zero quaternion; it describes no rotation")
+            flags = [torch.isfinite(value).all() for value in named.values()]
+            flags += [(scales >= 0).all(), ((opacities >= 0) & (opacities <= 1)).all(),
+                      (quats != 0).any(-1).all()]
+            if device_bg:
+                flags.append(torch.isfinite(background).all())
+            device_flags = torch.stack(flags).tolist()
+        for name, finite in zip(named, device_flags, strict=False):
+            if not finite:
+                raise InvalidInputError(f"{name} contains NaN or Inf")
+        problems = ("scales must be >= 0 (linear scales, not log-scales)",
+                    "opacities must lie in [0, 1] (activated, not logits)",
+                    "quats has a zero quaternion; it describes no rotation")
+        for ok, problem in zip(device_flags[len(named):], problems, strict=False):
+            if not ok:
+                raise InvalidInputError(problem)
     else:
         # float32/64 on the CPU: the same checks, in the same order, compiled (imported here: numba
         # stays off a GPU's path); a contiguous CPU tensor is viewed, not copied
@@ -128,6 +138,16 @@ def check_inputs(means, quats, scales, opacities, colors, w2c, intrinsics, backg
             raise InvalidInputError(problem)
 
     w2c64 = validate_pose(w2c, name="w2c")
+    if device_bg:  # a background already on the device stays there (its finiteness was read above)
+        try:
+            bg_out = torch.broadcast_to(background.detach().to(means.dtype), (channels,))
+        except RuntimeError as exc:
+            raise InvalidInputError(
+                f"background must be a number or {channels} numbers, got {tuple(background.shape)}") from exc
+        if not device_flags[-1]:
+            raise InvalidInputError("background contains NaN or Inf")
+        w2c_out = torch.as_tensor(w2c64, dtype=means.dtype, device=means.device)
+        return Checked(means, quats, scales, opacities, colors, w2c_out, bg_out, channels)
     if background is None:
         bg = np.zeros(channels)
     else:

@@ -6,10 +6,12 @@ culling with a 3-sigma radius, and front-to-back blending of depth-sorted splats
 clamped at 0.99, alpha < 1/255 skipped and a pixel stopping below transmittance 1e-4
 (``composite``). Gaussians at depth <= ``near`` are culled.
 
-Two implementations with one contract: on the CPU numba kernels with analytic backwards
-(``project_fast`` for the projection and SH colour, ``composite_fast`` for the blending), elsewhere
-torch (``projection``, ``sh``, ``composite``), which is also the reference for the numba one.
-``backend`` (or the ``EDMCGS_RASTERIZER`` environment variable: auto, torch, numba) forces one.
+Implementations of one contract: on the CPU numba kernels with analytic backwards (``project_fast``
+for the projection and SH colour, ``composite_fast`` for the blending); on CUDA gsplat's kernels where
+the ``cuda`` extra is installed (``rasterize_gsplat``, float32; its two small departures from the
+contract are listed there); elsewhere torch (``projection``, ``sh``, ``composite``), which is also the
+reference for the others. ``backend`` (or the ``EDMCGS_RASTERIZER`` environment variable: auto, torch,
+numba, gsplat) forces one.
 """
 
 from __future__ import annotations
@@ -29,12 +31,15 @@ from edmcgs.model.render.io import RenderOutput, check_inputs
 from edmcgs.model.render.project_fast import KERNELS as _PROJECT_KERNELS
 from edmcgs.model.render.project_fast import project_fast, sh_color_fast
 from edmcgs.model.render.projection import Splats, ewa_project, screen_rect
+from edmcgs.model.render.rasterize_gsplat import available as gsplat_available
+from edmcgs.model.render.rasterize_gsplat import composite_gsplat
 from edmcgs.model.render.sh import sh_to_color
 
 __all__ = ["BACKENDS", "RenderOutput", "rasterize"]
 
-BACKENDS = ("auto", "torch", "numba")
-"""Implementations: auto = numba for float32 / float64 on the CPU, torch otherwise."""
+BACKENDS = ("auto", "torch", "numba", "gsplat")
+"""Implementations: auto = numba for float32 / float64 on the CPU, gsplat for float32 on CUDA where it is
+installed, torch otherwise."""
 BACKEND_ENV = "EDMCGS_RASTERIZER"
 
 
@@ -46,11 +51,16 @@ def backend_of(backend: str | None, means: Tensor) -> str:
     if backend not in BACKENDS:
         raise InvalidInputError(f"{source} must be one of {', '.join(BACKENDS)}, got {backend!r}")
     numba_ok = means.device.type == "cpu" and means.dtype in (torch.float32, torch.float64)
+    gsplat_ok = means.device.type == "cuda" and means.dtype == torch.float32
     if backend == "auto":
-        return "numba" if numba_ok else "torch"
+        return "numba" if numba_ok else "gsplat" if gsplat_ok and gsplat_available() else "torch"
     if backend == "numba" and not numba_ok:
         raise InvalidInputError(f"{source}=numba renders float32 or float64 tensors on the CPU, got "
                                 f"{means.dtype} on {means.device}")
+    if backend == "gsplat" and not (gsplat_ok and gsplat_available()):
+        why = "gsplat is not installed (pip install 'edmcgs[cuda]')" if not gsplat_available() else \
+            f"it renders float32 tensors on CUDA, got {means.dtype} on {means.device}"
+        raise InvalidInputError(f"{source}=gsplat: {why}")
     return backend
 
 
@@ -88,6 +98,8 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
     chk = check_inputs(means, quats, scales, opacities, colors, w2c, intrinsics, background, near)
     width, height = intrinsics.width, intrinsics.height
     backend = backend_of(backend, chk.means)
+    if backend == "gsplat":
+        return _rasterize_gsplat(chk, intrinsics, near, return_depth, return_alpha)
     need_grad = torch.is_grad_enabled() and any(
         t.requires_grad for t in (chk.means, chk.quats, chk.scales, chk.opacities, chk.colors))
 
@@ -128,6 +140,23 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
     else:
         acc, trans = composite(attrs, feat, make_plan(rect, depth_key, width, height, dtype=means.dtype))
 
+    return _output(chk, acc, trans, return_depth, return_alpha)
+
+
+def _rasterize_gsplat(chk, intrinsics: Intrinsics, near: float, return_depth: bool,
+                      return_alpha: bool) -> RenderOutput:
+    """gsplat's compositing of every Gaussian (it culls on the device: no host round trip here)."""
+    feat = _colors(chk.colors, chk.means, chk.w2c)
+    if return_depth:
+        z = chk.means @ chk.w2c[2, :3] + chk.w2c[2, 3]
+        feat = torch.cat([feat, z[:, None]], dim=-1)
+    acc, trans = composite_gsplat(chk.means, chk.quats, chk.scales, chk.opacities, feat, chk.w2c, intrinsics,
+                                  near)
+    return _output(chk, acc, trans, return_depth, return_alpha)
+
+
+def _output(chk, acc: Tensor, trans: Tensor, return_depth: bool, return_alpha: bool) -> RenderOutput:
+    """The image over the background, alpha and depth from a compositor's (acc [H, W, F], T [H, W])."""
     c = chk.channels
     image = acc[..., :c] + trans[..., None] * chk.background
     alpha = 1.0 - trans

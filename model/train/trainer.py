@@ -63,6 +63,8 @@ class Trainer:
             raise InvalidInputError(f"the data has {data.channels} channels, the model {model.meta.channels}")
         self.device = torch.device(device)
         self.model = model.to(self.device).train()
+        self.extent = float(model.extent)
+        """The scene's extent (a constant buffer), read once: the schedules need it every step."""
         self.data = data
         self.progress = progress
         intr = model.meta.intrinsics
@@ -72,13 +74,17 @@ class Trainer:
         self.event_intr = self.intr if (ew, eh) == (w, h) else self.intr.scaled(ew, eh)
         images = torch.from_numpy(data.anchor_images).float() / 255.0
         self.anchor_images = _resize(images, h, w).to(self.device)
+        # Poses on the device (losses, projections) and the same float32 values on the host (the cameras
+        # of renders): a render then reads nothing back from the device to check its camera.
         self.anchor_w2c = self._w2c(data.anchor_poses)
+        self.anchor_w2c_host = self.anchor_w2c.cpu().numpy()
         self.anchor_times = [model.meta.normalized_time(int(t)) for t in data.anchors_t_us]
         self.grid = EventGrid.build(data, cfg.substeps, progress=progress) if cfg.events else None
         if self.grid is not None:
             self.grid.cum = self.grid.cum.to(self.device)
             g, s1 = self.grid.times.shape
             self.grid_w2c = self._w2c(data.trajectory.at(self.grid.times.reshape(-1))).reshape(g, s1, 4, 4)
+            self.grid_w2c_host = self.grid_w2c.cpu().numpy()
             self.grid_t = [[model.meta.normalized_time(int(t)) for t in row] for row in self.grid.times]
         self.background = background_color(cfg, model.meta.channels).to(self.device)
         self.optimizer = self._build_optimizer()
@@ -103,7 +109,7 @@ class Trainer:
         cfg, m = self.cfg, self.model
         g = m.gaussians
         groups = [
-            {"name": "means", "params": [g.means], "lr": cfg.lr_means * float(m.extent)},
+            {"name": "means", "params": [g.means], "lr": cfg.lr_means * self.extent},
             {"name": "quats", "params": [g.quats], "lr": cfg.lr_quats},
             {"name": "log_scales", "params": [g.log_scales], "lr": cfg.lr_scales},
             {"name": "opacity_logits", "params": [g.opacity_logits], "lr": cfg.lr_opacity},
@@ -116,11 +122,12 @@ class Trainer:
         if m.transition is not None:
             groups.append({"name": "event", "params": [*m.encoder.parameters(), *m.transition.parameters()],
                            "lr": cfg.lr_event})
-        return torch.optim.Adam(groups, eps=1e-15)
+        # On CUDA one fused kernel per step instead of several per parameter group.
+        return torch.optim.Adam(groups, eps=1e-15, fused=True if self.device.type == "cuda" else None)
 
     def _set_schedules(self, progress: float) -> None:
         cfg = self.cfg
-        lrs = {"means": exp_decay(cfg.lr_means * float(self.model.extent), 0.01, progress),
+        lrs = {"means": exp_decay(cfg.lr_means * self.extent, 0.01, progress),
                "deform": exp_decay(cfg.lr_deform, 0.02, progress),
                "event": exp_decay(cfg.lr_event, 0.1, progress)}
         for group in self.optimizer.param_groups:
@@ -130,7 +137,9 @@ class Trainer:
             self.model.event_scale.fill_(ramp(progress, *cfg.event_warmup))
 
     # ------------------------------------------------------------------ one step
-    def _render(self, state: GaussianState, w2c: Tensor, intr=None, *, detach_layer: bool = False) -> Tensor:
+    def _render(self, state: GaussianState, w2c: np.ndarray, intr=None, *,
+                detach_layer: bool = False) -> Tensor:
+        """w2c: the camera as a host array (``*_w2c_host``)."""
         intr = intr or self.intr
         layer = None
         if self.model.bg_layer is not None:
@@ -146,10 +155,14 @@ class Trainer:
             return self.model.control_motion(self.anchor_times[gap + 1])
         emap = grid.cum[gap, k] if k > 0 else None
         since = self.anchor_times[gap] if model_has_windows(self.model) else None
-        return self.model.control_motion(self.grid_t[gap][k], emap, self.grid_w2c[gap, k], since=since)
+        return self.model.control_motion(self.grid_t[gap][k], emap, self.grid_w2c[gap, k], since=since,
+                                         nonzero=bool(grid.nonzero[gap, k]))
 
     def train_step(self) -> dict[str, float]:
-        """One optimisation step; returns the loss terms (floats)."""
+        """One optimisation step; returns the loss terms (floats).
+
+        On a GPU the step reads the device back once, for the loss and its terms together (whether the
+        loss is finite decides the step); everything else stays queued on the device."""
         cfg, model = self.cfg, self.model
         # Past ``iterations`` (``fit(until=...)`` beyond it) every schedule stays at its end.
         progress = min(self.step / cfg.iterations, 1.0)
@@ -165,7 +178,7 @@ class Trainer:
                                           weights=weights)
             anchor_state.means.retain_grad()
         with stage("anchor: render"):
-            image = self._render(anchor_state, self.anchor_w2c[n])
+            image = self._render(anchor_state, self.anchor_w2c_host[n])
         with stage("anchor: photometric loss"):
             terms["photo"] = photometric_loss(image, self.anchor_images[n], cfg.lambda_dssim)
         loss = terms["photo"]
@@ -186,7 +199,7 @@ class Trainer:
                     st = model.state_from_motion(trans, rot, window, weights=weights)
                     st = GaussianState(st.means, st.quats, st.scales, st.opacities, st.colors.detach())
                 with stage("event pair: render"):
-                    renders.append(self._render(st, self.grid_w2c[gap, k], self.event_intr,
+                    renders.append(self._render(st, self.grid_w2c_host[gap, k], self.event_intr,
                                                 detach_layer=True))
             with stage("event pair: event loss"):
                 events = self.grid.cum[gap, b] - self.grid.cum[gap, a]
@@ -204,7 +217,7 @@ class Trainer:
                     s_end = self.grid.substeps
                     trans_e, rot_e, _ = (trans_b, rot_b, None) if b == s_end else self._gap_motion(gap, s_end)
                     st = model.state_from_motion(trans_e, rot_e, gap, motion_only=True, weights=weights)
-                    image_next = self._render(st, self.anchor_w2c[gap + 1])
+                    image_next = self._render(st, self.anchor_w2c_host[gap + 1])
                     target = self.anchor_images[gap + 1]
                     terms["next"] = photometric_loss(image_next, target, cfg.lambda_dssim) \
                         + pyramid_l1(image_next, target, cfg.next_levels)
@@ -213,7 +226,7 @@ class Trainer:
             if disps:
                 terms["edisp"] = torch.stack([d.detach().norm(dim=-1).mean() for d in disps]).mean() \
                     / model.extent
-                terms["dead"] = torch.tensor(model.encoder.dead_fraction)
+                terms["dead"] = model.encoder.dead
                 graph = model.control.graph
                 terms["smooth"] = sum(laplacian_smoothness(d, graph) for d in disps) / len(disps)
                 loss = loss + cfg.lambda_smooth * terms["smooth"]
@@ -227,7 +240,8 @@ class Trainer:
             loss = loss + cfg.lambda_tli * terms["tli"]
 
         self.optimizer.zero_grad(set_to_none=True)
-        if not torch.isfinite(loss):
+        values = torch.stack([loss.detach(), *(v.detach().float() for v in terms.values())]).tolist()
+        if not math.isfinite(values[0]):
             self.bad_steps += 1
             if self.bad_steps > MAX_BAD_STEPS:
                 raise TrainingError(f"the loss was not finite for {self.bad_steps} steps in a row "
@@ -247,8 +261,8 @@ class Trainer:
         self.step += 1
         with stage("density control"):
             self._density_control(progress)
-        out = {name: float(value.detach()) for name, value in terms.items()}
-        out["loss"] = float(loss.detach())
+        out = dict(zip(terms, values[1:], strict=True))
+        out["loss"] = values[0]
         return out
 
     def _sanitize_gradients(self) -> None:
@@ -263,7 +277,7 @@ class Trainer:
         if not (cfg.densify_from <= progress < cfg.densify_until):
             return
         if self.step % cfg.densify_every == 0:
-            extent = float(model.extent)
+            extent = self.extent
             densify_and_prune(model.gaussians, self.optimizer, self.stats, grad_threshold=cfg.densify_grad,
                               extent=extent, percent_dense=cfg.percent_dense, min_opacity=cfg.prune_opacity,
                               max_size=cfg.prune_size * extent, max_count=cfg.max_gaussians,

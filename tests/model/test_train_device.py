@@ -1,0 +1,60 @@
+"""A training step on the path a GPU takes: what it reads back to the host (each read waits for the
+device), and on a CUDA device, whole steps with each rasterizer."""
+
+import pytest
+import torch
+
+from edmcgs.model.train.trainer import Trainer
+from edmcgs.pipeline import build_config, new_model, open_recording, training_data
+from tests.support.host_reads import HostReads
+from tests.support.server import build_scene
+
+SMALL = ["init_points=600", "num_control_points=48", "deform_from=0.0"]
+PRESETS = {"demo": [*SMALL, "iterations=20", "densify_from=0.0", "densify_every=10"],
+           "real": [*SMALL, "iterations=20"]}
+"""The demo preset densifying, and the real one (background layer, anchor windows, the next anchor)."""
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    path, _ = build_scene(tmp_path_factory.mktemp("scene"), width=64, height=48, duration_s=1.0,
+                          init_points=600, control_points=48)
+    return open_recording(path, progress=False)
+
+
+def _trainer(recording, preset: str, device: str = "cpu") -> Trainer:
+    cfg = build_config(preset, PRESETS[preset], recording)
+    data = training_data(recording)
+    return Trainer(new_model(data, cfg), data, device=device, progress=False)
+
+
+@pytest.mark.parametrize("preset", sorted(PRESETS))
+def test_a_step_reads_the_device_once_outside_the_rasterizer(recording, preset, monkeypatch):
+    """The step's own code (deformation, event branch, background layer, losses) reads one thing back:
+    the loss with its terms. Besides: the torch compositor's tile plan reads its lists (model/render/),
+    densification the counts it resizes the model by (once every densify_every steps), and torch's CPU
+    optimizer its step counts (inside torch: not project code)."""
+    monkeypatch.setenv("EDMCGS_RASTERIZER", "torch")
+    trainer = _trainer(recording, preset)
+    trainer.train_step()
+    steps = 12  # one densification among them with the demo preset
+    with HostReads() as reads:
+        for _ in range(steps):
+            trainer.train_step()
+    outside = {site: n for site, n in reads.direct.items()
+               if not site.startswith(("model/render/", "model/train/density.py"))}
+    assert sum(outside.values()) == steps, outside
+    assert all(site.startswith("model/train/trainer.py:") for site in outside), outside
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+@pytest.mark.parametrize("preset", sorted(PRESETS))
+def test_cuda_steps(recording, preset, backend, monkeypatch):
+    """Whole steps on CUDA (auto: gsplat where installed) give finite losses and keep every tensor there."""
+    monkeypatch.setenv("EDMCGS_RASTERIZER", backend)
+    trainer = _trainer(recording, preset, "cuda")
+    losses = [trainer.train_step()["loss"] for _ in range(12)]
+    assert all(torch.isfinite(torch.tensor(losses)))
+    assert all(p.device.type == "cuda" for p in trainer.model.parameters())
+    assert all(torch.isfinite(p).all() for p in trainer.model.parameters())
