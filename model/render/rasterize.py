@@ -33,13 +33,14 @@ from edmcgs.model.render.project_fast import project_fast, sh_color_fast
 from edmcgs.model.render.projection import Splats, ewa_project, screen_rect
 from edmcgs.model.render.rasterize_gsplat import available as gsplat_available
 from edmcgs.model.render.rasterize_gsplat import composite_gsplat
+from edmcgs.model.render.rasterize_gsplat import usable as gsplat_usable
 from edmcgs.model.render.sh import sh_to_color
 
 __all__ = ["BACKENDS", "RenderOutput", "rasterize"]
 
 BACKENDS = ("auto", "torch", "numba", "gsplat")
 """Implementations: auto = numba for float32 / float64 on the CPU, gsplat for float32 on CUDA where it is
-installed, torch otherwise."""
+installed and its extension builds (else a logged warning, once), torch otherwise."""
 BACKEND_ENV = "EDMCGS_RASTERIZER"
 
 
@@ -53,7 +54,7 @@ def backend_of(backend: str | None, means: Tensor) -> str:
     numba_ok = means.device.type == "cpu" and means.dtype in (torch.float32, torch.float64)
     gsplat_ok = means.device.type == "cuda" and means.dtype == torch.float32
     if backend == "auto":
-        return "numba" if numba_ok else "gsplat" if gsplat_ok and gsplat_available() else "torch"
+        return "numba" if numba_ok else "gsplat" if gsplat_ok and gsplat_usable() else "torch"
     if backend == "numba" and not numba_ok:
         raise InvalidInputError(f"{source}=numba renders float32 or float64 tensors on the CPU, got "
                                 f"{means.dtype} on {means.device}")

@@ -27,11 +27,13 @@ from __future__ import annotations
 
 import functools
 import importlib.util
+import logging
 import math
 
 import torch
 from torch import Tensor
 
+from edmcgs.errors import RenderError
 from edmcgs.geometry import Intrinsics
 from edmcgs.model.render.projection import LOWPASS, TILE
 
@@ -39,10 +41,41 @@ PACKAGE = "gsplat"
 """The distribution that brings it (``pip install edmcgs[cuda]``)."""
 
 
+log = logging.getLogger(__name__)
+
+
 @functools.cache
 def available() -> bool:
     """Whether gsplat is installed (imported only when a CUDA render first needs it)."""
     return importlib.util.find_spec(PACKAGE) is not None
+
+
+@functools.cache
+def extension_error() -> str | None:
+    """Why gsplat's CUDA extension cannot be used (None: it loads). The first call compiles it when
+    gsplat's build cache does not hold it yet (minutes; nvcc needed), later calls are instant."""
+    if not available():
+        return "gsplat is not installed (pip install 'edmcgs[cuda]')"
+    try:
+        from gsplat.cuda import _backend
+    except Exception as exc:  # a failed build raises anything from an OSError to a CalledProcessError
+        return f"gsplat's CUDA extension failed to build or load: {type(exc).__name__}: {exc}"
+    if getattr(_backend, "_C", None) is None:
+        return "gsplat's CUDA extension could not be built (is nvcc, the CUDA compiler, on the PATH?)"
+    return None
+
+
+def usable() -> bool:
+    """Whether gsplat renders here (``extension_error`` is None); logs why not, once."""
+    error = extension_error()
+    if error is not None and available():
+        _warn_once(error)
+    return error is None
+
+
+@functools.cache
+def _warn_once(error: str) -> None:
+    log.warning("%s: CUDA renders use the torch rasterizer", error)
 
 
 def camera(w2c: Tensor, intrinsics: Intrinsics) -> tuple[Tensor, Tensor]:
@@ -64,7 +97,10 @@ def composite_gsplat(means: Tensor, quats: Tensor, scales: Tensor, opacities: Te
     width, height = intrinsics.width, intrinsics.height
     if means.shape[0] == 0:
         return feat.new_zeros(height, width, feat.shape[1]), feat.new_ones(height, width)
-    from gsplat import rasterization  # the extension is compiled on its first call
+    error = extension_error()
+    if error is not None:
+        raise RenderError(f"{error} (EDMCGS_RASTERIZER=torch renders without it)")
+    from gsplat import rasterization
 
     viewmats, ks = camera(w2c, intrinsics)
     acc, alpha, _ = rasterization(means.contiguous(), quats.contiguous(), scales.contiguous(),

@@ -126,3 +126,23 @@ def test_cuda_empty_scene_is_the_background():
                     return_alpha=True, backend="gsplat")
     np.testing.assert_array_equal(out.image.cpu().numpy(), np.broadcast_to(np.float32(BG), (10, 20, 3)))
     assert float(out.alpha.abs().max()) == 0
+
+
+@needs_gsplat
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the CPU-only case")
+def test_without_cuda_the_extension_is_reported_unusable():
+    assert "gsplat's CUDA extension" in rasterize_gsplat.extension_error()
+
+
+def test_an_unusable_extension_is_logged_once_and_refused_when_forced(monkeypatch, caplog):
+    monkeypatch.setattr(rasterize_gsplat, "available", lambda: True)
+    monkeypatch.setattr(rasterize_gsplat, "extension_error", lambda: "gsplat's CUDA extension: broken")
+    rasterize_gsplat._warn_once.cache_clear()
+    with caplog.at_level("WARNING"):
+        assert not rasterize_gsplat.usable() and not rasterize_gsplat.usable()
+    assert [r.getMessage() for r in caplog.records] == [
+        "gsplat's CUDA extension: broken: CUDA renders use the torch rasterizer"]
+    scene = random_scene(3, 8, 8, seed=0)
+    with pytest.raises(Exception, match="broken.*EDMCGS_RASTERIZER=torch"):
+        rasterize_gsplat.composite_gsplat(*tensors(scene)[:4], torch.ones(3, 3), torch.eye(4),
+                                          scene["intrinsics"], 0.01)
