@@ -14,7 +14,6 @@ import math
 import sys
 from pathlib import Path
 
-import dv_processing as dv
 from tqdm import tqdm
 
 from edmcgs.atomic import atomic_output, ensure_room
@@ -24,7 +23,6 @@ from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import Recording, RecordingWriter
 from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.sources.base import EventSource, Extras, SensorBatch, StreamInfo
-from edmcgs.sensor.sources.dv_bridge import dv_error_text, event_store, image_frame, imu_samples
 from edmcgs.sensor.sources.open import open_source, parse_resolution
 from edmcgs.sensor.sources.pacing import Pacing
 
@@ -34,7 +32,12 @@ class AedatOutput:
     IMU: a source's calibration and ground-truth trajectory have no place in it; our HDF5 keeps them)."""
 
     def __init__(self, path: Path, info: StreamInfo, *, frames: bool = True) -> None:
-        self._path = path
+        # Imported here: reading recordings (read_source, which training uses) needs no dv-processing.
+        import dv_processing as dv
+
+        from edmcgs.sensor.sources import dv_bridge
+
+        self._path, self._bridge = path, dv_bridge
         self._atomic = atomic_output(path, RecordingError)
         tmp = self._atomic.__enter__()
         config = dv.io.MonoCameraWriter.Config(info.sensor)
@@ -52,19 +55,20 @@ class AedatOutput:
             raise
         except RuntimeError as exc:
             self.abort(exc)
-            raise RecordingError(f"cannot write {path}: {dv_error_text(exc)}") from exc
+            raise RecordingError(f"cannot write {path}: {dv_bridge.dv_error_text(exc)}") from exc
         self._imu = info.has_imu
 
     def write(self, batch: SensorBatch) -> None:
         ensure_room(self._path, 16 * len(batch.events)
                     + (0 if batch.frames is None else batch.frames.images.nbytes))
+        bridge = self._bridge
         if len(batch.events):
-            self._writer.writeEvents(event_store(batch.events))
+            self._writer.writeEvents(bridge.event_store(batch.events))
         if self._frames and batch.frames is not None:
             for i in range(len(batch.frames)):
-                self._writer.writeFrame(image_frame(int(batch.frames.t_us[i]), batch.frames.images[i]))
+                self._writer.writeFrame(bridge.image_frame(int(batch.frames.t_us[i]), batch.frames.images[i]))
         if self._imu and batch.imu is not None:
-            for sample in imu_samples(batch.imu):
+            for sample in bridge.imu_samples(batch.imu):
                 self._writer.writeImu(sample)
 
     def finish(self, metadata: dict, extras: Extras) -> None:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from edmcgs.errors import InvalidInputError
+from edmcgs.errors import InvalidInputError, RenderError
 from edmcgs.model.render import rasterize_gsplat, reference
 from edmcgs.model.render.projection import LOWPASS, ewa_project
 from edmcgs.model.render.rasterize import backend_of, rasterize
@@ -143,6 +143,6 @@ def test_an_unusable_extension_is_logged_once_and_refused_when_forced(monkeypatc
     assert [r.getMessage() for r in caplog.records] == [
         "gsplat's CUDA extension: broken: CUDA renders use the torch rasterizer"]
     scene = random_scene(3, 8, 8, seed=0)
-    with pytest.raises(Exception, match="broken.*EDMCGS_RASTERIZER=torch"):
+    with pytest.raises(RenderError, match=r"broken.*EDMCGS_RASTERIZER=torch"):
         rasterize_gsplat.composite_gsplat(*tensors(scene)[:4], torch.ones(3, 3), torch.eye(4),
                                           scene["intrinsics"], 0.01)
