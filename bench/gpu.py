@@ -13,6 +13,7 @@ this order, each a subprocess with its own time limit, cut to what is left of ``
     train_demo  the ``demo`` preset on the bundled demo recording, the same
     serve       bench.serve on the demo: GET /render p50 (one client) and four clients' renders/s
     train_step  bench.train_step with the ``real`` preset on ``--real``: per stage, host reads, syncs
+    train_real_compile  train_real with the skinning compiled (``edmcgs train --compile``)
 
 A part cut by its limit is recorded with what it got (a training run stops at its budget and reports the
 steps it made). DIR gets ``gpu.json`` (every part: command, return code, seconds, results) and
@@ -39,7 +40,8 @@ STEPS = 1500
 CUDA_TESTS = ["tests/raster/test_rasterize.py", "tests/raster/test_rasterize_gsplat.py",
               "tests/model/test_train_device.py"]
 """Test files with CUDA cases; ``-k cuda`` picks those (and the CPU-side gsplat ones, named gsplat)."""
-BUDGETS = {"tests": 150, "render": 90, "train_real": 100, "train_demo": 60, "serve": 120, "train_step": 120}
+BUDGETS = {"tests": 150, "render": 90, "train_real": 100, "train_demo": 60, "serve": 120, "train_step": 120,
+           "train_real_compile": 100}
 """Seconds each part may take on the GPU; a training run's are its training alone (its setup and the final
 scoring get another ``TRAIN_EXTRA``)."""
 TRAIN_EXTRA = 75
@@ -61,7 +63,7 @@ def _device_info(device: str) -> dict:
 
 
 def train_run(recording: Path, preset: str, device: str, steps: int, budget: float, overrides: list[str],
-              json_path: Path | None = None) -> dict:
+              json_path: Path | None = None, compile: bool = False) -> dict:
     """Train ``preset`` from scratch on ``recording`` for ``steps`` steps or until ``budget`` seconds of
     training have passed (the step in flight finishes); then score every held-out frame. The figures are
     written to ``json_path`` before the scoring too, so that a run cut during it keeps them."""
@@ -73,7 +75,7 @@ def train_run(recording: Path, preset: str, device: str, steps: int, budget: flo
     data = training_data(rec)
     cfg = build_config(preset, [*overrides, f"iterations={steps}"], rec)
     model = new_model(data, cfg)
-    trainer = Trainer(model, data, device=device, progress=False)
+    trainer = Trainer(model, data, device=device, progress=False, compile=compile)
     setup = time.perf_counter() - start
     stop = threading.Event()
     timer = threading.Timer(budget, stop.set)
@@ -85,7 +87,8 @@ def train_run(recording: Path, preset: str, device: str, steps: int, budget: flo
         timer.cancel()
     fit_wall = time.perf_counter() - started
     done = trainer.step
-    out = {"preset": preset, "recording": str(recording), "size": f"{rec.width}x{rec.height}",
+    out = {"preset": preset, "compile": compile, "recording": str(recording),
+           "size": f"{rec.width}x{rec.height}",
            "steps_asked": steps, "steps_done": done, "completed": done >= steps,
            "train_seconds": trainer.train_seconds, "fit_wall_seconds": fit_wall, "setup_seconds": setup,
            "steps_per_second": done / trainer.train_seconds if trainer.train_seconds else None,
@@ -116,15 +119,19 @@ def _parts(args) -> list[tuple[str, list[str], float]]:
     ]
     steps = "20" if tiny else str(STEPS)
     small = ["--set", "init_points=2000"] if tiny else []
-    for name, preset, rec in (("train_real", "real", real), ("train_demo", "demo", [])):
-        parts.append((name, [*py, "-m", "bench.gpu", "--train", preset, *rec, *dev, "--steps", steps,
-                             "--budget", str(budgets[name]), *small, "--json", str(out / f"{name}.json")],
-                      budgets[name] + TRAIN_EXTRA))
+    train = {}
+    for name, preset, rec in (("train_real", "real", real), ("train_demo", "demo", []),
+                              ("train_real_compile", "real", [*real, "--compile"])):
+        train[name] = (name, [*py, "-m", "bench.gpu", "--train", preset, *rec, *dev, "--steps", steps,
+                              "--budget", str(budgets[name]), *small, "--json", str(out / f"{name}.json")],
+                       budgets[name] + TRAIN_EXTRA)
+    parts += [train["train_real"], train["train_demo"]]
     parts.append(("serve", [*py, "-m", "bench.serve", *dev, "--seconds", "1" if tiny else "4",
                             "--json", str(out / "serve.json")], budgets["serve"]))
     parts.append(("train_step", [*py, "-m", "bench.train_step", *dev, "--recording", str(args.real),
                                  "--config", "real", "--steps", "3" if tiny else "20", *small,
                                  "--json", str(out / "train_step.json")], budgets["train_step"]))
+    parts.append(train["train_real_compile"])
     return [part for part in parts if part[0] in args.parts]
 
 
@@ -179,6 +186,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=STEPS, help=argparse.SUPPRESS)
     p.add_argument("--budget", type=float, default=120.0, help=argparse.SUPPRESS)
     p.add_argument("--set", dest="overrides", action="append", default=[], help=argparse.SUPPRESS)
+    p.add_argument("--compile", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--json", type=Path, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     from edmcgs.errors import InvalidInputError
@@ -192,7 +200,8 @@ def main(argv: list[str] | None = None) -> int:
         from edmcgs.server import demo
 
         rec = args.real if args.real is not None else demo.files()[1]
-        result = train_run(rec, args.train, args.device, args.steps, args.budget, args.overrides, args.json)
+        result = train_run(rec, args.train, args.device, args.steps, args.budget, args.overrides, args.json,
+                           args.compile)
         print(json.dumps({k: v for k, v in result.items() if k != "history"}, indent=1))
         return 0
     if args.out is None:

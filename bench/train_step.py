@@ -120,6 +120,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=30, help="profiled steps (30)")
     p.add_argument("--threads", type=int, default=1, help="torch threads (1, as edmcgs train's default)")
     p.add_argument("--device", default="cpu", help="torch device to train on (cpu, cuda, cuda:N)")
+    p.add_argument("--compile", action="store_true", help="the skinning by torch.compile (edmcgs train "
+                                                          "--compile); compiled during the warm-up")
     p.add_argument("--json", type=Path, help="write the results here")
     args = p.parse_args(argv)
     if not 0 <= args.at <= 1:
@@ -156,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = build_config(args.config, args.overrides, rec)
         model = new_model(data, cfg)
         source = f"{path}, a new model ({args.config} preset)"
-    trainer = Trainer(model, data, device=args.device, progress=False)
+    trainer = Trainer(model, data, device=args.device, progress=False, compile=args.compile)
     trainer.step = round(args.at * cfg.iterations)
     for _ in range(WARMUP):
         trainer.train_step()
@@ -168,7 +170,8 @@ def main(argv: list[str] | None = None) -> int:
     where = torch.cuda.get_device_name(trainer.device) if cuda else f"{args.threads} CPU thread(s)"
     print(f"train_step on {source} ({rec.width}x{rec.height}, "
           f"{len(trainer.model.gaussians)} Gaussians), at {args.at:.0%} of {cfg.iterations} steps, "
-          f"{args.steps} steps, {where}, rasterizer {rasterizer}")
+          f"{args.steps} steps, {where}, rasterizer {rasterizer}"
+          + (", compiled skinning" if args.compile else ""))
     print(f"{'stage':<30}{'ms/step':>10}{'share':>8}" + (f"{'GPU ms':>10}" if cuda else ""))
     for name, ms in sorted(ranges.items(), key=lambda kv: -kv[1]):
         print(f"{name:<30}{ms:>10.2f}{ms / total:>8.0%}" + (f"{gpu.get(name, 0.0):>10.2f}" if cuda else ""))
@@ -196,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"load average {load:.1f} on {os.cpu_count()} CPUs (a shared machine: times are noisy)")
     write_json(args.json, {"source": source, "at": args.at, "steps": args.steps,
                            "device": str(trainer.device), "device_name": where, "threads": args.threads,
-                           "rasterizer": rasterizer,
+                           "rasterizer": rasterizer, "compile": args.compile,
                            "gaussians": len(trainer.model.gaussians),
                            "step_ms_median": step_ms, "step_ms_profiled": total, "stages_ms": ranges,
                            "step_gpu_ms": gpu_total, "stages_gpu_ms": gpu, "top_ops": top,

@@ -111,6 +111,9 @@ class EdMCGS(nn.Module):
         self.register_buffer("extent", torch.tensor(float(extent)))
         self.register_buffer("event_scale", torch.tensor(1.0))
         self._plans: dict[bool, SkinPlan] = {}
+        self.skinning = lbs
+        """The skinning of ``state_from_motion``: ``lbs``, or the same compiled by ``torch.compile``
+        (``Trainer(compile=True)``, ``edmcgs train --compile``)."""
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -278,7 +281,8 @@ class EdMCGS(nn.Module):
         canon = [g.means, g.quats, g.scales(), g.opacities(), g.colors()]
         if motion_only:
             canon = [t.detach() for t in canon]
-        means, quats = lbs(canon[0], canon[1], self.control.positions, rot, trans, self.control.bind, weights)
+        cp = self.control
+        means, quats = self.skinning(canon[0], canon[1], cp.positions, rot, trans, cp.bind, weights)
         opacities = canon[3]
         visible = g.visible_in(window)
         if visible is not None:

@@ -22,10 +22,10 @@ def recording(tmp_path_factory):
     return open_recording(path, progress=False)
 
 
-def _trainer(recording, preset: str, device: str = "cpu") -> Trainer:
+def _trainer(recording, preset: str, device: str = "cpu", *, compile: bool = False) -> Trainer:
     cfg = build_config(preset, PRESETS[preset], recording)
     data = training_data(recording)
-    return Trainer(new_model(data, cfg), data, device=device, progress=False)
+    return Trainer(new_model(data, cfg), data, device=device, progress=False, compile=compile)
 
 
 @pytest.mark.parametrize("preset", sorted(PRESETS))
@@ -58,3 +58,21 @@ def test_cuda_steps(recording, preset, backend, monkeypatch):
     assert all(torch.isfinite(torch.tensor(losses)))
     assert all(p.device.type == "cuda" for p in trainer.model.parameters())
     assert all(torch.isfinite(p).all() for p in trainer.model.parameters())
+
+
+def test_compiled_skinning_trains_as_the_default(recording):
+    """torch.compile's skinning: the same steps (same draws), losses and gradients equal to float32
+    rounding (gradients within 1e-3 of each parameter's largest, where that is above 1e-6: the radii's are
+    rounding-sized; parameters are not compared: Adam's first steps amplify such rounding)."""
+    plain, compiled = _trainer(recording, "demo"), _trainer(recording, "demo", compile=True)
+    assert compiled.model.skinning is not plain.model.skinning
+    for step in range(3):
+        a, b = plain.train_step(), compiled.train_step()
+        assert a.keys() == b.keys()
+        for key in a:
+            assert b[key] == pytest.approx(a[key], rel=1e-3, abs=1e-6), key
+        if step == 0:
+            for p, q in zip(plain.model.parameters(), compiled.model.parameters(), strict=True):
+                scale = 0.0 if p.grad is None else float(p.grad.abs().max())
+                if scale > 1e-6:
+                    torch.testing.assert_close(q.grad, p.grad, rtol=0, atol=1e-3 * scale)
