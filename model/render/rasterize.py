@@ -146,7 +146,7 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
 
 def _rasterize_gsplat(chk, intrinsics: Intrinsics, near: float, return_depth: bool,
                       return_alpha: bool) -> RenderOutput:
-    """gsplat's compositing of every Gaussian (it culls on the device: no host round trip here)."""
+    """gsplat's compositing of every Gaussian (it culls on the device; its tile lists read one count back)."""
     feat = _colors(chk.colors, chk.means, chk.w2c)
     if return_depth:
         z = chk.means @ chk.w2c[2, :3] + chk.w2c[2, 3]
