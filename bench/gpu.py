@@ -29,6 +29,7 @@ import os
 import platform
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -45,6 +46,8 @@ BUDGETS = {"tests": 150, "render": 90, "train_real": 100, "train_demo": 60, "ser
 """Seconds each part may take on the GPU; a training run's are its training alone (its setup and the final
 scoring get another ``TRAIN_EXTRA``)."""
 TRAIN_EXTRA = 75
+TAIL_LINES = 12
+"""Last output lines of each part kept in gpu.json (all of it is in gpu.log)."""
 PARTS = tuple(BUDGETS)
 
 
@@ -136,18 +139,25 @@ def _parts(args) -> list[tuple[str, list[str], float]]:
 
 
 def _run_part(name: str, cmd: list[str], limit: float, log) -> dict:
+    """Run one part, its output appended to ``log``; its last lines are kept in the result too."""
     log.write(f"\n===== {name}: {' '.join(cmd)} (limit {limit:.0f} s)\n")
     log.flush()
     started = time.perf_counter()
-    try:
-        done = subprocess.run(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, timeout=limit, check=False)
-        code = done.returncode
-    except subprocess.TimeoutExpired:
-        code = "timeout"
+    with tempfile.TemporaryFile("w+") as output:
+        try:
+            done = subprocess.run(cmd, cwd=ROOT, stdout=output, stderr=subprocess.STDOUT, timeout=limit,
+                                  check=False)
+            code = done.returncode
+        except subprocess.TimeoutExpired:
+            code = "timeout"
+        output.seek(0)
+        text = output.read()
+    log.write(text)
     seconds = time.perf_counter() - started
     log.write(f"===== {name}: exit {code} after {seconds:.1f} s\n")
     log.flush()
-    return {"command": cmd, "returncode": code, "seconds": round(seconds, 1)}
+    tail = [line[-300:] for line in text.replace("\r", "\n").splitlines() if line.strip()][-TAIL_LINES:]
+    return {"command": cmd, "returncode": code, "seconds": round(seconds, 1), "output_tail": tail}
 
 
 def drive(args) -> int:
