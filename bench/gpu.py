@@ -5,13 +5,14 @@
 ``scripts/gpu_check.sh`` runs it on a fresh GPU machine (after installing what that lacks). Parts, in
 this order, each a subprocess with its own time limit, cut to what is left of ``--deadline`` seconds:
 
-    tests       the CUDA tests (tests/raster -k cuda, test_rasterize_gsplat.py, test_train_device.py)
+    tests       the CUDA tests (tests/raster and test_train_device.py, -k "cuda or gsplat")
     render      bench.render at 346x260 with 8k Gaussians: each CUDA path, forward and forward + backward
     train_real  the ``real`` preset trained from scratch on ``--real`` (a 346x260 street, default
                 ``edmcgs synth traffic --fps 5 --seconds 3 --seed 0``) for 1500 steps, or as many as its
                 budget allows: steps/s, training seconds, wall seconds, held-out PSNR / SSIM of all frames
     train_demo  the ``demo`` preset on the bundled demo recording, the same
     serve       bench.serve on the demo: GET /render p50 (one client) and four clients' renders/s
+    eval        edmcgs eval --demo on the device (the bundled checkpoint against its held-out frames)
     train_step  bench.train_step with the ``real`` preset on ``--real``: per stage, host reads, syncs
     train_real_compile  train_real with the skinning compiled (``edmcgs train --compile``)
 
@@ -38,11 +39,10 @@ from bench.results import write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 STEPS = 1500
-CUDA_TESTS = ["tests/raster/test_rasterize.py", "tests/raster/test_rasterize_gsplat.py",
-              "tests/model/test_train_device.py"]
-"""Test files with CUDA cases; ``-k cuda`` picks those (and the CPU-side gsplat ones, named gsplat)."""
-BUDGETS = {"tests": 150, "render": 90, "train_real": 100, "train_demo": 60, "serve": 120, "train_step": 120,
-           "train_real_compile": 100}
+CUDA_TESTS = ["tests/raster", "tests/model/test_train_device.py"]
+"""Where the CUDA cases are; ``-k "cuda or gsplat"`` picks them (and test_rasterize_gsplat.py's CPU ones)."""
+BUDGETS = {"tests": 150, "render": 90, "train_real": 100, "train_demo": 60, "serve": 120, "eval": 60,
+           "train_step": 120, "train_real_compile": 100}
 """Seconds each part may take on the GPU; a training run's are its training alone (its setup and the final
 scoring get another ``TRAIN_EXTRA``)."""
 TRAIN_EXTRA = 75
@@ -131,6 +131,7 @@ def _parts(args) -> list[tuple[str, list[str], float]]:
     parts += [train["train_real"], train["train_demo"]]
     parts.append(("serve", [*py, "-m", "bench.serve", *dev, "--seconds", "1" if tiny else "4",
                             "--json", str(out / "serve.json")], budgets["serve"]))
+    parts.append(("eval", [*py, "-m", "edmcgs.cli", "eval", "--demo", "-q", *dev], budgets["eval"]))
     parts.append(("train_step", [*py, "-m", "bench.train_step", *dev, "--recording", str(args.real),
                                  "--config", "real", "--steps", "3" if tiny else "20", *small,
                                  "--json", str(out / "train_step.json")], budgets["train_step"]))
