@@ -410,7 +410,8 @@ class EdMCGS(nn.Module):
             else:
                 dev = state.means.device
                 behind = None if layer is None else layer.image(c2w[:3, :3], intrinsics)
-                image = render_image(state, torch.as_tensor(w2c, dtype=torch.float32, device=dev), intrinsics,
+                # the camera as host float32 (the values a device tensor would hold): nothing read back
+                image = render_image(state, w2c.astype(np.float32), intrinsics,
                                      torch.as_tensor(bg, device=dev), behind).cpu().numpy()
         image = image.astype(np.float32, copy=False)
         if not np.isfinite(image).all():  # checked first: nan_to_num costs 10x the check
@@ -434,9 +435,8 @@ class EdMCGS(nn.Module):
                 depth, alpha = out.depth, out.alpha
             else:
                 dev = state.means.device
-                out = rasterize(*state.tensors(), torch.as_tensor(w2c, dtype=torch.float32, device=dev),
-                                intrinsics, background=torch.as_tensor(bg, device=dev), return_depth=True,
-                                return_alpha=True)
+                out = rasterize(*state.tensors(), w2c.astype(np.float32), intrinsics, return_depth=True,
+                                background=torch.as_tensor(bg, device=dev), return_alpha=True)
                 depth, alpha = out.depth.cpu().numpy(), out.alpha.cpu().numpy()
         depth = np.nan_to_num(depth.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
         alpha = np.nan_to_num(alpha.astype(np.float32), nan=0.0, posinf=1.0, neginf=0.0)
@@ -483,10 +483,11 @@ def background_color(config: EdmcgsConfig, channels: int) -> Tensor:
     return rgb if channels == 3 else (rgb @ torch.tensor(LUMA)).reshape(1)
 
 
-def render_image(state: GaussianState, w2c: Tensor, intrinsics: Intrinsics, background: Tensor,
+def render_image(state: GaussianState, w2c: Tensor | np.ndarray, intrinsics: Intrinsics, background: Tensor,
                  layer: Tensor | None = None) -> Tensor:
     """Differentiable render of ``state`` -> [H, W, C] (the training path); ``layer`` [H, W, C]: the
-    background layer's view, composited under the splats instead of ``background``."""
+    background layer's view, composited under the splats instead of ``background``. ``w2c`` on the host
+    spares a GPU's render the read back of its camera."""
     if layer is None:
         return rasterize(*state.tensors(), w2c, intrinsics, background=background).image
     out = rasterize(*state.tensors(), w2c, intrinsics, background=torch.zeros_like(background),
