@@ -13,7 +13,7 @@ the slowest ops by self time, which splits the backward into its autograd nodes
 (numba on the CPU by default, gsplat on CUDA where installed, else torch). Timings are wall clock on a
 shared machine: the load average is printed.
 
-Then what a step reads back to the host, by the line that asks (``tests/support/host_reads``: on a GPU
+Then what a step reads back to the host, by the line that asks (``harness/host_reads``: on a GPU
 each such read waits for the device, so they are what keeps it from running ahead); on CUDA also the
 synchronising CUDA calls torch itself reports (``torch.cuda.set_sync_debug_mode``), the stages' GPU time,
 and step times that wait for the device at each step's end.
@@ -73,7 +73,7 @@ def profile_steps(trainer, steps: int) -> tuple[dict, dict, list[dict], float]:
 def host_reads(trainer, steps: int = READ_STEPS) -> dict:
     """What ``steps`` steps read back to the host: per step in all, and per step by line (project code
     that asked itself; reads inside libraries, such as torch's CPU optimizer, under their caller)."""
-    from tests.support.host_reads import HostReads
+    from harness.host_reads import HostReads
 
     with HostReads() as reads:
         for _ in range(steps):
