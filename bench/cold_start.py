@@ -14,10 +14,12 @@ band of scene time, the live render against the events integrated, at each round
 
 Also measured: the first render after the first frame reached the server, when the first learnt model
 went live (from the first anchor), ``GET /render`` latency while the learner runs, the websocket's frame
-rate, the learner's CPU. With ``--offline CACHE``: the recording trained offline by ``edmcgs train
---config real`` (bench.traffic's cached run, one thread), and at the end the learner's saved model and
-the offline one scored on the held-out frames by the same code (``bench.traffic.score``), with the
-learner's CPU seconds beside the offline run's.
+rate, the learner's CPU (these three once the load below is over). For ``--load-minutes`` from the start,
+4 clients render the head and 2 live streams run: around each model swap (5 s either side), the failed
+requests, the p99 latency and every stream reset. With ``--offline CACHE``: the recording trained
+offline by ``edmcgs train --config real`` (bench.traffic's cached run, one thread), and at the end
+the learner's saved model and the offline one scored on the held-out frames by the same code
+(``bench.traffic.score``), with the learner's CPU seconds beside the offline run's.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import json
 import signal
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -39,7 +42,8 @@ from bench.results import table, write_json
 TARGETS = {"first_render_s": ("<=", 2.0), "first_model_s": ("<=", 60.0), "render_p50_ms": ("<=", 15.0),
            "stream_fps": (">=", 30.0), "live_minus_integrate_worst_band_db": (">=", 0.0),
            "live_minus_integrate_worst_band_moving_db": (">=", 0.0),
-           "learnt_minus_offline_db": (">=", -0.5)}
+           "learnt_minus_offline_db": (">=", -0.5), "swap_failed_requests": ("<=", 0),
+           "swap_stream_resets": ("<=", 0), "swap_p99_ms": ("<=", 150.0)}
 BASELINES = ("hold_last", "integrate", "hold_projected", "blend")
 
 
@@ -124,7 +128,66 @@ def stream_fps(url: str, seconds: float = 5.0) -> float:
         return n / max(time.monotonic() - t0, 1e-9)
 
 
-def run(rec_path: Path, minutes: float, every: float, workdir: Path, env: dict) -> dict:
+class Load:
+    """What viewers put on the service while models are swapped in: ``clients`` threads rendering the
+    camera's view at the head in a loop and ``streams`` live websockets, for ``seconds``. Every request's
+    wall time, latency and outcome is kept; a stream that errs or closes before the end is a reset."""
+
+    def __init__(self, url: str, seconds: float, clients: int = 4, streams: int = 2):
+        self.url, self.stop_at = url, time.time() + seconds
+        self.requests: list[tuple[float, float, bool]] = []  # (unix time, latency ms, ok)
+        self.resets: list[str] = []
+        self.frames = 0
+        self.threads = [threading.Thread(target=self._render, daemon=True) for _ in range(clients)]
+        self.threads += [threading.Thread(target=self._stream, daemon=True) for _ in range(streams)]
+        for th in self.threads:
+            th.start()
+
+    def _render(self) -> None:
+        from edmcgs.clients.client import Client
+
+        with Client(self.url, timeout=30) as client:
+            while (now := time.time()) < self.stop_at:
+                t0 = time.perf_counter()
+                try:
+                    client.render(format="jpeg")
+                    ok = True
+                except Exception:  # a failed request is what this counts
+                    ok = False
+                self.requests.append((now, (time.perf_counter() - t0) * 1e3, ok))
+
+    def _stream(self) -> None:
+        from edmcgs.clients.client import Client
+
+        try:
+            with Client(self.url, timeout=30) as client, \
+                    client.stream({"mode": "live", "fps": 30, "format": "jpeg"}) as stream:
+                while time.time() < self.stop_at:
+                    if stream.receive(timeout=30) is None:
+                        self.resets.append("closed by the server")
+                        return
+                    self.frames += 1
+        except Exception as exc:  # a reset is what this counts
+            self.resets.append(f"{type(exc).__name__}: {exc}")
+
+    def join(self) -> None:
+        for th in self.threads:
+            th.join(timeout=60)
+
+    def around(self, swaps_unix: list[float], margin_s: float = 5.0) -> dict:
+        """Requests within ``margin_s`` of a swap: how many, how many failed, their p99; and every
+        stream reset of the whole load."""
+        near = [r for r in self.requests if any(abs(r[0] - s) <= margin_s for s in swaps_unix)]
+        latencies = [ms for _, ms, ok in near if ok]
+        return {"swap_requests": len(near), "swap_failed_requests": sum(not ok for _, _, ok in near),
+                "swap_p99_ms": float(np.percentile(latencies, 99)) if latencies else None,
+                "swap_stream_resets": len(self.resets), "swap_stream_frames": self.frames,
+                "swaps_under_load": sum(s <= self.stop_at for s in swaps_unix),
+                "load_requests": len(self.requests),
+                "load_failed_requests": sum(not ok for _, _, ok in self.requests)}
+
+
+def run(rec_path: Path, minutes: float, every: float, workdir: Path, env: dict, load_s: float = 0.0) -> dict:
     from edmcgs.clients.client import Client
     from edmcgs.sensor.files.recording import read_recording
     from harness.server import ServerProcess
@@ -133,7 +196,7 @@ def run(rec_path: Path, minutes: float, every: float, workdir: Path, env: dict) 
     frames, _ = baselines(rec)
     first_frame_s = (int(rec.anchors.t_us[0]) - rec.t_range_us[0]) / 1e6
     srv = ServerProcess(["--replay", str(rec_path), "--learn-dir", str(workdir)], env=env)
-    rows, models, rounds = [], {}, []
+    rows, models, rounds, load = [], {}, [], None
     try:
         srv.wait_ready()
         started, started_unix = time.monotonic(), time.time()  # the replay started with the service
@@ -145,6 +208,7 @@ def run(rec_path: Path, minutes: float, every: float, workdir: Path, env: dict) 
                 except Exception:
                     time.sleep(0.02)
             first_render_s = max(0.0, time.monotonic() - started - first_frame_s)
+            load = Load(srv.url, load_s) if load_s > 0 else None
             fps = None  # measured once a model is live, while the learner goes on
             deadline = started + minutes * 60
             while time.monotonic() < deadline:
@@ -153,7 +217,7 @@ def run(rec_path: Path, minutes: float, every: float, workdir: Path, env: dict) 
                 learning = scene["learning"]
                 if learning["model"] is not None:
                     models.setdefault(learning["model"]["version"], learning["model"])
-                    if fps is None:
+                    if fps is None and (load is None or time.time() > load.stop_at):
                         fps = stream_fps(srv.url)
                 batch = score_round(client, frames, started, scene["head_us"] or 0)
                 if batch:
@@ -166,13 +230,19 @@ def run(rec_path: Path, minutes: float, every: float, workdir: Path, env: dict) 
                           f"{np.mean([r['integrate'] for r in batch]):.2f}", file=sys.stderr)
                 time.sleep(max(0.0, every - (time.monotonic() - tick)))
     finally:
+        if load is not None:
+            load.join()
         srv.stop(signal.SIGINT, timeout=300)
     first_model = min(models.values(), key=lambda m: m["version"], default=None)
-    return {"rows": rows, "rounds": rounds, "models": sorted(models.values(), key=lambda m: m["version"]),
+    swaps = load.around([m["live_unix"] for m in models.values()]) if load is not None else {}
+    return swaps | {"rows": rows, "rounds": rounds,
+                    "models": sorted(models.values(), key=lambda m: m["version"]),
             "first_render_s": first_render_s, "stream_fps": fps,
             "first_model_s": None if first_model is None else
             first_model["live_unix"] - started_unix - first_frame_s,
-            "render_p50_ms": float(np.median([r["latency_ms"] for r in rows])) if rows else None,
+            "render_p50_ms": float(np.median(quiet)) if (quiet := [
+                r["latency_ms"] for r in rows
+                if load is None or started_unix + r["wall_s"] > load.stop_at]) else None,
             "log": srv.log()}
 
 
@@ -196,6 +266,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--minutes", type=float, default=12.0, help="how long the service runs (default 12)")
     p.add_argument("--every", type=float, default=20.0, help="seconds between scoring rounds (default 20)")
     p.add_argument("--preset", default="real", help="the config the learner trains (default real)")
+    p.add_argument("--load-minutes", type=float, default=3.0,
+                   help="4 render clients and 2 live streams on the service for its first minutes, so that "
+                        "the first swaps happen under load (default 3; 0: none)")
     p.add_argument("--offline", type=Path, metavar="CACHE",
                    help="also train offline (cached here) and compare")
     p.add_argument("--json", type=Path)
@@ -205,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
     env = {"EDMCGS_LEARN_PRESET": args.preset}
     with tempfile.TemporaryDirectory() as tmp:
         workdir = Path(tmp) / "learnt"
-        r = run(args.recording, args.minutes, args.every, workdir, env)
+        r = run(args.recording, args.minutes, args.every, workdir, env, args.load_minutes * 60)
         results = {k: v for k, v in r.items() if k not in ("rows", "log")}
         last = r["rounds"][-1]["bands"] if r["rounds"] else []
         every_band = [b for rnd in r["rounds"] for b in rnd["bands"]]

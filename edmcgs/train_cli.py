@@ -331,6 +331,8 @@ def _run(args) -> int:
         saved = f"{out} holds step {trainer.saved_step}" if trainer.saved_step is not None else \
             f"nothing was saved by this run ({out} is as it was before)"
         print(f"edmcgs train: abandoned at step {trainer.step}; {saved}", file=sys.stderr)
+        curves = None  # the interrupt may have landed inside its writer, whose close could then wait forever;
+        # what it holds up to the last checkpoint is on disk already, and its thread is a daemon
         return INTERRUPTED
     finally:
         if handle:

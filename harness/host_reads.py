@@ -15,7 +15,7 @@ from torch.overrides import TorchFunctionMode
 
 READS = frozenset({"item", "tolist", "__bool__", "__float__", "__int__", "__index__", "cpu", "numpy"})
 """The Tensor methods that bring a value to the host."""
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 
 
 class HostReads(TorchFunctionMode):

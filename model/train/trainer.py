@@ -372,6 +372,8 @@ class Trainer:
             if checkpoint_path and cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0 \
                     and self.step < until:
                 self.save_resumable(checkpoint_path)
+                if curves is not None:  # the curves on disk reach the checkpoint, whatever comes next
+                    curves.flush()
         bar.close()
         if curves is not None:
             curves.flush()

@@ -7,7 +7,7 @@ import torch
 from edmcgs.model.train.trainer import Trainer
 from edmcgs.pipeline import build_config, new_model, open_recording, training_data
 from harness.host_reads import HostReads
-from tests.support.server import build_scene
+from harness.server import build_scene
 
 SMALL = ["init_points=600", "num_control_points=48", "deform_from=0.0"]
 PRESETS = {"demo": [*SMALL, "iterations=20", "densify_from=0.0", "densify_every=10"],

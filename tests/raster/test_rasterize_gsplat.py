@@ -10,7 +10,7 @@ from edmcgs.errors import InvalidInputError, RenderError
 from edmcgs.model.render import rasterize_gsplat, reference
 from edmcgs.model.render.projection import LOWPASS, ewa_project
 from edmcgs.model.render.rasterize import backend_of, rasterize
-from tests.support.scenes import random_scene
+from harness.scenes import random_scene
 
 FIELDS = ("means", "quats", "scales", "opacities", "colors")
 BG = [0.1, 0.2, 0.3]
