@@ -9,11 +9,11 @@ serve:  ## set up, then serve the bundled demo scene on http://127.0.0.1:8000
 
 test:   ## set up, then run the whole test suite (two workers; the 25 slowest tests listed at the end)
 	scripts/bootstrap.sh --test
-	$(PY) -m pytest -n 2 --dist loadgroup --durations=25
+	$(PY) -m pytest -n 2 --dist loadscope --durations=25
 
 check:  ## the inner loop: everything but the slow end-to-end cases (real servers, the browser)
 	scripts/bootstrap.sh --test
-	$(PY) -m pytest -n 2 --dist loadgroup -m "not slow" -q
+	$(PY) -m pytest -n 2 --dist loadscope -m "not slow" -q
 
 docs:   ## the docs site into site/ (mkdocs.yml, pages in docs/, benchmark figures read from reports/), offline
 	scripts/bootstrap.sh --docs

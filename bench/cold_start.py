@@ -73,6 +73,7 @@ def baselines(rec) -> tuple[list[dict], np.ndarray]:
         moving = np.abs(truth - still).max(-1) > MOVING
         scores = {}
         for name, image in images.items():
+            image = np.round(np.clip(image, 0, 1) * 255) / 255  # in the 8 bits the service delivers
             scores[name] = _psnr(image, truth)
             scores[f"{name}_moving"] = _psnr(image[moving], truth[moving]) if moving.any() else None
         frames.append({"t_us": t, "truth": truth, "moving": moving, "scores": scores})
@@ -131,13 +132,16 @@ def stream_fps(url: str, seconds: float = 5.0) -> float:
 class Load:
     """What viewers put on the service while models are swapped in: ``clients`` threads rendering the
     camera's view at the head in a loop and ``streams`` live websockets, for ``seconds``. Every request's
-    wall time, latency and outcome is kept; a stream that errs or closes before the end is a reset."""
+    wall time, latency and outcome is kept. The streams sweep the renderable span in a loop (a live one
+    ends with the replay): one that errs or closes before the end is a reset, and the model versions
+    each one saw tell that it lived through the swaps."""
 
     def __init__(self, url: str, seconds: float, clients: int = 4, streams: int = 2):
         self.url, self.stop_at = url, time.time() + seconds
         self.requests: list[tuple[float, float, bool]] = []  # (unix time, latency ms, ok)
         self.resets: list[str] = []
         self.frames = 0
+        self.versions: list[set] = []  # per stream, the model versions its frames came from
         self.threads = [threading.Thread(target=self._render, daemon=True) for _ in range(clients)]
         self.threads += [threading.Thread(target=self._stream, daemon=True) for _ in range(streams)]
         for th in self.threads:
@@ -159,13 +163,18 @@ class Load:
     def _stream(self) -> None:
         from edmcgs.clients.client import Client
 
+        seen: set = set()
+        self.versions.append(seen)
         try:
             with Client(self.url, timeout=30) as client, \
-                    client.stream({"mode": "live", "fps": 30, "format": "jpeg"}) as stream:
+                    client.stream({"mode": "sweep", "t0": 0.0, "fps": 30, "loop": True,
+                                   "format": "jpeg"}) as stream:
                 while time.time() < self.stop_at:
-                    if stream.receive(timeout=30) is None:
+                    frame = stream.receive(timeout=30)
+                    if frame is None:
                         self.resets.append("closed by the server")
                         return
+                    seen.add(frame.model_version)
                     self.frames += 1
         except Exception as exc:  # a reset is what this counts
             self.resets.append(f"{type(exc).__name__}: {exc}")
@@ -182,6 +191,8 @@ class Load:
         return {"swap_requests": len(near), "swap_failed_requests": sum(not ok for _, _, ok in near),
                 "swap_p99_ms": float(np.percentile(latencies, 99)) if latencies else None,
                 "swap_stream_resets": len(self.resets), "swap_stream_frames": self.frames,
+                "swap_stream_versions": [sorted(v, key=lambda x: -1 if x is None else x)
+                                         for v in self.versions],
                 "swaps_under_load": sum(s <= self.stop_at for s in swaps_unix),
                 "load_requests": len(self.requests),
                 "load_failed_requests": sum(not ok for _, _, ok in self.requests)}
