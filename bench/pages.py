@@ -29,6 +29,7 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
+from bench.results import meets
 from edmcgs.errors import InvalidInputError
 
 PLACEHOLDER = re.compile(r"\{\{\s*(.+?)\s*\}\}")
@@ -158,9 +159,7 @@ class Figures:
             target = targets.get(key)
             mark = ""
             if target is not None:
-                op, bound = target
-                met = value <= bound if op == "<=" else value >= bound
-                mark = f"{op} {bound:g}: {'met' if met else '**missed**'}"
+                mark = f"{target[0]} {target[1]:g}: {'met' if meets(value, target) else '**missed**'}"
             rows.append(f"| `{key}` | {_link(_format(value, '', name), source)} | {mark} |")
         return "\n".join(rows)
 
