@@ -7,7 +7,8 @@ EdMCGS on the stream's frames and events as they arrive, and publishes checkpoin
               (model/train/warm.py), trained ``steps`` (``first_steps`` at ``first_scale`` of the frames'
               size, then twice the round before at full size, up to the preset's iterations), published
               every ``publish_s`` and at the round's end.
-              A round that ends with no new anchor goes on training the same model.
+              A round that ends with no new anchor goes on with the same model, its schedule twice as
+              long (up to the preset's iterations; then it trains on at the schedule's end).
     stop ──>  the model and the stream saved: ``learned.ckpt`` (with its train state beside it) and
               ``learned.h5``; ``edmcgs train learned.h5 -o learned.ckpt --resume`` continues the run and
               ``edmcgs-serve --replay learned.h5 --checkpoint learned.ckpt`` serves it.
@@ -52,6 +53,8 @@ class Round:
     """Where this round's training stops (then a new round, or the same model trains on)."""
     anchors: int
     """Anchors the round was built from."""
+    full: int
+    """The preset's iterations: the longest schedule a round gets."""
 
 
 class Stream:
@@ -133,7 +136,9 @@ class Learner:
         elif rnd.trainer.step >= rnd.steps:  # the round is over
             if self.anchors_available() > rnd.anchors:
                 self._new_round()
-            else:  # no new anchor: the same model trains on (past its schedule's end, at its end)
+            elif rnd.steps < rnd.full:  # no new anchor: the same model, on a longer schedule
+                self._lengthen()
+            else:  # at the preset's schedule: it trains on at its end
                 rnd.steps *= 2
         rnd = self.round
         for _ in range(CHUNK_STEPS):
@@ -162,7 +167,20 @@ class Learner:
         if self.model is not None:
             warm_start(model, self.model)
         self.model, self.data = model, data
-        self.round = Round(Trainer(model, data, progress=False), rec, steps, len(data.anchors_t_us))
+        self.round = Round(Trainer(model, data, progress=False), rec, steps, len(data.anchors_t_us),
+                           base.iterations)
+
+    def _lengthen(self) -> None:
+        """The round's schedule twice as long (up to the preset's), the model and its optimizer kept:
+        training goes on from its step as ``edmcgs train --resume --set iterations=N`` would, the
+        schedules (learning rates, densification, the event branch's warm-in) read at the new length.
+        Without it a stream that stopped growing (a replay's end, a camera held still) would train on at
+        a short schedule's end, its learning rates at their floor, and never reach the preset's model."""
+        rnd = self.round
+        rnd.steps = min(2 * rnd.steps, rnd.full)
+        model = rnd.trainer.model
+        model.config = rnd.trainer.cfg = model.config.replace(iterations=rnd.steps)
+        model.meta.config = model.config.to_dict()
 
     def publish(self, path: Path | None = None) -> Path:
         """Save the current model (a final checkpoint: what the server loads) and report it."""

@@ -161,6 +161,14 @@ def test_the_learner_publishes_rounds_over_the_anchors_received_and_saves_what_r
         learner.step()
     second = outbox[-1]
     assert second["version"] == 2 and second["anchors"] == 11 and second["steps"] == 20  # twice the first
+    # No new anchor: the same model goes on, its schedule twice as long, from where it was
+    model, step = learner.round.trainer.model, learner.round.trainer.step
+    while len(outbox) < 3:
+        learner.step()
+    third = outbox[-1]
+    assert third["anchors"] == 11 and third["steps"] == 40 and third["round_steps"] == 40
+    assert learner.round.trainer.model is model and learner.round.trainer.step == step + 20
+    assert model.config.iterations == 40 and load_checkpoint(third["path"]).config.iterations == 40
     saved = learner.save()
     assert Path(saved["checkpoint"]).name == "learned.ckpt" and saved["steps"] == learner.round.trainer.step
     assert (tmp_path / "learned.ckpt.train-state").is_file()
@@ -168,7 +176,7 @@ def test_the_learner_publishes_rounds_over_the_anchors_received_and_saves_what_r
     assert len(back.anchors) == 11 and len(back.held_out) == 10 and len(back.events) == len(rec.events)
     assert back.anchors.t_us.tolist() == load_checkpoint(saved["checkpoint"]).meta.anchors_us.tolist()
     kept = sorted(p.name for p in tmp_path.glob("learned-*.ckpt"))
-    assert kept == ["learned-0001.ckpt", "learned-0002.ckpt"]
+    assert kept == ["learned-0002.ckpt", "learned-0003.ckpt"]
 
 
 def test_the_learner_process_reports_and_saves_when_told_to_stop(scene, tmp_path):
