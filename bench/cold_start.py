@@ -232,6 +232,8 @@ def run(rec_path: Path, minutes: float, every: float, workdir: Path, env: dict, 
                         fps = stream_fps(srv.url)
                 batch = score_round(client, frames, started, scene["head_us"] or 0)
                 if batch:
+                    for row in batch:
+                        row["round"] = len(rounds)
                     rows += batch
                     rounds.append({"wall_s": batch[0]["wall_s"], "model": batch[0]["model"],
                                    "learnt": learning["model"],
@@ -317,31 +319,39 @@ def main(argv: list[str] | None = None) -> int:
             w.writerows(r["rows"])
     if args.plot is not None and r["rows"]:
         plot(r["rows"], args.plot)
-    write_json(args.json, results)
+    write_json(args.json, results | {"targets": TARGETS})
     print(table(results, TARGETS))
     print(json.dumps({k: results[k] for k in ("models",) if k in results}, indent=1)[:2000])
     return 0
 
 
 def plot(rows: list[dict], path: Path) -> None:
-    """Mean PSNR of each scoring round against wall-clock time, beside the no-model renders."""
+    """Mean PSNR of each scoring round against wall-clock time, beside the no-model renders: over all
+    pixels and over the moving ones; a dashed line where the first learnt model went live."""
     from matplotlib.figure import Figure
 
     from bench.figures import save
 
-    walls = sorted({round(r["wall_s"]) for r in rows})
-    fig = Figure(figsize=(8, 4.5), layout="constrained")
-    ax = fig.subplots()
-    for key, label, colour in (("live", "live render (cold start)", "#1b6ca8"),
-                               ("integrate", "events integrated onto the last frame", "#66a182"),
-                               ("hold_projected", "last frame projected onto the events", "#c2a83e"),
-                               ("hold_last", "hold the last frame", "#888888")):
-        means = [np.mean([r[key] for r in rows if round(r["wall_s"]) == w]) for w in walls]
-        ax.plot(walls, means, marker="o", ms=3, color=colour, label=label)
-    ax.set_xlabel("wall-clock time since the service started (s)")
-    ax.set_ylabel("mean PSNR over the held-out frames (dB)")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    rounds = sorted({r["round"] for r in rows})
+    walls = [min(r["wall_s"] for r in rows if r["round"] == k) for k in rounds]
+    learnt = [r["wall_s"] for r in rows if r["model"] is not None]
+    fig = Figure(figsize=(10, 4.2), layout="constrained")
+    for ax, suffix, title in zip(fig.subplots(1, 2), ("", "_moving"), ("all pixels", "moving pixels"),
+                                 strict=True):
+        for key, label, colour in (("live", "live render (cold start)", "#1b6ca8"),
+                                   ("integrate", "events integrated onto the last frame", "#66a182"),
+                                   ("hold_projected", "last frame projected onto the events", "#c2a83e"),
+                                   ("hold_last", "hold the last frame", "#888888")):
+            means = [np.mean([v for r in rows if r["round"] == k and (v := r[key + suffix]) is not None])
+                     for k in rounds]
+            ax.plot(walls, means, marker="o", ms=3, color=colour, label=label)
+        if learnt:
+            ax.axvline(min(learnt), color="#1b6ca8", ls="--", lw=0.8)
+        ax.set_title(f"{title} (dashed: the first learnt model live)", fontsize=9)
+        ax.set_xlabel("wall-clock time since the service started (s)")
+        ax.grid(alpha=0.3)
+    fig.axes[0].set_ylabel("mean PSNR over the held-out frames reached (dB)")
+    fig.axes[0].legend(fontsize=8, loc="center right")
     path.parent.mkdir(parents=True, exist_ok=True)
     save(fig, path)
 
