@@ -390,5 +390,81 @@ class Trajectory:
         return int(self.t_us.size)
 
 
-__all__ = ["Intrinsics", "Trajectory", "parse_pose", "pose_from_quat", "project", "quat_multiply",
-           "quat_normalize", "quat_to_rotmat", "rotmat_to_quat", "validate_pose", "world_to_camera"]
+# -------------------------------------------------------------------------------------- similarities
+
+@dataclass(frozen=True)
+class Similarity:
+    """x -> scale * rotation @ x + translation: how one world frame's points sit in another's (e.g. a
+    structure-from-motion reconstruction, up to scale, in the true frame)."""
+
+    scale: float
+    rotation: np.ndarray
+    """float64 [3, 3]."""
+    translation: np.ndarray
+    """float64 [3]."""
+
+    @classmethod
+    def fit(cls, src, dst) -> Similarity:
+        """The least-squares similarity taking points ``src`` [N, 3] onto ``dst`` [N, 3] (Umeyama 1991,
+        as evo's Sim(3) alignment computes it); ``InvalidInputError`` for fewer than 3 points or points
+        that do not span space enough to fix it (all at one place)."""
+        src, dst = np.asarray(src, dtype=np.float64), np.asarray(dst, dtype=np.float64)
+        if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
+            raise InvalidInputError(f"a similarity needs two [N >= 3, 3] point sets, got {src.shape} and "
+                                    f"{dst.shape}")
+        if not (np.isfinite(src).all() and np.isfinite(dst).all()):
+            raise InvalidInputError("a similarity's points must be finite")
+        mu_s, mu_d = src.mean(0), dst.mean(0)
+        xs, xd = src - mu_s, dst - mu_d
+        var = float((xs**2).sum() / len(src))
+        if var <= 1e-18:
+            raise InvalidInputError("the source points all sit at one place: no similarity is fixed")
+        u, d, vt = np.linalg.svd(xd.T @ xs / len(src))
+        sign = np.diag([1.0, 1.0, -1.0 if np.linalg.det(u) * np.linalg.det(vt) < 0 else 1.0])
+        rotation = u @ sign @ vt
+        scale = float(np.trace(np.diag(d) @ sign) / var)
+        return cls(scale, rotation, mu_d - scale * rotation @ mu_s)
+
+    @classmethod
+    def fit_poses(cls, src, dst) -> Similarity:
+        """The similarity taking cameras ``src`` [N, 4, 4] (c2w) onto ``dst``: its rotation the chordal
+        mean of dst_i src_i^T over the cameras' orientations (which fix it even when the centres lie on
+        a line, as a walk's do, where ``fit`` leaves the turn about that line free), then its scale and
+        translation by least squares on the centres. ``InvalidInputError`` when the centres do not move."""
+        src, dst = np.asarray(src, dtype=np.float64), np.asarray(dst, dtype=np.float64)
+        if src.shape != dst.shape or src.ndim != 3 or src.shape[1:] != (4, 4) or len(src) < 2:
+            raise InvalidInputError(f"a similarity of poses needs two [N >= 2, 4, 4] sets, got {src.shape} "
+                                    f"and {dst.shape}")
+        if not (np.isfinite(src).all() and np.isfinite(dst).all()):
+            raise InvalidInputError("a similarity's poses must be finite")
+        u, _, vt = np.linalg.svd(np.einsum("nij,nkj->ik", dst[:, :3, :3], src[:, :3, :3]))
+        rotation = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+        p, q = src[:, :3, 3], dst[:, :3, 3]
+        xs, xd = (p - p.mean(0)) @ rotation.T, q - q.mean(0)
+        var = float((xs**2).sum())
+        if var <= 1e-18 * max(len(p), 1):
+            raise InvalidInputError("the cameras do not move: no scale between the two frames is fixed")
+        scale = float((xs * xd).sum() / var)
+        if scale <= 0:
+            raise InvalidInputError("the two sets of cameras move in opposite directions: no similarity")
+        return cls(scale, rotation, q.mean(0) - scale * rotation @ p.mean(0))
+
+    def points(self, xyz) -> np.ndarray:
+        """[N, 3] points mapped."""
+        return self.scale * np.asarray(xyz, dtype=np.float64) @ self.rotation.T + self.translation
+
+    def poses(self, c2w) -> np.ndarray:
+        """[N, 4, 4] camera-to-world poses mapped (their centres moved, their axes turned; no scale in a
+        rotation)."""
+        out = np.array(c2w, dtype=np.float64, copy=True).reshape(-1, 4, 4)
+        out[:, :3, :3] = self.rotation @ out[:, :3, :3]
+        out[:, :3, 3] = self.points(out[:, :3, 3])
+        return out
+
+    def inverse(self) -> Similarity:
+        return Similarity(1.0 / self.scale, self.rotation.T, -self.rotation.T @ self.translation / self.scale)
+
+
+__all__ = ["Intrinsics", "Similarity", "Trajectory", "parse_pose", "pose_from_quat", "project",
+           "quat_multiply", "quat_normalize", "quat_to_rotmat", "rotmat_to_quat", "validate_pose",
+           "world_to_camera"]

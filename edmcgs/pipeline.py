@@ -23,7 +23,7 @@ import numpy as np
 
 from edmcgs.atomic import atomic_output
 from edmcgs.errors import InvalidInputError, PoseError, TrainingError
-from edmcgs.geometry import Intrinsics, Trajectory, pose_from_quat, rotmat_to_quat, validate_pose
+from edmcgs.geometry import Intrinsics, Similarity, Trajectory, pose_from_quat, rotmat_to_quat, validate_pose
 from edmcgs.model.config import EdmcgsConfig, preset
 from edmcgs.model.data import TrainingData
 from edmcgs.model.dynamic import EdMCGS
@@ -82,7 +82,7 @@ def training_data(rec: Recording) -> TrainingData:
         held_out_t_us=None if held is None or not len(held) else held.t_us,
         held_out_images=None if held is None or not len(held) else held.images,
         held_out_poses=None if held is None or not len(held) else held.poses,
-        contrast_threshold=rec.contrast_threshold)
+        contrast_threshold=rec.contrast_threshold, points_xyz=rec.points_xyz, points_colors=rec.points_colors)
 
 
 def new_model(data: TrainingData, cfg: EdmcgsConfig) -> EdMCGS:
@@ -90,7 +90,7 @@ def new_model(data: TrainingData, cfg: EdmcgsConfig) -> EdMCGS:
     return EdMCGS.from_arrays(anchors_t_us=data.anchors_t_us, anchor_images=data.anchor_images,
                               intrinsics=data.intrinsics, anchor_poses=data.anchor_poses,
                               t_end_us=data.t_end_us, trajectory=data.trajectory, event_size=data.event_size,
-                              config=cfg)
+                              config=cfg, points_xyz=data.points_xyz, points_colors=data.points_colors)
 
 
 def build_config(name: str, overrides: list[str], rec: Recording) -> EdmcgsConfig:
@@ -187,17 +187,21 @@ def cut(rec: Recording, *, start_s: float = 0.0, duration_s: float | None = None
 
 
 def with_trajectory(rec: Recording, t_us: np.ndarray, c2w: np.ndarray) -> Recording:
-    """``rec`` whose camera follows the trajectory (t_us, c2w): the frames' own poses are dropped."""
+    """``rec`` whose camera follows the trajectory (t_us, c2w): the frames' own poses are dropped, and so
+    are 3D points the recording had (they belong to its former world frame)."""
     anchors = Frames(rec.anchors.t_us, rec.anchors.images)
     held = None if rec.held_out is None else Frames(rec.held_out.t_us, rec.held_out.images)
     return replace(rec, anchors=anchors, held_out=held, trajectory_t_us=np.asarray(t_us, dtype=np.int64),
-                   trajectory_c2w=np.asarray(c2w, dtype=np.float64))
+                   trajectory_c2w=np.asarray(c2w, dtype=np.float64), points_xyz=None, points_colors=None)
 
 
 def estimated_poses(rec: Recording, *, progress: bool = False) -> Recording:
     """``rec`` with the poses structure from motion finds over all its frames (anchors and held-out
-    alike), the camera it estimated when the recording had none, and how in ``metadata["poses"]``; a
-    camera that did not move becomes a static one (one pose), said here."""
+    alike), its 3D points (in the poses' frame), the camera it estimated when the recording had none,
+    and how in ``metadata["poses"]``; a camera that did not move becomes a static one (one pose), said
+    here. Novel views (a second camera's frames, their poses in the recording's former world frame) are
+    carried into the new frame by the similarity that aligns the former poses of the registered frames
+    with the estimated ones, and dropped, said here, when the recording had no former poses."""
     from edmcgs.poses import estimate_poses
 
     frames = all_frames(rec)
@@ -213,7 +217,36 @@ def estimated_poses(rec: Recording, *, progress: bool = False) -> Recording:
         "static": estimate.static, "rotation_only": estimate.rotation_only,
         "estimated_intrinsics": estimate.estimated_intrinsics,
         "distortion": estimate.distortion, "seconds": round(estimate.seconds, 3)}}
-    return replace(with_trajectory(rec, estimate.t_us, estimate.c2w), metadata=metadata)
+    former = _former_poses(rec, frames, estimate.t_us)
+    out = replace(with_trajectory(rec, estimate.t_us, estimate.c2w), metadata=metadata,
+                  points_xyz=estimate.point_xyz, points_colors=estimate.point_colors)
+    if rec.novel_views is not None and len(rec.novel_views):
+        out = replace(out, novel_views=_novel_views_moved(rec.novel_views, former, estimate))
+    return out
+
+
+def _former_poses(rec: Recording, frames: Frames, t_us: np.ndarray) -> np.ndarray | None:
+    """The recording's own c2w at ``t_us`` (frame times) before structure from motion replaced them:
+    the frames' poses, else its trajectory's; None when it had neither."""
+    if frames.poses is not None:
+        return frames.poses[np.searchsorted(frames.t_us, t_us)]
+    if rec.trajectory_t_us is not None:
+        return Trajectory(rec.trajectory_t_us, rec.trajectory_c2w).at(t_us)
+    return None
+
+
+def _novel_views_moved(views: Frames, former: np.ndarray | None, estimate) -> Frames | None:
+    if former is None or estimate.static or estimate.rotation_only:
+        print(f"note: the recording's {len(views)} novel views are left out: their poses are in a world "
+              "frame the estimated poses cannot be related to", file=sys.stderr)
+        return None
+    try:
+        to_estimated = Similarity.fit_poses(former, estimate.c2w)
+    except InvalidInputError:
+        print(f"note: the recording's {len(views)} novel views are left out: its former camera did not "
+              "move, so their poses cannot be related to the estimated ones", file=sys.stderr)
+        return None
+    return Frames(views.t_us, views.images, to_estimated.poses(views.poses))
 
 
 def _is_ours(path: Path) -> bool:

@@ -14,10 +14,12 @@ radial term estimated by the bundle adjustment and returned.
 Conventions of the result: OpenCV camera-to-world poses (x right, y down, z forward), the world the
 first registered frame's camera, the scale such that the median depth of the reconstructed points
 seen from the registered frames is 1 (the model's ``init_depth``, its scene depth when the cameras'
-axes do not meet). A camera whose frames match with (almost) no image motion is static; one whose
-matched frames are all related by homographies that are rotations (it turns about its centre: no
-parallax to map with, e.g. a pan) gets rotations alone, from those homographies, chained through the
-earliest frame each frame matched (its focal length, when not given, the one that makes them closest
+axes do not meet). The reconstructed points come with the poses, in the same frame, each in the mean
+colour of the frames' pixels it was seen at (where the model's static set starts: ``static_set``).
+A camera whose frames match with (almost) no image motion is static; one whose matched frames are
+all related by homographies that are rotations (it turns about its centre: no parallax to map with,
+e.g. a pan) gets rotations alone, from those homographies, chained through the earliest frame each
+frame matched (its focal length, when not given, the one that makes them closest
 to rotations); a recording where fewer than ``min_registered`` of the frames register in one model is
 refused, naming the count.
 pycolmap is imported when poses are estimated, never at import time.
@@ -91,6 +93,11 @@ class PoseEstimate:
     rotation_only: bool = False
     """The camera turned about its centre (no parallax): rotations from the frames' homographies, no
     translation (``points`` 0)."""
+    point_xyz: np.ndarray | None = None
+    """float64 [points, 3]: the kept model's 3D points in the poses' frame (None: no points, a static or
+    turning camera)."""
+    point_colors: np.ndarray | None = None
+    """uint8 [points, C] (C: the frames' channels): each point's mean colour over the pixels that saw it."""
 
     def summary(self) -> str:
         """One line: what registered, the camera, the time."""
@@ -180,13 +187,14 @@ def estimate_poses(t_us, images, intrinsics: Intrinsics | None = None, *,
         raise PoseEstimationError(f"only {registered} of {n} frames registered in one model{split}; poses "
                                   f"need {min_registered:.0%} (give --poses TRAJ.txt, or --intrinsics if "
                                   "the camera is known)")
-    index, c2w = _poses(best)
+    index, c2w, xyz, colors = _poses(best, images)
     camera = best.cameras[next(iter(best.cameras))]
     estimated, k = _camera(camera, intrinsics, width, height)
     return PoseEstimate(
         frames=n, registered=registered, t_us=t_us[index], c2w=c2w, intrinsics=estimated,
         estimated_intrinsics=intrinsics is None, distortion=k, static=False, models=len(models),
-        points=best.num_points3D(), motion_px=motion_px, seconds=time.perf_counter() - start)
+        points=len(xyz), motion_px=motion_px, seconds=time.perf_counter() - start, point_xyz=xyz,
+        point_colors=colors)
 
 
 def _checked(t_us, images, intrinsics) -> tuple[np.ndarray, np.ndarray]:
@@ -421,20 +429,50 @@ def _adjust(pycolmap, model, *, fixed: bool) -> None:
     pycolmap.create_default_bundle_adjuster(options, config, model).solve()
 
 
-def _poses(model) -> tuple[np.ndarray, np.ndarray]:
+def _poses(model, images: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(frame indices [R], c2w [R, 4, 4]) of the registered frames, in the first one's camera frame, scaled
-    so that the median depth of the model's points, seen from the registered frames, is 1."""
-    images = sorted((int(Path(im.name).stem), im) for im in model.images.values() if im.has_pose)
-    index = np.array([i for i, _ in images], dtype=np.int64)
-    w2c = np.tile(np.eye(4), (len(images), 1, 1))
-    w2c[:, :3] = [im.cam_from_world().matrix() for _, im in images]
-    points = np.array([p.xyz for p in model.points3D.values()]).reshape(-1, 3)
+    so that the median depth of the model's points, seen from the registered frames, is 1; and the points
+    in that frame (float64 [P, 3]) with their colours in ``images`` (uint8 [P, C])."""
+    images_by_id = {image_id: im for image_id, im in model.images.items() if im.has_pose}
+    ordered = sorted((int(Path(im.name).stem), im) for im in images_by_id.values())
+    index = np.array([i for i, _ in ordered], dtype=np.int64)
+    w2c = np.tile(np.eye(4), (len(ordered), 1, 1))
+    w2c[:, :3] = [im.cam_from_world().matrix() for _, im in ordered]
+    ids = list(model.points3D.keys())
+    points = np.array([model.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
     depths = np.einsum("rj,pj->rp", w2c[:, 2, :3], points) + w2c[:, 2, 3:]  # [R, P]
     depths = depths[depths > 0]
     scale = 1.0 / float(np.median(depths)) if depths.size else 1.0
     c2w = w2c[0] @ np.linalg.inv(w2c)  # the world: the first registered frame's camera
     c2w[:, :3, 3] *= scale
-    return index, c2w
+    xyz = scale * (points @ w2c[0, :3, :3].T + w2c[0, :3, 3])
+    return index, c2w, xyz, _colors(model, ids, images_by_id, images)
+
+
+def _colors(model, ids: list[int], images_by_id: dict, images: np.ndarray) -> np.ndarray:
+    """uint8 [P, C]: each point's mean over the frames' pixels its track observes (COLMAP's keypoints have
+    pixel centres at +0.5; the frames are ours, in any channels)."""
+    frame, u, v, owner = [], [], [], []
+    for k, point_id in enumerate(ids):
+        for element in model.points3D[point_id].track.elements:
+            image = images_by_id.get(element.image_id)
+            if image is None:
+                continue
+            x, y = image.points2D[element.point2D_idx].xy
+            frame.append(int(Path(image.name).stem))
+            u.append(x - 0.5)
+            v.append(y - 0.5)
+            owner.append(k)
+    h, w, c = images.shape[1:]
+    colors = np.zeros((len(ids), c), dtype=np.float64)
+    if not owner:
+        return colors.astype(np.uint8)
+    col = np.clip(np.rint(u), 0, w - 1).astype(np.int64)
+    row = np.clip(np.rint(v), 0, h - 1).astype(np.int64)
+    owner_arr = np.asarray(owner)
+    np.add.at(colors, owner_arr, images[np.asarray(frame), row, col].astype(np.float64))
+    counts = np.bincount(owner_arr, minlength=len(ids))[:, None]
+    return np.rint(colors / np.maximum(counts, 1)).astype(np.uint8)
 
 
 def _camera(camera, given: Intrinsics | None, width: int, height: int) -> tuple[Intrinsics, float]:

@@ -41,7 +41,7 @@ from edmcgs.model.dynamic import EdMCGS, SceneMeta
 from edmcgs.model.motion.background import BackgroundLayer
 from edmcgs.model.motion.control_points import ControlPoints
 from edmcgs.model.motion.event_branch import EventTransition
-from edmcgs.model.motion.gaussians import Gaussians
+from edmcgs.model.motion.gaussians import STATIC, Gaussians
 from edmcgs.model.motion.leanness import decisions, frozen_control_points
 
 FORMAT = "edmcgs-checkpoint"
@@ -281,13 +281,14 @@ def validate(payload: dict) -> None:
                 raise CheckpointError(f"state_dict[{key!r}] must be an integer tensor")
             if value.numel() and (int(value.min()) < 0 or int(value.max()) >= mcp):
                 raise CheckpointError(f"state_dict[{key!r}] indexes outside [0, {mcp}) control points")
-    for key in ("gaussians.birth", "control.birth"):  # anchor windows: each names an anchor
+    for key in ("gaussians.birth", "control.birth"):  # anchor windows: each names an anchor (or STATIC)
         value = state.get(key)
         if isinstance(value, torch.Tensor):
             if value.is_floating_point() or value.dtype == torch.bool:
                 raise CheckpointError(f"state_dict[{key!r}] must be an integer tensor")
-            if value.numel() and (int(value.min()) < 0 or int(value.max()) >= len(anchors)):
-                raise CheckpointError(f"state_dict[{key!r}] names anchors outside [0, {len(anchors)})")
+            if value.numel() and (int(value.min()) < STATIC or int(value.max()) >= len(anchors)):
+                raise CheckpointError(f"state_dict[{key!r}] names anchors outside [0, {len(anchors)}) "
+                                      f"(or {STATIC}: the static set)")
     train_state = payload.get("train_state")
     if train_state is not None:
         if not isinstance(train_state, dict):

@@ -50,6 +50,11 @@ class TrainingData:
     """[G, 4, 4] float64 c2w, or None to use the trajectory."""
     contrast_threshold: float | None = None
     """The event camera's contrast threshold C when the recording states it."""
+    points_xyz: np.ndarray | None = None
+    """[P, 3] float64 3D points of the static scene in the poses' world frame (structure from motion's),
+    or None."""
+    points_colors: np.ndarray | None = None
+    """[P, C] uint8 their colours, C the frames' channels."""
 
     def __post_init__(self) -> None:
         t = np.asarray(self.anchors_t_us)
@@ -81,6 +86,16 @@ class TrainingData:
             if himg.dtype != np.uint8 or himg.shape[:1] != ht.shape or himg.shape[1:] != img.shape[1:]:
                 raise InvalidInputError("held_out_images must be uint8 [G, H, W, C] like the anchors")
             self.held_out_t_us = ht
+        if (self.points_xyz is None) != (self.points_colors is None):
+            raise InvalidInputError("points_xyz and points_colors must be given together")
+        if self.points_xyz is not None:
+            xyz, col = np.asarray(self.points_xyz, dtype=np.float64), np.asarray(self.points_colors)
+            if xyz.ndim != 2 or xyz.shape[1] != 3 or not np.isfinite(xyz).all():
+                raise InvalidInputError(f"points_xyz must be finite [P, 3], got {xyz.shape}")
+            if col.dtype != np.uint8 or col.shape != (len(xyz), img.shape[3]):
+                raise InvalidInputError(f"points_colors must be uint8 [{len(xyz)}, {img.shape[3]}] (the "
+                                        f"frames' channels), got {col.dtype} {col.shape}")
+            self.points_xyz, self.points_colors = xyz, col
 
     @property
     def channels(self) -> int:

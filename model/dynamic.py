@@ -26,8 +26,14 @@ from edmcgs.model.motion.background import BackgroundLayer, composite
 from edmcgs.model.motion.control_points import ControlPoints
 from edmcgs.model.motion.deformation import DeformationField
 from edmcgs.model.motion.event_branch import EventEncoder, EventTransition, sample_global, sample_local
-from edmcgs.model.motion.gaussians import Gaussians, GaussianState
-from edmcgs.model.motion.initialization import backproject_anchors, scene_center_and_extent
+from edmcgs.model.motion.gaussians import STATIC, Gaussians, GaussianState
+from edmcgs.model.motion.initialization import (
+    POINT_OPACITY,
+    backproject_anchors,
+    median_depth,
+    point_gaussians,
+    scene_center_and_extent,
+)
 from edmcgs.model.motion.leanness import choose_sh_degree, control_reach, motion_bound
 from edmcgs.model.motion.skin_plan import SkinPlan, build_plan, plan_key, skin
 from edmcgs.model.motion.skinning import identity_rotations, lbs
@@ -120,7 +126,8 @@ class EdMCGS(nn.Module):
     def from_arrays(cls, *, anchors_t_us: np.ndarray, anchor_images: np.ndarray, intrinsics: Intrinsics,
                     anchor_poses: np.ndarray | None = None, t_end_us: int | None = None,
                     trajectory: Trajectory | None = None, event_size: tuple[int, int] | None = None,
-                    config: EdmcgsConfig | None = None, init_depth: float = 1.0) -> EdMCGS:
+                    config: EdmcgsConfig | None = None, init_depth: float = 1.0,
+                    points_xyz: np.ndarray | None = None, points_colors: np.ndarray | None = None) -> EdMCGS:
         """An untrained model initialised from a recording's anchor frames (on the CPU).
 
         anchors_t_us: np.ndarray   # [F] int64, strictly increasing, microseconds
@@ -129,7 +136,10 @@ class EdMCGS(nn.Module):
         t_end_us: end of the span (default: the last anchor; must be > the first anchor)
         trajectory: event-camera c2w over time (default: the anchors' poses)
         event_size: (width, height) of the event maps (default: the image size)
-        init_depth: scene depth when the anchors' optical axes do not meet (world units)
+        init_depth: scene depth when the anchors' optical axes do not meet (world units; with points,
+                    their median depth in the anchors' views)
+        points_xyz: np.ndarray     # [P, 3] float64 3D points of the static scene (structure from motion's)
+        points_colors: np.ndarray  # [P, C] uint8 their colours; both needed by config.static_set
         """
         config = config or EdmcgsConfig()
         config.validate()
@@ -156,6 +166,14 @@ class EdMCGS(nn.Module):
                                     "(a span needs at least two anchors or a later end time)")
         if not math.isfinite(init_depth) or init_depth <= 0:
             raise InvalidInputError(f"init_depth must be a positive number, got {init_depth}")
+        if config.static_set:
+            if points_xyz is None or points_colors is None or len(points_xyz) < 4:
+                raise InvalidInputError("config.static_set starts the static set on the recording's 3D "
+                                        "points and it has none: estimate them with the poses (--poses auto)")
+            if np.shape(points_colors) != (len(points_xyz), images.shape[3]):
+                raise InvalidInputError(f"points_colors must be [{len(points_xyz)}, {images.shape[3]}] (the "
+                                        f"frames' channels), got {np.shape(points_colors)}")
+            init_depth = median_depth(points_xyz, poses) or init_depth
         ew, eh = event_size or (intrinsics.width, intrinsics.height)
         if trajectory is None:
             trajectory = Trajectory(t.copy(), poses.copy())
@@ -180,12 +198,18 @@ class EdMCGS(nn.Module):
             layer.fit_median(images, poses[:, :3, :3], intrinsics)
             with torch.no_grad():
                 background = np.stack([layer.image(p[:3, :3], intrinsics).numpy() for p in poses[:k]])
-        points, colors, scales, views = backproject_anchors(
-            images[:k], poses[:k], intrinsics, center, extent, config.init_points, rng, background,
-            threshold=config.dynamic_threshold, return_views=True)
-        gaussians = Gaussians.from_points(points, colors, scales, sh_degree=config.sh_degree,
-                                          opacity=config.init_opacity,
-                                          birth=views if config.anchor_windows else None)
+        if config.static_set:  # the static set on the points; what moves is lifted in training
+            points, colors, scales = point_gaussians(points_xyz, points_colors, extent)
+            gaussians = Gaussians.from_points(points, colors, scales, sh_degree=config.sh_degree,
+                                              opacity=POINT_OPACITY,
+                                              birth=torch.full((len(points),), STATIC, dtype=torch.long))
+        else:
+            points, colors, scales, views = backproject_anchors(
+                images[:k], poses[:k], intrinsics, center, extent, config.init_points, rng, background,
+                threshold=config.dynamic_threshold, return_views=True)
+            gaussians = Gaussians.from_points(points, colors, scales, sh_degree=config.sh_degree,
+                                              opacity=config.init_opacity,
+                                              birth=views if config.anchor_windows else None)
         m = min(config.num_control_points, len(gaussians))
         control = ControlPoints.sample(gaussians.means.detach(), m, skin_k=config.skin_k,
                                        graph_k=config.graph_k, radius=config.radius_init * extent,
@@ -281,8 +305,16 @@ class EdMCGS(nn.Module):
         canon = [g.means, g.quats, g.scales(), g.opacities(), g.colors()]
         if motion_only:
             canon = [t.detach() for t in canon]
-        cp = self.control
-        means, quats = self.skinning(canon[0], canon[1], cp.positions, rot, trans, cp.bind, weights)
+        static = g.static()
+        if static is None:
+            means, quats = self.skinning(canon[0], canon[1], self.control.positions, rot, trans,
+                                         self.control.bind, weights)
+        else:  # the static set keeps its canonical pose: only the others are skinned
+            moving = torch.nonzero(~static)[:, 0]
+            moved, turned = self.skinning(canon[0][moving], canon[1][moving], self.control.positions, rot,
+                                          trans, self.control.bind[moving], weights[moving])
+            means = canon[0].index_copy(0, moving, moved)
+            quats = quat_normalize(canon[1]).index_copy(0, moving, turned)
         opacities = canon[3]
         visible = g.visible_in(window)
         if visible is not None:
@@ -378,7 +410,8 @@ class EdMCGS(nn.Module):
                                                 f"the model has {cp.num_points}")
                     mask = torch.as_tensor(self.meta.frozen, dtype=torch.bool, device=cp.positions.device)
                 canonical = GaussianState(g.means, g.quats, g.scales(), g.opacities(), g.colors())
-                plan = self._plans[frozen] = build_plan(canonical, cp.bind, cp.weights(g.means), mask, key)
+                plan = self._plans[frozen] = build_plan(canonical, cp.bind, cp.weights(g.means), mask, key,
+                                                        g.static())
                 if mask is not None:
                     plan.frozen, plan.reach = mask, control_reach(self)
         return plan

@@ -11,7 +11,16 @@ from edmcgs.errors import InvalidInputError, ReplayFormatError
 from edmcgs.model.eval.baselines import BASELINES, baseline_image, score_baselines
 from edmcgs.model.eval.compare import Comparison
 from edmcgs.model.eval.evaluation import FrameScore
-from edmcgs.pipeline import RecordingOptions, open_recording, read_tum, split_at, split_frames, training_data
+from edmcgs.pipeline import (
+    RecordingOptions,
+    estimated_poses,
+    open_recording,
+    read_tum,
+    split_at,
+    split_frames,
+    training_data,
+    with_trajectory,
+)
 from edmcgs.sensor.files.recording import Recording, write_recording
 from edmcgs.sensor.frames import Frames
 from edmcgs.synth.esim import simulate_frames
@@ -227,3 +236,42 @@ def test_record_with_a_split_honours_start_and_duration_and_refuses_what_it_cann
     rec = open_recording(events_only)
     assert len(rec.anchors) == 0 and rec.held_out is None and len(rec.events) == len(whole.events)
     assert rec.intrinsics.tolist() == [40, 40, 23.5, 15.5]
+
+
+def test_estimated_poses_bring_their_points_and_carry_the_novel_views_into_their_frame(monkeypatch):
+    from edmcgs import poses
+    from edmcgs.geometry import Similarity, pose_from_quat, project, world_to_camera
+
+    rec = _recording(6)
+    truth = np.stack([pose_from_quat([0.1 * i, 0.02 * i, 0.0], [1.0, 0.0, 0.01 * i, 0.0]) for i in range(6)])
+    rig = pose_from_quat([-0.3, 0.0, 0.0], [1.0, 0.0, 0.04, 0.0])
+    novel = Frames(rec.anchors.t_us[1:4] + 1, rec.anchors.images[1:4], truth[1:4] @ rig)
+    rec = Recording(**{**rec.__dict__, "anchors": Frames(rec.anchors.t_us, rec.anchors.images, truth),
+                       "novel_views": novel})
+    to_estimate = Similarity(0.4, truth[5, :3, :3], np.array([0.3, -1.0, 2.0]))
+    points = np.array([[0.0, 0.0, 3.0], [0.5, -0.2, 4.0], [-0.4, 0.3, 5.0], [0.2, 0.2, 2.0]])
+
+    def estimate(t_us, images, intrinsics, progress):
+        return poses.PoseEstimate(
+            frames=len(t_us), registered=len(t_us), t_us=t_us, c2w=to_estimate.poses(truth), intrinsics=None,
+            estimated_intrinsics=False, distortion=0.0, static=False, models=1, points=4, motion_px=5.0,
+            seconds=0.1, point_xyz=to_estimate.points(points),
+            point_colors=np.arange(4, dtype=np.uint8)[:, None])
+
+    monkeypatch.setattr(poses, "estimate_poses", estimate)
+    out = estimated_poses(rec)
+    np.testing.assert_allclose(out.points_xyz, to_estimate.points(points))
+    assert out.anchors.poses is None and len(out.trajectory_t_us) == 6
+    data = training_data(out)  # the points come with the poses into the training data
+    np.testing.assert_array_equal(data.points_xyz, out.points_xyz)
+    # a novel view sees a point where it saw it before: the view moved into the estimated frame
+    intr = tiny_scene.INTRINSICS
+    k = 1
+    uv_before, _ = project(points, world_to_camera(novel.poses[k]), intr)
+    uv_after, _ = project(out.points_xyz, world_to_camera(out.novel_views.poses[k]), intr)
+    np.testing.assert_allclose(uv_after, uv_before, atol=1e-6)
+    # another trajectory is another world frame: the points go
+    assert with_trajectory(out, out.trajectory_t_us, out.trajectory_c2w).points_xyz is None
+    # without former poses the novel views cannot be related to the estimated ones: left out
+    bare = Recording(**{**rec.__dict__, "anchors": Frames(rec.anchors.t_us, rec.anchors.images)})
+    assert estimated_poses(bare).novel_views is None

@@ -68,6 +68,16 @@ def test_a_synthetic_moving_camera_is_within_one_percent_of_its_path(sweep):
     rmse, length = trajectory_error(estimate.t_us, estimate.c2w, truth[np.searchsorted(t_us, estimate.t_us)])
     assert length > 1.0
     assert rmse <= 0.01 * length, f"ATE {rmse:.4f} of a {length:.3f} path"
+    # the points come in the poses' frame, in the colours the frames show where they project
+    xyz, colors = estimate.point_xyz, estimate.point_colors
+    assert xyz.shape == (estimate.points, 3) and estimate.points > 100 and colors.shape == (len(xyz), 3)
+    for pose, image in zip(estimate.c2w[::6], images[np.searchsorted(t_us, estimate.t_us)][::6], strict=True):
+        uv, z = project(xyz, world_to_camera(pose), intrinsics)
+        u, v = np.rint(uv).astype(int).T
+        seen = (z > 0) & (u >= 0) & (u < images.shape[2]) & (v >= 0) & (v < images.shape[1])
+        assert seen.mean() > 0.8
+        shown = image[v[seen], u[seen]].astype(int)
+        assert np.median(np.abs(shown - colors[seen]).max(1)) <= 12
 
 
 def test_the_scale_puts_the_scene_at_a_median_depth_of_one(sweep):

@@ -57,9 +57,14 @@ class ControlPoints(nn.Module):
     @torch.no_grad()
     def resample(self, means: Tensor, *, radius: float, birth: Tensor | None = None) -> None:
         """Re-sample the same number of points from ``means``, reset the radii, rebuild graph and binding
-        (``birth``: the Gaussians' anchor windows, needed when the points have windows)."""
-        lifted = _lift(means.detach(), birth)
-        idx = farthest_point_sampling(lifted, self.num_points)
+        (``birth``: the Gaussians' anchor windows, needed when the points have windows). The static set
+        (birth ``STATIC``: never moved) gets none while there are enough other Gaussians (it is then
+        only bound, which its skinning ignores)."""
+        pool = torch.arange(means.shape[0], device=means.device)
+        if birth is not None and int((birth >= 0).sum()) >= self.num_points:
+            pool = torch.nonzero(birth >= 0)[:, 0]
+        lifted = _lift(means.detach()[pool], None if birth is None else birth[pool])
+        idx = pool[farthest_point_sampling(lifted, self.num_points)]
         self.positions.copy_(means.detach()[idx])
         if self.birth is not None:
             self.birth.copy_(birth[idx])

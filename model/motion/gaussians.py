@@ -40,6 +40,8 @@ class GaussianState:
 
 PER_GAUSSIAN = ("means", "quats", "log_scales", "opacity_logits", "features")
 """Names of the per-Gaussian parameters (first dimension N), in optimizer-group order."""
+STATIC = -1
+"""The ``birth`` of a Gaussian of the static set (config.static_set): drawn in every window, never moved."""
 
 
 class Gaussians(nn.Module):
@@ -57,8 +59,9 @@ class Gaussians(nn.Module):
         self.log_scales = nn.Parameter(log_scales)
         self.opacity_logits = nn.Parameter(opacity_logits)
         self.features = nn.Parameter(features)
-        # [N] int64 anchor index whose gap this Gaussian lives in (config.anchor_windows), or None:
-        # every Gaussian at every time. A buffer: densification copies it, the optimizer never sees it.
+        # [N] int64 anchor index whose gap this Gaussian lives in (config.anchor_windows; STATIC: the
+        # static set, in every gap and never moved), or None: every Gaussian at every time. A buffer:
+        # densification copies it, the optimizer never sees it.
         self.register_buffer("birth", None if birth is None else birth.long())
 
     @classmethod
@@ -119,7 +122,15 @@ class Gaussians(nn.Module):
             self.birth = tensors["birth"].long()
 
     def visible_in(self, window: int | None) -> Tensor | None:
-        """[N] float 0/1: the Gaussians that live in anchor ``window``'s gap; None: all (no windows)."""
+        """[N] float 0/1: the Gaussians that live in anchor ``window``'s gap (and the static set's);
+        None: all (no windows)."""
         if self.birth is None or window is None:
             return None
-        return (self.birth == int(window)).to(self.means.dtype)
+        return ((self.birth == int(window)) | (self.birth == STATIC)).to(self.means.dtype)
+
+    def static(self) -> Tensor | None:
+        """[N] bool: the static set (never moved); None when there is none."""
+        if self.birth is None:
+            return None
+        mask = self.birth == STATIC
+        return mask if bool(mask.any()) else None

@@ -12,8 +12,8 @@ control point's rigid motion into one affine map first,
 work is one gather of K 3x4 maps instead of K rotations, anchors and translations.
 
 A Gaussian whose K control points are all *frozen* (their motion over the whole span stays below the
-checkpoint's threshold, see ``leanness.frozen_control_points``) keeps its canonical pose: the plan
-skins only the others (``moving``).
+checkpoint's threshold, see ``leanness.frozen_control_points``) keeps its canonical pose, and so does
+the static set (``gaussians.STATIC``): the plan skins only the others (``moving``).
 """
 
 from __future__ import annotations
@@ -62,17 +62,20 @@ def plan_key(*tensors: Tensor) -> tuple:
 
 @torch.no_grad()
 def build_plan(canonical: GaussianState, bind: Tensor, weights: Tensor, frozen: Tensor | None,
-               key: tuple) -> SkinPlan:
+               key: tuple, static: Tensor | None = None) -> SkinPlan:
     """A plan from the activated canonical Gaussians and their binding.
 
     bind, weights: Tensor  # [N, K] int64, [N, K] float32 (all Gaussians)
     frozen: Tensor | None  # [M] bool, control points that do not move; None: none frozen
+    static: Tensor | None  # [N] bool, Gaussians never moved (the static set); None: none
     """
     canonical = GaussianState(canonical.means, quat_normalize(canonical.quats), canonical.scales,
                               canonical.opacities, canonical.colors).detach()
     moving = None
+    still = static
     if frozen is not None and bool(frozen.any()):
-        still = frozen[bind].all(-1)
+        still = frozen[bind].all(-1) if still is None else still | frozen[bind].all(-1)
+    if still is not None:
         moving = torch.nonzero(~still)[:, 0]
         bind, weights = bind[moving], weights[moving]
     return SkinPlan(canonical, bind.contiguous(), weights.detach().contiguous(), moving, key)

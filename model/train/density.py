@@ -86,6 +86,14 @@ def _rebuild(optimizer: torch.optim.Optimizer, gaussians: Gaussians, keep: Tenso
 
 
 @torch.no_grad()
+def append(gaussians: Gaussians, optimizer: torch.optim.Optimizer, extra: dict[str, Tensor]) -> None:
+    """Add Gaussians ``extra`` (every per-Gaussian parameter, and ``birth`` when the set has it) with
+    fresh Adam moments."""
+    _rebuild(optimizer, gaussians, torch.ones(len(gaussians), dtype=torch.bool,
+                                              device=gaussians.means.device), extra)
+
+
+@torch.no_grad()
 def densify_and_prune(gaussians: Gaussians, optimizer: torch.optim.Optimizer, stats: GradientStats, *,
                       grad_threshold: float, extent: float, percent_dense: float, min_opacity: float,
                       max_size: float | None, max_count: int,

@@ -7,6 +7,9 @@ One iteration:
     log-luminance change (colours detached) with C * sum(p) over [t_a, t_b); TLI on the control
     points between t_a and t_b; Laplacian smoothness of g_phi's displacement;
   * without events: TLI between two nearby times.
+
+With a static set (config.static_set), at ``lift_at`` the anchor pixels its render does not explain
+are lifted into their anchors' windows (``lift_movers``): from then on the windows hold what moves.
 """
 
 from __future__ import annotations
@@ -31,10 +34,17 @@ from edmcgs.model.checkpoint import save_checkpoint
 from edmcgs.model.data import EventGrid, TrainingData
 from edmcgs.model.dynamic import EdMCGS, background_color, render_image
 from edmcgs.model.eval.evaluation import evaluate, summarize
-from edmcgs.model.motion.gaussians import GaussianState
+from edmcgs.model.motion.gaussians import PER_GAUSSIAN, Gaussians, GaussianState
+from edmcgs.model.motion.initialization import backproject_anchors
 from edmcgs.model.motion.skinning import lbs
 from edmcgs.model.train.curves import Curves
-from edmcgs.model.train.density import GradientStats, densify_and_prune, reset_opacity, screen_space_grad
+from edmcgs.model.train.density import (
+    GradientStats,
+    append,
+    densify_and_prune,
+    reset_opacity,
+    screen_space_grad,
+)
 from edmcgs.model.train.losses import event_loss, laplacian_smoothness, photometric_loss, pyramid_l1, tli_loss
 from edmcgs.model.train.resume import remove_sidecar, save_final
 from edmcgs.model.train.schedule import exp_decay, ramp
@@ -108,6 +118,10 @@ class Trainer:
         """Whether the last ``fit`` stopped early at its ``stop`` event."""
         self.saved_step: int | None = None
         """The step of the last checkpoint ``fit`` wrote (None: none yet)."""
+        self.lifted = not cfg.static_set
+        """Whether what moves has been lifted into the anchor windows (config.static_set: at lift_at)."""
+        self.lift_counts: list[int] = []
+        """Gaussians lifted into each anchor's window (config.static_set), once lifted."""
 
     # ------------------------------------------------------------------ setup
     def _w2c(self, c2w: np.ndarray) -> Tensor:
@@ -175,6 +189,9 @@ class Trainer:
         # Past ``iterations`` (``fit(until=...)`` beyond it) every schedule stays at its end.
         progress = min(self.step / cfg.iterations, 1.0)
         self._set_schedules(progress)
+        if not self.lifted and progress >= cfg.lift_at:
+            with stage("lift movers"):
+                self.lift_movers()
         static = progress < cfg.deform_from
         terms: dict[str, Tensor] = {}
 
@@ -219,7 +236,7 @@ class Trainer:
             if cfg.tli:
                 terms["tli"] = tli_loss(cp + trans_a, cp + trans_b, model.control.graph)
                 loss = loss + cfg.lambda_tli * terms["tli"]
-            if windows and cfg.lambda_next > 0 and self.grid.ends_at_anchor[gap]:
+            if windows and cfg.lambda_next > 0 and self.grid.ends_at_anchor[gap] and self.lifted:
                 # The gap's Gaussians carried by all its events to the next anchor frame.
                 with stage("next anchor"):
                     s_end = self.grid.substeps
@@ -272,6 +289,46 @@ class Trainer:
         out = dict(zip(terms, values[1:], strict=True))
         out["loss"] = values[0]
         return out
+
+    @torch.no_grad()
+    def lift_movers(self) -> None:
+        """Lift every anchor's pixels that the static set's render (with the background layer) misses by
+        more than ``dynamic_threshold`` into the anchor's window, at the render's depth where it has
+        one (``backproject_anchors``); then sample the control points from them."""
+        cfg, model, data = self.cfg, self.model, self.data
+        intr = model.meta.intrinsics
+        was_training = model.training
+        model.eval()
+        try:
+            misses, depths = [], []
+            for n, pose in enumerate(data.anchor_poses):
+                state = model.state_at(self.anchor_times[n], window=n)
+                image = model.render(state, pose, intr, fast=False)
+                depth, alpha = model.render_depth_alpha(state, pose, intr, fast=False)
+                target = data.anchor_images[n].astype(np.float32) / 255.0
+                misses.append(np.abs(image - target).max(-1) > cfg.dynamic_threshold)
+                depths.append(np.where(alpha > 0.5, depth, 0.0))
+        finally:
+            model.train(was_training)
+        misses = np.stack(misses)
+        self.lifted = True
+        self.lift_counts = [0] * len(misses)
+        if not misses.any():
+            return
+        rng = np.random.default_rng(cfg.seed + 1)
+        points, colors, scales, views = backproject_anchors(
+            data.anchor_images, data.anchor_poses, intr, model.center.cpu().numpy().astype(np.float64),
+            float(model.extent), cfg.init_points, rng, np.zeros(data.channels), candidates=misses,
+            depth=np.stack(depths), return_views=True)
+        self.lift_counts = np.bincount(views.numpy(), minlength=len(misses)).tolist()
+        g = model.gaussians
+        new = Gaussians.from_points(points, colors, scales, sh_degree=g.sh_degree, opacity=cfg.init_opacity,
+                                    birth=views)
+        append(g, self.optimizer, {name: getattr(new, name).detach().to(self.device)
+                                   for name in (*PER_GAUSSIAN, "birth")})
+        model.control.resample(g.means, radius=cfg.radius_init * float(model.extent), birth=g.birth)
+        self._forget("radius")
+        self.stats = GradientStats(len(g), self.device)
 
     def _sanitize_gradients(self) -> None:
         # A single degenerate splat can produce a NaN gradient entry; zeroing it keeps Adam's moments finite.
@@ -399,7 +456,8 @@ class Trainer:
         """Everything besides the model needed to continue this run (plain containers and tensors)."""
         return {"step": self.step, "optimizer": self.optimizer.state_dict(), "stats": self.stats.state_dict(),
                 "rng": self.rng.bit_generator.state, "generator": self.generator.get_state(),
-                "history": self.history, "train_seconds": self.train_seconds}
+                "history": self.history, "train_seconds": self.train_seconds, "lifted": self.lifted,
+                "lift_counts": self.lift_counts}
 
     def load_train_state(self, state: dict) -> None:
         """Continue from ``train_state()`` output (the model must come from the same checkpoint)."""
@@ -410,6 +468,8 @@ class Trainer:
         self.generator.set_state(state["generator"])
         self.history = list(state.get("history", []))
         self.train_seconds = float(state.get("train_seconds", 0.0))
+        self.lifted = bool(state.get("lifted", not self.cfg.static_set))
+        self.lift_counts = list(state.get("lift_counts", []))
 
 
 def model_has_windows(model: EdMCGS) -> bool:

@@ -19,9 +19,12 @@ Layout (format ``edmcgs.recording``, version 1)::
                        metadata's "imu" entry states
     /novel_views/...   same three as /anchors: frames of a second camera, its poses required (optional
                        group; e.g. held-out views from another viewpoint, scored like held-out frames)
+    /points/xyz        float64 [P, 3]  3D points of the static scene in the poses' world frame, e.g.
+                       structure from motion's (``--poses auto``)                  (optional group)
+    /points/colors     uint8  [P, C]  their colours, C the frames' channels
 
 The optional groups are additions within version 1: a reader that predates them ignores them, and a
-file without them reads as before (``imu`` and ``novel_views`` None).
+file without them reads as before (``imu``, ``novel_views`` and ``points_xyz`` None).
 
 Files are written atomically (temporary file, fsync, rename) and the ``format`` attribute is written
 last, so an interrupted write never leaves a file that reads as a complete recording.
@@ -123,6 +126,20 @@ def _check_novel_views(frames, width: int, height: int) -> Frames | None:
     return frames
 
 
+def _check_points(xyz, colors) -> tuple[np.ndarray | None, np.ndarray | None]:
+    if xyz is None and colors is None:
+        return None, None
+    if xyz is None or colors is None:
+        raise InvalidInputError("points_xyz and points_colors must be given together")
+    xyz, colors = np.asarray(xyz, dtype=np.float64), np.asarray(colors)
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or not np.isfinite(xyz).all():
+        raise InvalidInputError(f"points_xyz must be finite [P, 3], got {xyz.shape}")
+    if colors.dtype != np.uint8 or colors.shape not in ((len(xyz), 1), (len(xyz), 3)):
+        raise InvalidInputError(f"points_colors must be uint8 [{len(xyz)}, 1 | 3], got {colors.dtype} "
+                                f"{colors.shape}")
+    return xyz, colors
+
+
 def _check_threshold(c) -> float | None:
     if c is None:
         return None
@@ -170,6 +187,11 @@ class Recording:
     """IMU_DTYPE [K] samples (g, degrees/s), when the recording has them."""
     novel_views: Frames | None = None
     """Frames of a second camera, with their poses (same size and intrinsics), for evaluation only."""
+    points_xyz: np.ndarray | None = None
+    """float64 [P, 3]: 3D points of the static scene in the world frame of the poses (structure from
+    motion's, ``--poses auto``); None: none known."""
+    points_colors: np.ndarray | None = None
+    """uint8 [P, C]: their colours (C 1 or 3)."""
 
     def __post_init__(self) -> None:
         self.width, self.height = _check_resolution(self.width, self.height)
@@ -184,6 +206,7 @@ class Recording:
         self.contrast_threshold = _check_threshold(self.contrast_threshold)
         self.imu = _check_imu(self.imu)
         self.novel_views = _check_novel_views(self.novel_views, self.width, self.height)
+        self.points_xyz, self.points_colors = _check_points(self.points_xyz, self.points_colors)
         if not isinstance(self.sensor, str):
             raise InvalidInputError(f"sensor must be a string, got {type(self.sensor).__name__}")
         _metadata_json(self.metadata)
@@ -298,12 +321,13 @@ class RecordingWriter:
     def finish(self, *, held_out: Frames | None = None, intrinsics=None, trajectory_t_us=None,
                trajectory_c2w=None, contrast_threshold: float | None = None,
                metadata: dict | None = None, imu: np.ndarray | None = None,
-               novel_views: Frames | None = None) -> Path:
+               novel_views: Frames | None = None, points_xyz=None, points_colors=None) -> Path:
         """Write the remaining parts, then close, fsync and rename into place. Returns the path."""
         self._check_open()
         _check_frames_in(held_out, self.width, self.height, "held_out")
         imu = _check_imu(imu)
         novel_views = _check_novel_views(novel_views, self.width, self.height)
+        points_xyz, points_colors = _check_points(points_xyz, points_colors)
         intrinsics = _check_intrinsics(intrinsics)
         traj_t, traj_c2w = _check_trajectory(trajectory_t_us, trajectory_c2w)
         contrast_threshold = _check_threshold(contrast_threshold)
@@ -326,6 +350,10 @@ class RecordingWriter:
                 g = f.create_group("imu")
                 for name in IMU_DTYPE.names:
                     g.create_dataset(name, data=np.ascontiguousarray(imu[name]))
+            if points_xyz is not None:
+                g = f.create_group("points")
+                g.create_dataset("xyz", data=points_xyz)
+                g.create_dataset("colors", data=points_colors)
             if intrinsics is not None:
                 f.create_dataset("intrinsics", data=intrinsics)
             if traj_t is not None:
@@ -390,7 +418,8 @@ def write_recording(path: str | os.PathLike, rec: Recording, *, compression: str
         w.append_anchors(rec.anchors)
         return w.finish(held_out=rec.held_out, intrinsics=rec.intrinsics, trajectory_t_us=rec.trajectory_t_us,
                         trajectory_c2w=rec.trajectory_c2w, contrast_threshold=rec.contrast_threshold,
-                        metadata=rec.metadata, imu=rec.imu, novel_views=rec.novel_views)
+                        metadata=rec.metadata, imu=rec.imu, novel_views=rec.novel_views,
+                        points_xyz=rec.points_xyz, points_colors=rec.points_colors)
 
 
 # ---------------------------------------------------------------- reading
@@ -468,6 +497,8 @@ class RecordingFile:
                     self._validate_frames(group)
             if "imu" in f:
                 self._validate_imu()
+            if "points" in f:
+                self._validate_points()
             if "anchors" not in f:
                 raise self._fail("anchors group missing")
 
@@ -490,6 +521,23 @@ class RecordingFile:
         want = {"t": (k,), "accel": (k, 3), "gyro": (k, 3), "temperature": (k,)}
         if k < 0 or shapes != want:
             raise self._fail(f"imu group's datasets have shapes {shapes}, expected {want}")
+
+    def _validate_points(self) -> None:
+        g = self._f["points"]
+        xyz, colors = g.get("xyz"), g.get("colors")
+        if not isinstance(xyz, h5py.Dataset) or not isinstance(colors, h5py.Dataset) or xyz.ndim != 2 \
+                or xyz.shape[1:] != (3,) or colors.shape not in ((len(xyz), 1), (len(xyz), 3)):
+            raise self._fail(f"points group's xyz and colors have shapes "
+                             f"{getattr(xyz, 'shape', None)} and {getattr(colors, 'shape', None)}, expected "
+                             "[P, 3] and [P, 1 | 3]")
+
+    def points(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """(xyz float64 [P, 3], colors uint8 [P, C]) of the static scene's points; (None, None) when the
+        file has none."""
+        if "points" not in self._f:
+            return None, None
+        g = self._f["points"]
+        return self._read("points", lambda: _check_points(g["xyz"][:], g["colors"][:]))
 
     def imu(self) -> np.ndarray | None:
         """The IMU samples (IMU_DTYPE [K]; None when the file has none)."""
@@ -552,12 +600,13 @@ class RecordingFile:
 
     def read(self) -> Recording:
         """The whole recording in memory."""
-        intr, traj = self.intrinsics(), self.trajectory()
+        intr, traj, points = self.intrinsics(), self.trajectory(), self.points()
         return self._read("recording", lambda: Recording(
             width=self.width, height=self.height, events=self.read_events(), anchors=self.frames("anchors"),
             held_out=self.frames("held_out"), intrinsics=intr, trajectory_t_us=traj[0],
             trajectory_c2w=traj[1], contrast_threshold=self.contrast_threshold, sensor=self.sensor,
-            metadata=self.metadata, imu=self.imu(), novel_views=self.frames("novel_views")))
+            metadata=self.metadata, imu=self.imu(), novel_views=self.frames("novel_views"),
+            points_xyz=points[0], points_colors=points[1]))
 
     def close(self) -> None:
         self._f.close()

@@ -1,4 +1,5 @@
-"""Camera model: intrinsics, rotations, pose validation and wire parsing, projection, trajectories."""
+"""Camera model: intrinsics, rotations, pose validation and wire parsing, projection, trajectories,
+similarities between world frames."""
 
 import numpy as np
 import pytest
@@ -7,6 +8,7 @@ import torch
 from edmcgs.errors import InvalidInputError, PoseError
 from edmcgs.geometry import (
     Intrinsics,
+    Similarity,
     Trajectory,
     parse_pose,
     pose_from_quat,
@@ -271,3 +273,53 @@ def test_trajectory_names_the_bad_pose():
         Trajectory(np.array([0, 1]), np.stack([np.eye(4), bad]))
     with pytest.raises(InvalidInputError, match="integer"):
         Trajectory(np.array([0, 1]), np.stack([np.eye(4)] * 2)).at(0.5)
+
+
+def test_a_similarity_is_recovered_and_maps_cameras_with_what_they_see():
+    rot = quat_to_rotmat(random_quats(1))[0]
+    truth = Similarity(2.5, rot, np.array([1.0, -2.0, 0.5]))
+    path = np.cumsum(RNG.normal(size=(30, 3)) * 0.1, axis=0)
+    fit = Similarity.fit(path, truth.points(path))
+    assert fit.scale == pytest.approx(2.5, rel=1e-9)
+    np.testing.assert_allclose(fit.rotation, rot, atol=1e-9)
+    np.testing.assert_allclose(fit.inverse().points(truth.points(path)), path, atol=1e-9)
+    # a camera and a point it sees, both mapped: the point projects to the same pixel
+    intr = Intrinsics(100.0, 100.0, 50.0, 40.0, 101, 81)
+    c2w = pose_from_quat([0.2, 0.1, -0.3], random_quats(1)[0])
+    point = (c2w @ [0.3, -0.2, 4.0, 1.0])[:3]
+    uv, z = project(point[None], world_to_camera(c2w), intr)
+    uv2, z2 = project(fit.points(point[None]), world_to_camera(validate_pose(fit.poses(c2w)[0])), intr)
+    np.testing.assert_allclose(uv2, uv, atol=1e-7)
+    assert z2[0] == pytest.approx(2.5 * z[0])
+    with pytest.raises(InvalidInputError, match="one place"):
+        Similarity.fit(np.zeros((5, 3)), path[:5])
+    with pytest.raises(InvalidInputError, match="N >= 3"):
+        Similarity.fit(path[:2], path[:2])
+
+
+def test_a_similarity_fit_is_evo_s_alignment():
+    from tests.support.pose_scenes import trajectory_error
+
+    t_us = np.arange(20, dtype=np.int64) * 40_000
+    truth = np.tile(np.eye(4), (20, 1, 1))
+    truth[:, :3, 3] = np.cumsum(RNG.normal(size=(20, 3)), axis=0)
+    estimated = Similarity(0.3, quat_to_rotmat(random_quats(1))[0], np.array([0.5, 0.0, 2.0])).poses(truth)
+    estimated[:, :3, 3] += RNG.normal(size=(20, 3)) * 0.01  # noise: the fit is a compromise
+    fit = Similarity.fit(estimated[:, :3, 3], truth[:, :3, 3])
+    rmse = float(np.sqrt(np.mean(np.sum((fit.points(estimated[:, :3, 3]) - truth[:, :3, 3]) ** 2, 1))))
+    ate, _ = trajectory_error(t_us, estimated, truth)
+    assert rmse == pytest.approx(ate, rel=1e-6)
+
+
+def test_a_similarity_of_cameras_on_a_line_is_fixed_by_their_orientations():
+    n = 12
+    cams = np.tile(np.eye(4), (n, 1, 1))
+    cams[:, :3, 3] = np.linspace(0, 1, n)[:, None] * [1.0, 0.0, 0.0]  # a straight walk
+    cams[:, :3, :3] = quat_to_rotmat(np.c_[np.ones(n), np.zeros(n), 0.05 * np.sin(np.arange(n)), np.zeros(n)])
+    truth = Similarity(0.7, quat_to_rotmat(random_quats(1))[0], np.array([2.0, 1.0, -1.0]))
+    fit = Similarity.fit_poses(cams, truth.poses(cams))
+    assert fit.scale == pytest.approx(0.7, rel=1e-9)
+    np.testing.assert_allclose(fit.rotation, truth.rotation, atol=1e-9)
+    np.testing.assert_allclose(fit.translation, truth.translation, atol=1e-9)
+    with pytest.raises(InvalidInputError, match="do not move"):
+        Similarity.fit_poses(np.tile(np.eye(4), (3, 1, 1)), np.tile(np.eye(4), (3, 1, 1)))

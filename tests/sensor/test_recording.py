@@ -234,3 +234,31 @@ def test_imu_and_novel_views_are_checked(tmp_path):
         f["imu"].create_dataset("gyro", data=np.zeros((7, 3), np.float32))
     with pytest.raises(ReplayFormatError, match="imu"):
         read_recording(path)
+
+
+def test_points_round_trip_and_are_checked(tmp_path):
+    rec = make_recording()
+    rng = np.random.default_rng(3)
+    xyz = rng.normal(size=(40, 3))
+    colors = rng.integers(0, 256, (40, 3), dtype=np.uint8)
+    rec = Recording(**{**rec.__dict__, "points_xyz": xyz, "points_colors": colors})
+    path = write_recording(tmp_path / "r.h5", rec)
+    back = read_recording(path)
+    _assert_same(rec, back)
+    assert np.array_equal(back.points_xyz, xyz) and back.points_xyz.dtype == np.float64
+    assert np.array_equal(back.points_colors, colors) and back.points_colors.dtype == np.uint8
+    with h5py.File(path, "r") as f:
+        assert f["points/xyz"].shape == (40, 3) and f.attrs["format_version"] == FORMAT_VERSION
+    plain = read_recording(write_recording(tmp_path / "plain.h5", make_recording()))
+    assert plain.points_xyz is None and plain.points_colors is None  # optional, as before
+    with pytest.raises(InvalidInputError, match="together"):
+        Recording(**{**rec.__dict__, "points_colors": None})
+    with pytest.raises(InvalidInputError, match="finite"):
+        Recording(**{**rec.__dict__, "points_xyz": np.full((40, 3), np.nan)})
+    with pytest.raises(InvalidInputError, match="uint8"):
+        Recording(**{**rec.__dict__, "points_colors": colors[:39]})
+    with h5py.File(path, "r+") as f:  # a damaged group is a format error naming it
+        del f["points/colors"]
+        f["points"].create_dataset("colors", data=np.zeros((3, 3), np.uint8))
+    with pytest.raises(ReplayFormatError, match="points"):
+        read_recording(path)

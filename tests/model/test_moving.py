@@ -1,0 +1,155 @@
+"""The ``moving`` preset: a static set of Gaussians on 3D points, drawn at every time and never moved, and
+what moves lifted from the anchor pixels the static set does not explain into their anchor windows."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from edmcgs.errors import InvalidInputError
+from edmcgs.geometry import project, world_to_camera
+from edmcgs.model.checkpoint import load_checkpoint, save_checkpoint
+from edmcgs.model.config import preset
+from edmcgs.model.motion.gaussians import STATIC
+from edmcgs.model.train.trainer import Trainer
+from edmcgs.pipeline import new_model, training_data
+from edmcgs.synth.esim import AdaptiveSampling
+from edmcgs.synth.street3d import StreetScene
+from edmcgs.synth.street3d_build import Street3dConfig, build_street3d
+from tests.support import tiny_scene
+from tests.support.models import TINY, one_torch_thread, randomize_event_branch  # noqa: F401
+
+SMALL = preset("moving").replace(
+    num_control_points=32, deform_width=32, deform_depth=2, substeps=4, max_pair_steps=4, eval_every=0,
+    checkpoint_every=0, densify_every=3, event_warmup=(0.0, 0.2), init_points=2000)
+
+
+def _true_points(rec, every: int = 7) -> tuple[np.ndarray, np.ndarray]:
+    """3D points of the street without its cars, from the ray caster's depth at the anchors (every
+    ``every``-th pixel), in their colours: what structure from motion would give, exactly."""
+    scene = StreetScene(rec.width, rec.height, seed=int(rec.metadata["seed"]))
+    k = rec.intrinsics
+    xyz, grey = [], []
+    for pose, image in zip(rec.anchors.poses, rec.anchors.images, strict=True):
+        frame = scene.static_frame(pose)
+        v, u = np.mgrid[0:rec.height:every, 0:rec.width:every]
+        z = frame.depth[v, u]
+        ok = np.isfinite(z)
+        cam = np.stack([(u[ok] - k[2]) / k[0] * z[ok], (v[ok] - k[3]) / k[1] * z[ok], z[ok]], 1)
+        xyz.append(cam @ pose[:3, :3].T + pose[:3, 3])
+        grey.append(image[v[ok], u[ok]])
+    return np.concatenate(xyz), np.concatenate(grey)
+
+
+@pytest.fixture(scope="module")
+def street():
+    """A tiny street3d (173x130, 0.4 s: 3 anchors) with the true points of its still street."""
+    rec = build_street3d(Street3dConfig(width=173, height=130, duration_s=0.4, sampling=AdaptiveSampling(
+        dt_max_us=4000, dt_min_us=2000, max_delta=2.0)), progress=False)
+    xyz, colors = _true_points(rec)
+    from dataclasses import replace
+
+    return replace(rec, points_xyz=xyz, points_colors=colors)
+
+
+def test_the_static_set_starts_on_the_points_at_their_depths_and_never_moves(street):
+    data = training_data(street)
+    assert data.points_xyz.shape == street.points_xyz.shape  # carried into the training data
+    model = new_model(data, SMALL)
+    g = model.gaussians
+    assert bool((g.birth == STATIC).all()) and len(g) == len(street.points_xyz)
+    np.testing.assert_allclose(g.means.detach().numpy(), street.points_xyz, rtol=0, atol=1e-4)
+    torch.testing.assert_close(g.colors().detach()[:, 0], torch.from_numpy(
+        street.points_colors[:, 0] / 255.0).float().clamp(0.02, 0.98), atol=1e-4, rtol=0)
+    # the render's depth where a point projects is the point's depth: the Gaussians sit where the points are
+    pose, intr = data.anchor_poses[1], data.intrinsics
+    state = model.deform(int(data.anchors_t_us[1]))
+    depth, alpha = model.render_depth_alpha(state, pose, intr)
+    uv, z = project(street.points_xyz, world_to_camera(pose), intr)
+    inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < intr.width - 1) & (uv[:, 1] >= 0) \
+        & (uv[:, 1] < intr.height - 1)
+    u, v = np.rint(uv[inside]).astype(int).T
+    seen = alpha[v, u] > 0.05  # (each starts at 3DGS's opacity 0.1: a point alone is faint)
+    assert seen.mean() > 0.8
+    assert np.median(np.abs(depth[v, u][seen] / z[inside][seen] - 1)) < 0.05
+    # never moved, whatever the prior and the events do: at any time, and through the training path
+    randomize_event_branch(model)
+    with torch.no_grad():
+        for p in model.prior.parameters():
+            p.add_(torch.randn_like(p) * 0.3)
+    t = int(data.held_out_t_us[2])
+    moved = model.deform(t, data.event_map(model.tau(t), t))
+    torch.testing.assert_close(moved.means, g.means.detach(), rtol=0, atol=0)
+    trained = model.state_at(0.7, window=1)
+    torch.testing.assert_close(trained.means, g.means, rtol=0, atol=0)
+
+
+def test_the_static_set_needs_points():
+    with pytest.raises(InvalidInputError, match="--poses auto"):
+        new_model(tiny_scene.data(), SMALL)
+    with pytest.raises(InvalidInputError, match="anchor_windows"):
+        SMALL.replace(anchor_windows=False)
+
+
+def test_the_lift_puts_what_the_static_set_misses_into_its_window():
+    # A grey wall (the background colour) that the static set and the layer explain, and a bright
+    # square that only anchor 1 sees: the square's pixels, and only they, are lifted into window 1.
+    data = tiny_scene.data()
+    data.anchor_images[:] = 128
+    data.anchor_images[1, 10:18, 20:30] = 250
+    rng = np.random.default_rng(0)
+    points = rng.uniform([-0.5, -0.3, 1.8], [0.5, 0.3, 2.2], (64, 3))
+    data.points_xyz, data.points_colors = points, np.full((64, 3), 128, np.uint8)
+    cfg = SMALL.replace(bg_layer=False, background=(128 / 255,) * 3, dynamic_threshold=0.1, lift_at=0.5,
+                        iterations=4, init_points=10_000, densify_every=100)
+    model = new_model(data, cfg)
+    trainer = Trainer(model, data, progress=False)
+    trainer.train_step()
+    assert not trainer.lifted and bool((model.gaussians.birth == STATIC).all())
+    trainer.train_step()
+    trainer.train_step()  # progress 0.5: lifted before this step
+    assert trainer.lifted and trainer.lift_counts == [0, 80, 0]
+    g = model.gaussians
+    born = g.birth == 1
+    assert int(born.sum()) == 80 and int((g.birth >= 0).sum()) == 80
+    uv, _ = project(g.means.detach()[born].numpy(), world_to_camera(data.anchor_poses[1]), data.intrinsics)
+    assert np.all((uv[:, 0] > 19.5) & (uv[:, 0] < 29.5) & (uv[:, 1] > 9.5) & (uv[:, 1] < 17.5))
+    assert bool((model.control.birth == 1).all())  # the control points carry what moves
+    # the static set is drawn in every window, the lifted square only in its own
+    assert model.deform(int(data.anchors_t_us[0])).opacities[born].max() == 0
+    assert model.deform(int(data.anchors_t_us[1])).opacities[born].min() > 0
+    assert model.deform(int(data.anchors_t_us[2])).opacities[g.birth == STATIC].min() > 0
+
+
+def test_the_moving_preset_trains_on_a_street_and_round_trips(street, tmp_path):
+    data = training_data(street)
+    cfg = SMALL.replace(iterations=6, lift_at=0.5, dynamic_threshold=0.08)
+    model = new_model(data, cfg)
+    trainer = Trainer(model, data, progress=False)
+    terms = {}
+    for _ in range(cfg.iterations):
+        terms.update(trainer.train_step())
+    assert trainer.lifted and sum(trainer.lift_counts) > 0
+    assert {"photo", "event", "next"} <= set(terms) and all(math.isfinite(v) for v in terms.values())
+    birth = model.gaussians.birth
+    assert bool((birth == STATIC).any()) and bool((birth >= 0).any())
+    path = tmp_path / "m.ckpt"
+    model.eval()
+    save_checkpoint(model, path)
+    loaded = load_checkpoint(path)
+    assert torch.equal(loaded.gaussians.birth, birth)
+    t = int(data.held_out_t_us[1])
+    emap = data.event_map(model.tau(t), t)
+    pose = data.held_out_pose(1)
+    np.testing.assert_array_equal(model.render(model.deform(t, emap), pose, data.intrinsics),
+                                  loaded.render(loaded.deform(t, emap), pose, data.intrinsics))
+
+
+def test_moving_preset_switches():
+    cfg = preset("moving")
+    assert cfg.static_set and cfg.anchor_windows and cfg.bg_layer and cfg.lambda_next > 0
+    assert cfg.densify_until > cfg.densify_from  # the static set is densified, as in 3DGS
+    for name in ("demo", "real", "paper"):
+        assert not preset(name).static_set
+    assert not TINY.static_set
