@@ -17,8 +17,9 @@ from edmcgs.pipeline import new_model, training_data
 from edmcgs.synth.esim import AdaptiveSampling
 from edmcgs.synth.street3d import StreetScene
 from edmcgs.synth.street3d_build import Street3dConfig, build_street3d
+from harness.server import randomize_event_branch
 from tests.support import tiny_scene
-from tests.support.models import TINY, one_torch_thread, randomize_event_branch  # noqa: F401
+from tests.support.models import TINY, one_torch_thread  # noqa: F401
 
 SMALL = preset("moving").replace(
     num_control_points=32, deform_width=32, deform_depth=2, substeps=4, max_pair_steps=4, eval_every=0,
