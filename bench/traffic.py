@@ -83,25 +83,26 @@ def build_scene(cache: Path) -> Path:
     return path
 
 
-def run_key(rec: Path, overrides: list[str]) -> str:
+def run_key(rec: Path, overrides: list[str], preset: str = "real") -> str:
     """Everything that determines a run (``bench.report``'s key): the recording and the resolved config."""
     from bench.report.training import run_key as report_key
     from edmcgs.pipeline import build_config, open_recording
 
-    cfg = build_config("real", overrides, open_recording(rec)).to_dict()
+    cfg = build_config(preset, overrides, open_recording(rec)).to_dict()
     return report_key(f"{rec.name}:{rec.stat().st_size}", cfg, "cpu", False)
 
 
-def train(rec: Path, name: str, overrides: list[str], cache: Path) -> dict:
-    """Train one variant in its own process (cached): {name, checkpoint, wall_s, cpu_s, peak_gb, ...}."""
-    key = run_key(rec, overrides)
+def train(rec: Path, name: str, overrides: list[str], cache: Path, preset: str = "real") -> dict:
+    """Train one variant with ``preset`` in its own process (cached): {name, checkpoint, wall_s, cpu_s,
+    peak_gb, ...}."""
+    key = run_key(rec, overrides, preset)
     ckpt, result = cache / f"{key}.ckpt", cache / f"{key}.json"
     if ckpt.exists() and result.exists():
         return json.loads(result.read_text()) | {"cached": True}
     sets = [a for o in overrides for a in ("--set", o)]
     cache.mkdir(parents=True, exist_ok=True)
-    print(f"training {name} ({' '.join(overrides) or 'the real preset as it is'}) ...", file=sys.stderr)
-    usage = measured_run([*_edmcgs(), "train", str(rec), "--config", "real", *sets, "--threads", "1", "-q",
+    print(f"training {name} ({' '.join(overrides) or f'the {preset} preset as it is'}) ...", file=sys.stderr)
+    usage = measured_run([*_edmcgs(), "train", str(rec), "--config", preset, *sets, "--threads", "1", "-q",
                           "--history", str(cache / f"{key}.csv"), "-o", str(ckpt)], cache / f"{key}.log")
     out = {"name": name, "overrides": overrides, "checkpoint": ckpt.name, "trained_on": platform.node(),
            "trained_at": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())} | usage

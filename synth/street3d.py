@@ -353,6 +353,10 @@ class StreetScene:
         """The street without its moving cars, from ``c2w``."""
         return render(self._street.quads, self._street.textures, c2w, self.intrinsics, SKY)
 
+    def car_pixels(self, t_s: float, c2w: np.ndarray) -> np.ndarray:
+        """[H, W] bool: the pixels whose centre sample shows a moving car at t_s from ``c2w``."""
+        return self.frame(t_s, c2w).quad >= len(self._street.quads)  # the cars' quads follow the street's
+
     def car_windows(self, t_s: float, c2w: np.ndarray, margin: int = 3) -> list[tuple[int, int, int, int]]:
         """Pixel windows (x0, y0, x1, y1), ends excluded, that hold the moving cars seen from ``c2w`` at
         t_s, each widened by ``margin`` pixels (their edges' anti-aliasing reaches under a pixel)."""

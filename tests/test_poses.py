@@ -184,6 +184,7 @@ def test_the_commands_end_to_end(sweep, tmp_path, capsys):
     assert rec.metadata["poses"]["registered"] == 14 and not rec.metadata["poses"]["estimated_intrinsics"]
     rmse, length = trajectory_error(rec.trajectory_t_us, rec.trajectory_c2w, truth[:14])
     assert rmse <= 0.02 * length
+    assert len(rec.points_xyz) > 100 and rec.points_colors.shape == (len(rec.points_xyz), 3)  # and its points
 
     noise = tmp_path / "noise.h5"
     rng = np.random.default_rng(2)

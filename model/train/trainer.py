@@ -398,8 +398,14 @@ class Trainer:
         ema: dict[str, float] = {}
         while self.step < until:
             started = self.clock()
+            lifted = self.lifted
             last = self.train_step()
             took = self.clock() - started
+            if self.lifted and not lifted:
+                bar.write(f"step {self.step}: {sum(self.lift_counts)} Gaussians lifted into the anchor "
+                          "windows from the pixels the static set misses by more than "
+                          f"{cfg.dynamic_threshold:g} (per anchor {min(self.lift_counts)} to "
+                          f"{max(self.lift_counts)})")
             self.train_seconds += took
             for key, value in last.items():
                 if math.isfinite(value):

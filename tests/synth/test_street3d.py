@@ -117,6 +117,19 @@ def test_cars_drive_through_the_view(scene):
     assert scene.cars_at(1.0) == scene.cars_at(1.0)  # a function of time: traffic is deterministic
 
 
+def test_the_car_pixels_are_where_the_frame_differs_from_the_street_without_cars(scene):
+    t = 1.0
+    c2w = scene.camera_at(t)
+    cars = scene.car_pixels(t, c2w)
+    differs = scene.frame(t, c2w).quad != scene.static_frame(c2w).quad
+    assert cars.shape == (scene.height, scene.width) and cars.any()
+    assert np.array_equal(cars, differs)  # a car's quad covers the street behind it, nothing else does
+    inside = np.zeros_like(cars)
+    for x0, y0, x1, y1 in scene.car_windows(t, c2w):
+        inside[y0:y1, x0:x1] = True
+    assert not (cars & ~inside).any()
+
+
 def _events(scene, t0_us, t1_us):
     sampling = AdaptiveSampling(dt_max_us=4000, dt_min_us=1000, max_delta=2.0)
     return simulate_render(EventRender(scene), t0_us, t1_us, SimulatorConfig(), sampling)[0]
