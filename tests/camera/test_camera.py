@@ -298,7 +298,7 @@ def test_a_similarity_is_recovered_and_maps_cameras_with_what_they_see():
 
 
 def test_a_similarity_fit_is_evo_s_alignment():
-    from tests.support.pose_scenes import trajectory_error
+    from harness.pose_scenes import trajectory_error
 
     t_us = np.arange(20, dtype=np.int64) * 40_000
     truth = np.tile(np.eye(4), (20, 1, 1))
