@@ -374,10 +374,12 @@ def _moving() -> EdmcgsConfig:
     # on structure from motion's points (--poses auto) and is densified as in 3DGS; the background layer
     # stays for what is at infinity (the sky). After a static warm-up (lift_at), the anchor pixels the
     # static set does not explain are lifted into their anchor's window and carried through the gap by
-    # the events, trained by the real preset's anchored event pairs and next-anchor loss. Figures:
-    # README ("A moving camera"), reports/street3d.md.
+    # the events, trained by the real preset's anchored event pairs and next-anchor loss. init_points
+    # bounds the lifted Gaussians over all anchors: sized for 346x260 (street3d's 21 anchors get 2.3k to
+    # 3.4k each, the order of the cars' pixels in a frame). Figures: docs/benchmarks/moving.md
+    # (bench.street3d).
     return _real().replace(
-        static_set=True, init_points=30000, max_gaussians=120000, densify_from=0.02, densify_until=0.6,
+        static_set=True, init_points=60000, max_gaussians=150000, densify_from=0.02, densify_until=0.6,
         densify_every=100, lift_at=0.3, init_opacity=0.8, lr_means=1.6e-4, percent_dense=0.01,
     )
 

@@ -152,8 +152,10 @@ def test_repository_links_become_the_sites(text, origin, page, want):
 
 def test_presets_table_lists_what_the_presets_set():
     table = _hooks().presets_table()
-    assert re.search(r"^\| `bg_layer` \| `False` \| `False` \| `True` \| A distant background", table, re.M)
-    assert "| `iterations` | `30000` | `1500` | `1500` |" in table
+    row = r"^\| `{}` \| `{}` \| `{}` \| `{}` \| `{}` \| {}"  # paper, demo, real, moving, meaning
+    assert re.search(row.format("bg_layer", False, False, True, True, "A distant background"), table, re.M)
+    assert re.search(row.format("static_set", False, False, False, True, "A static set"), table, re.M)
+    assert "| `iterations` | `30000` | `1500` | `1500` | `1500` |" in table
     assert "`sh_degree`" not in table  # the same in every preset
 
 
