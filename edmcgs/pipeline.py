@@ -93,6 +93,18 @@ def new_model(data: TrainingData, cfg: EdmcgsConfig) -> EdMCGS:
                               config=cfg, points_xyz=data.points_xyz, points_colors=data.points_colors)
 
 
+def default_preset(rec: Recording) -> tuple[str, str]:
+    """(preset, why) for a recording trained with no ``--config``: ``moving`` for a camera that
+    translates, with the 3D points structure from motion gave with its poses (``--poses auto``: the
+    static set starts on them); else ``demo``."""
+    poses = rec.metadata.get("poses", {})
+    if rec.points_xyz is not None and len(rec.points_xyz) and not poses.get("static") \
+            and not poses.get("rotation_only"):
+        return "moving", (f"a moving camera, with its poses and {len(rec.points_xyz)} points from structure "
+                          "from motion")
+    return "demo", "the CPU-sized preset"
+
+
 def build_config(name: str, overrides: list[str], rec: Recording) -> EdmcgsConfig:
     """Preset, then what the recording states (contrast threshold, a synthetic scene's constant
     background colour), then ``--set`` overrides, then what the data leaves out (no events: no event

@@ -33,7 +33,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--list-config", action="store_true",
                         help="print every config key of the preset, by part, with its value and description, "
                              "then exit")
-    parser.add_argument("--config", default="demo", choices=sorted(PRESETS), help="preset (default: demo)")
+    parser.add_argument("--config", choices=sorted(PRESETS),
+                        help="preset (default: moving for a camera that translates, with its poses and "
+                             "points from --poses auto; else demo)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config field, e.g. --set events=false --set iterations=500")
     parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
@@ -59,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     add_recording_arguments(parser)
     args = parser.parse_args(argv)
     if args.list_config:
-        return _list_config(args.config)
+        return _list_config(args.config or "demo")
     if not args.recording or args.output is None:
         parser.error("give RECORDING and -o CHECKPOINT (or --list-config)")
     many = len(args.recording) > 1 or args.ray  # -o is a folder: each checkpoint is checked in _run_many
@@ -274,7 +276,7 @@ def _run(args) -> int:
     from edmcgs.model.train.curves import TensorBoardCurves
     from edmcgs.model.train.resume import resume_state
     from edmcgs.model.train.trainer import Trainer, write_history_csv
-    from edmcgs.pipeline import build_config, new_model, open_recording, training_data
+    from edmcgs.pipeline import build_config, default_preset, new_model, open_recording, training_data
 
     if args.threads < 1:
         raise InvalidInputError(f"--threads must be >= 1, got {args.threads}")
@@ -308,7 +310,11 @@ def _run(args) -> int:
     else:
         if source is not None:
             print(f"--resume: no checkpoint at {out} yet: training from the start")
-        cfg = build_config(args.config, args.overrides, rec)
+        preset = args.config
+        if preset is None:
+            preset, why = default_preset(rec)
+            print(f"--config {preset}: {why} (--config NAME chooses another)")
+        cfg = build_config(preset, args.overrides, rec)
         model = new_model(data, cfg)
     if args.device == "cpu":
         _announce_compile()

@@ -2,6 +2,7 @@
 what moves lifted from the anchor pixels the static set does not explain into their anchor windows."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from edmcgs.model.checkpoint import load_checkpoint, save_checkpoint
 from edmcgs.model.config import preset
 from edmcgs.model.motion.gaussians import STATIC
 from edmcgs.model.train.trainer import Trainer
-from edmcgs.pipeline import new_model, training_data
+from edmcgs.pipeline import default_preset, new_model, training_data
 from edmcgs.synth.esim import AdaptiveSampling
 from edmcgs.synth.street3d import StreetScene
 from edmcgs.synth.street3d_build import Street3dConfig, build_street3d
@@ -49,8 +50,6 @@ def street():
     rec = build_street3d(Street3dConfig(width=173, height=130, duration_s=0.4, sampling=AdaptiveSampling(
         dt_max_us=4000, dt_min_us=2000, max_delta=2.0)), progress=False)
     xyz, colors = _true_points(rec)
-    from dataclasses import replace
-
     return replace(rec, points_xyz=xyz, points_colors=colors)
 
 
@@ -154,3 +153,10 @@ def test_moving_preset_switches():
     for name in ("demo", "real", "paper"):
         assert not preset(name).static_set
     assert not TINY.static_set
+
+
+def test_train_picks_the_moving_preset_for_a_translating_camera_with_points(street):
+    assert default_preset(street)[0] == "moving" and "points" in default_preset(street)[1]
+    assert default_preset(replace(street, points_xyz=None, points_colors=None))[0] == "demo"
+    for said in ({"static": True}, {"rotation_only": True}):  # --poses auto found no translation
+        assert default_preset(replace(street, metadata={**street.metadata, "poses": said}))[0] == "demo"
