@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import base64
 import io
-import re
 
 import numpy as np
 import pytest
@@ -59,10 +58,11 @@ def test_viewer_streams_orbits_and_shows_the_scene(page, served, tmp_path):
     frames, shown_t = page.evaluate(f"[{FRAMES}, document.getElementById('time').textContent]")
     page.wait_for_function(f"{FRAMES} >= {frames + 5} && document.getElementById('time').textContent "
                            f"!== {shown_t!r}", timeout=20_000)
-    first_fps = page.locator("#fps").inner_text()
-    page.wait_for_timeout(600)  # refreshed every 250 ms
-    assert re.fullmatch(r"\d+\.\d", page.locator("#fps").inner_text())
-    assert float(page.locator("#fps").inner_text()) > 0, first_fps
+    # refreshed every 250 ms: still a rate, above 0 once frames flow (a starved machine can stall the stream
+    # for a second, which the readout rightly shows as 0.0)
+    page.wait_for_timeout(600)
+    page.wait_for_function("/^\\d+\\.\\d$/.test(document.getElementById('fps').textContent) && "
+                           "parseFloat(document.getElementById('fps').textContent) > 0", timeout=10_000)
 
     # pause: a still at the slider's time from the event camera's pose, exactly what the server renders
     page.click("#play")
