@@ -159,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
         model = new_model(data, cfg)
         source = f"{path}, a new model ({args.config} preset)"
     trainer = Trainer(model, data, device=args.device, progress=False, compile=args.compile)
-    trainer.step = round(args.at * cfg.iterations)
+    trainer.step = round(args.at * trainer.total_steps)
     for _ in range(WARMUP):
         trainer.train_step()
     ranges, gpu, top, step_ms = profile_steps(trainer, args.steps)
@@ -169,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     rasterizer = backend_of(None, trainer.model.gaussians.means)
     where = torch.cuda.get_device_name(trainer.device) if cuda else f"{args.threads} CPU thread(s)"
     print(f"train_step on {source} ({rec.width}x{rec.height}, "
-          f"{len(trainer.model.gaussians)} Gaussians), at {args.at:.0%} of {cfg.iterations} steps, "
+          f"{len(trainer.model.gaussians)} Gaussians), at {args.at:.0%} of {trainer.total_steps} steps, "
           f"{args.steps} steps, {where}, rasterizer {rasterizer}"
           + (", compiled skinning" if args.compile else ""))
     print(f"{'stage':<30}{'ms/step':>10}{'share':>8}" + (f"{'GPU ms':>10}" if cuda else ""))

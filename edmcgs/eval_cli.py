@@ -74,11 +74,11 @@ def _run(args) -> int:
         trajectory = model.meta.trajectory
         if trajectory is None:
             raise InvalidInputError(f"--poses auto: {args.checkpoint} stores no trajectory to score with")
-        rec = with_trajectory(open_recording(args.recording, replace(options, poses=None)),
+        rec = with_trajectory(open_recording(args.recording, replace(options, poses=None), lazy_events=True),
                               trajectory.t_us, trajectory.c2w)
         print(f"--poses auto: the {len(trajectory)} poses {args.checkpoint} was trained with")
     else:
-        rec = open_recording(args.recording, options)
+        rec = open_recording(args.recording, options, lazy_events=True)
     if not np.array_equal(rec.anchors.t_us, model.meta.anchors_us):
         rec = split_at(rec, model.meta.anchors_us)  # the split the checkpoint was trained with
     data = training_data(rec)

@@ -30,6 +30,7 @@ from edmcgs.model.dynamic import EdMCGS
 from edmcgs.model.motion.leanness import events_decision
 from edmcgs.options import AUTO_POSES, RecordingOptions
 from edmcgs.sensor.event_map import accumulate
+from edmcgs.sensor.files.event_file import FileEvents
 from edmcgs.sensor.files.recording import FORMAT_NAME, Recording, read_recording
 from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.record import read_source
@@ -73,6 +74,8 @@ def training_data(rec: Recording) -> TrainingData:
     width, height, events = rec.width, rec.height, rec.events
 
     def event_map(t0_us: int, t1_us: int) -> np.ndarray:
+        if isinstance(events, FileEvents):  # left in the file: read a block at a time
+            return accumulate(events.read(t0_us, t1_us), width, height)
         return accumulate(events.time_slice(t0_us, t1_us), width, height)
 
     return TrainingData(
@@ -127,14 +130,17 @@ def build_config(name: str, overrides: list[str], rec: Recording) -> EdmcgsConfi
 
 
 def open_recording(path: str | Path, options: RecordingOptions | None = None, *, progress: bool = False,
-                   start_s: float = 0.0, duration_s: float | None = None, frames: bool = True) -> Recording:
+                   start_s: float = 0.0, duration_s: float | None = None, frames: bool = True,
+                   lazy_events: bool = False) -> Recording:
     """The recording at ``path`` in any format the sensor layer reads, with ``options`` applied; cut to
     ``start_s`` .. ``duration_s`` as ``edmcgs record`` cuts a copy (``cut``), and without its frames when
-    ``frames`` is False."""
+    ``frames`` is False. lazy_events: our HDF5's events stay in the file, read a window at a time
+    (``FileEvents``: training a recording of any length); every other format is replayed into memory
+    (``edmcgs record`` it to HDF5 first)."""
     path = Path(path)
     options = RecordingOptions() if options is None else options
     if detect_format(path) == "hdf5" and _is_ours(path):
-        rec = read_recording(path)
+        rec = read_recording(path, lazy_events=lazy_events)
     else:
         resolution = parse_resolution(options.resolution)
         with open_source(path, pacing=Pacing(factor=0), resolution=resolution) as src:

@@ -282,7 +282,8 @@ def _run(args) -> int:
         raise InvalidInputError(f"--threads must be >= 1, got {args.threads}")
     torch.set_num_threads(args.threads)
     check_device(args.device)
-    rec = open_recording(args.recording, RecordingOptions.from_args(args), progress=not args.quiet)
+    rec = open_recording(args.recording, RecordingOptions.from_args(args), progress=not args.quiet,
+                         lazy_events=True)
     if rec.trajectory_t_us is None and rec.anchors.poses is None:
         print("no camera poses in the recording: a static camera (give --poses TRAJ.txt for a moving one)")
     if rec.held_out is None or not len(rec.held_out):
@@ -321,9 +322,9 @@ def _run(args) -> int:
     trainer = Trainer(model, data, device=args.device, progress=not args.quiet, compile=args.compile)
     if train_state:
         trainer.load_train_state(train_state)
-    until = cfg.iterations if args.steps is None else trainer.step + args.steps
+    until = trainer.total_steps if args.steps is None else trainer.step + args.steps
     if trainer.step >= until:
-        raise InvalidInputError(f"{source} is already at step {trainer.step} of {cfg.iterations}: give "
+        raise InvalidInputError(f"{source} is already at step {trainer.step} of {trainer.total_steps}: give "
                                 "--steps N to train N more (or --set iterations=M for a longer schedule)")
     curves = None
     if args.tensorboard:
@@ -348,7 +349,7 @@ def _run(args) -> int:
     if args.history:
         write_history_csv(history, args.history)
     if trainer.interrupted:
-        more = None if until == cfg.iterations else until - trainer.step
+        more = None if until == trainer.total_steps else until - trainer.step
         print(f"interrupted at step {trainer.step} of {until}: saved a resumable checkpoint to {out}; "
               f"continue with: {resume_command(args.argv, out, more)}", file=sys.stderr)
         return INTERRUPTED

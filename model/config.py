@@ -8,8 +8,9 @@
 
 The ablations of the paper are switches, never copies of code: ``events=False`` (time-only prior),
 ``markov=False`` (events only as a training loss), ``local_sampling=False`` (global average pooling of
-the event features), ``tli=False``. Schedules are fractions of ``iterations`` so that
-``--set iterations=N`` keeps them consistent.
+the event features), ``tli=False``. Schedules are fractions of the run's steps (``iterations``, or
+``steps_per_window`` times the spans between anchors: ``total_steps``) so that either keeps them
+consistent.
 """
 
 from __future__ import annotations
@@ -37,6 +38,9 @@ class Structure:
     """Spherical-harmonics degree of the colour; 0 stores a plain colour per Gaussian."""
     num_control_points: int = 512
     """M: control points sampled by farthest-point sampling of the canonical means."""
+    control_points_per_window: int = 0
+    """With anchor windows: M = this many times the number of anchors (farthest-point sampling gives each
+    window about this many), so that a longer recording keeps as many per window; 0: num_control_points."""
     skin_k: int = 3
     """K: control points each Gaussian is bound to (linear blend skinning)."""
     graph_k: int = 10
@@ -93,6 +97,9 @@ class Initialisation:
     init_points: int = 20000
     """Number of Gaussians at initialisation (back-projected anchor pixels; one per pixel that differs
     from the background when there are fewer such pixels)."""
+    init_points_per_window: int = 0
+    """With anchor windows: at most this many times the number of anchors Gaussians at initialisation (a
+    longer recording keeps its density of movers); 0: init_points."""
     init_opacity: float = 0.1
     """Opacity of every Gaussian at initialisation."""
     init_anchors: int = 0
@@ -141,7 +148,11 @@ class Schedule:
     evaluation and checkpoints."""
 
     iterations: int = 30000
-    """Optimisation steps."""
+    """Optimisation steps (unless steps_per_window is set; ``--set iterations=N`` alone sets
+    steps_per_window to 0: a fixed total)."""
+    steps_per_window: int = 0
+    """Optimisation steps per span between two consecutive anchors: the run's steps grow with the length
+    of the recording (``total_steps``); 0: ``iterations`` whatever the length."""
     train_scale: float = 1.0
     """Render and supervise at this fraction of the image resolution (the event maps fed to Phi stay
     at full resolution)."""
@@ -242,6 +253,25 @@ class EdmcgsConfig(Schedule, Losses, Initialisation, Structure):
         cfg.validate()
         return cfg
 
+    def total_steps(self, anchors: int) -> int:
+        """The run's steps for a recording of ``anchors`` anchor frames: ``steps_per_window`` per span
+        between consecutive anchors (one span for a single anchor), else ``iterations``."""
+        if self.steps_per_window <= 0:
+            return self.iterations
+        return self.steps_per_window * max(int(anchors) - 1, 1)
+
+    def control_points(self, anchors: int) -> int:
+        """M for a recording of ``anchors`` anchor frames (``control_points_per_window``)."""
+        if self.anchor_windows and self.control_points_per_window > 0:
+            return self.control_points_per_window * int(anchors)
+        return self.num_control_points
+
+    def initial_points(self, anchors: int) -> int:
+        """The most Gaussians at initialisation for ``anchors`` anchor frames (``init_points_per_window``)."""
+        if self.anchor_windows and self.init_points_per_window > 0:
+            return self.init_points_per_window * int(anchors)
+        return self.init_points
+
     def frozen_changes(self, other: EdmcgsConfig) -> list[str]:
         """The fields of ``FROZEN_ON_RESUME`` whose values differ in ``other`` (a resume's config)."""
         return [name for name in FROZEN_ON_RESUME if getattr(self, name) != getattr(other, name)]
@@ -255,8 +285,12 @@ class EdmcgsConfig(Schedule, Losses, Initialisation, Structure):
         """Apply ``key=value`` strings (``--set``); values are parsed by the field's type."""
         cfg = dataclasses.replace(self)
         by_name = {f.name: f for f in fields(self)}
-        for key, raw in split_overrides(items):
+        pairs = split_overrides(items)
+        for key, raw in pairs:
             setattr(cfg, key, _parse(by_name[key], raw))
+        keys = {key for key, _ in pairs}
+        if "iterations" in keys and "steps_per_window" not in keys:
+            cfg.steps_per_window = 0  # a total given: fixed, whatever the recording's length
         cfg.validate()
         return cfg
 
@@ -269,7 +303,8 @@ class EdmcgsConfig(Schedule, Losses, Initialisation, Structure):
             if getattr(self, name) <= 0:
                 raise InvalidInputError(f"config.{name} must be > 0, got {getattr(self, name)}")
         for name in ("init_anchors", "sh_degree", "pos_freqs", "time_freqs", "event_pos_freqs", "eval_every",
-                     "checkpoint_every", "opacity_reset_every"):
+                     "checkpoint_every", "opacity_reset_every", "steps_per_window",
+                     "control_points_per_window", "init_points_per_window"):
             if getattr(self, name) < 0:
                 raise InvalidInputError(f"config.{name} must be >= 0, got {getattr(self, name)}")
         if self.sh_degree > 3:
@@ -359,11 +394,14 @@ def _real() -> EdmcgsConfig:
     # window, and carried through the gap by the events. The motion is learnt from the event loss taken
     # from the anchor (anchored_pairs 1: the anchor state is exact, so the events since it say where the
     # edges went) plus the next anchor frame seen through a 6-level pyramid (alone, with free start
-    # times, it pushes movers off the frame). Figures: docs/benchmarks/real.md.
+    # times, it pushes movers off the frame). Its cost follows the recording: 100 steps, 32 control
+    # points and at most 3750 Gaussians per anchor window (a 3 s clip at 5 fps: 1500 steps, 512 points,
+    # 60000 Gaussians at most). Figures: docs/benchmarks/real.md.
     return _demo().replace(
         bg_layer=True, anchor_windows=True, event_act="leaky", dynamic_threshold=0.04, init_opacity=0.8,
-        init_points=60000, max_gaussians=60000, densify_from=0.0, densify_until=0.0,
-        num_control_points=512, skin_k=2, lr_features=0.01, lr_event=5e-3,
+        init_points=60000, max_gaussians=60000, densify_from=0.0, densify_until=0.0, steps_per_window=100,
+        num_control_points=512, control_points_per_window=32, init_points_per_window=3750, skin_k=2,
+        lr_features=0.01, lr_event=5e-3,
         lambda_next=1.0, next_levels=6, event_loss_levels=3, anchored_pairs=1.0, event_render_scale=1.0,
     )
 

@@ -2,18 +2,19 @@
 
 The model never reads events: the caller injects ``event_map(t0_us, t1_us)``, the signed polarity sum
 I_E of the events in [t0_us, t1_us) as float32 [H, W] at the event camera's resolution (the sensor's
-accumulation). ``EventGrid`` calls it once per sub-step of every gap between anchors and keeps the
-running sums, so any window on the grid is one subtraction.
+accumulation). ``EventGrid`` calls it once per sub-step of a gap between anchors when a step first
+needs that gap, and keeps the running sums of the gaps used last (a bounded cache: a recording of
+any length), so any window on the grid is one subtraction.
 """
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from edmcgs.errors import InvalidInputError, TrainingError
 from edmcgs.geometry import Intrinsics, Trajectory, validate_pose
@@ -115,22 +116,39 @@ class TrainingData:
         return np.flatnonzero((t >= self.anchors_t_us[0]) & (t <= self.t_end_us))
 
 
-class EventGrid:
-    """Running event sums on ``substeps`` + 1 times per gap (gap n starts at anchor n).
+GRID_CACHE_BYTES = 512 * 2**20
+"""Memory the running sums of the gaps used last may take (a 3 s clip's 16 gaps at 346x260 take 98 MB)."""
 
-    times: np.ndarray   # [G, S + 1] int64; times[n, 0] is anchor n, times[n, S] the gap's end
-    cum: Tensor         # [G, S + 1, He, We] float32; cum[n, k] = I_E over [times[n, 0], times[n, k])
+
+class EventGrid:
+    """Running event sums on ``substeps`` + 1 times per gap (gap n starts at anchor n), made per gap on
+    demand and kept for the gaps used last, within ``cache_bytes``.
+
+    times: np.ndarray           # [G, S + 1] int64; times[n, 0] is anchor n, times[n, S] the gap's end
     ends_at_anchor: np.ndarray  # [G] bool, True where times[n, S] is anchor n + 1
-    nonzero: np.ndarray  # [G, S + 1] bool, True where cum[n, k] has a non-zero pixel (known on the host,
-                         # so that training on a GPU never reads a map back to ask)
+    cumulative(n): Tensor       # [S + 1, He, We] float32; [k] = I_E over [times[n, 0], times[n, k])
+    nonzero(n): np.ndarray      # [S + 1] bool, True where cumulative(n)[k] has a non-zero pixel (known on
+                                # the host, so that training on a GPU never reads a map back to ask)
     """
 
-    def __init__(self, times: np.ndarray, cum: torch.Tensor, ends_at_anchor: np.ndarray):
-        self.times, self.cum, self.ends_at_anchor = times, cum, ends_at_anchor
-        self.nonzero = (cum != 0).flatten(2).any(-1).cpu().numpy()
+    def __init__(self, times: np.ndarray, ends_at_anchor: np.ndarray, event_map: EventMapFn,
+                 size: tuple[int, int], *, cache_bytes: int = GRID_CACHE_BYTES,
+                 device: str | torch.device = "cpu"):
+        self.times, self.ends_at_anchor = times, ends_at_anchor
+        self.event_map, self.size, self.device = event_map, size, torch.device(device)
+        w, h = size
+        per_gap = (self.substeps + 1) * h * w * 4
+        self.capacity = max(1, int(cache_bytes) // per_gap)
+        """Gaps whose running sums are kept."""
+        self._cache: OrderedDict[int, torch.Tensor] = OrderedDict()
+        self._nonzero: dict[int, np.ndarray] = {}
+        self.made = 0
+        """Gaps summed so far (a gap summed again after it left the cache counts again)."""
 
     @classmethod
-    def build(cls, data: TrainingData, substeps: int, *, progress: bool = False) -> EventGrid:
+    def build(cls, data: TrainingData, substeps: int, *, cache_bytes: int = GRID_CACHE_BYTES,
+              device: str | torch.device = "cpu") -> EventGrid:
+        """The grid of ``data``'s gaps (none summed yet)."""
         if data.event_map is None:
             raise TrainingError("the event branch and event loss need an event source (event_map)")
         anchors = data.anchors_t_us
@@ -141,21 +159,11 @@ class EventGrid:
                 starts.append(int(start))
                 ends.append(end)
                 at_anchor.append(n + 1 < anchors.size)
-        w, h = data.event_size
         k = np.arange(substeps + 1)
         times = np.stack([s + (k * (e - s)) // substeps
                           for s, e in zip(starts, ends, strict=True)]).astype(np.int64)
-        cum = torch.zeros(len(starts), substeps + 1, h, w)
-        bar = tqdm(total=cum.shape[0] * substeps, desc="event windows", disable=not progress, leave=False)
-        for n in range(times.shape[0]):
-            for j in range(substeps):
-                window = np.asarray(data.event_map(int(times[n, j]), int(times[n, j + 1])), dtype=np.float32)
-                if window.shape != (h, w):
-                    raise InvalidInputError(f"event_map returned {window.shape}, expected {(h, w)}")
-                cum[n, j + 1] = cum[n, j] + torch.from_numpy(window)
-                bar.update()
-        bar.close()
-        return cls(times, cum, np.asarray(at_anchor, dtype=bool))
+        return cls(times, np.asarray(at_anchor, dtype=bool), data.event_map, data.event_size,
+                   cache_bytes=cache_bytes, device=device)
 
     @property
     def num_gaps(self) -> int:
@@ -164,3 +172,32 @@ class EventGrid:
     @property
     def substeps(self) -> int:
         return int(self.times.shape[1]) - 1
+
+    def cumulative(self, gap: int) -> torch.Tensor:
+        """[S + 1, He, We] float32 running sums of gap ``gap`` (the same values whether cached or not)."""
+        found = self._cache.get(gap)
+        if found is not None:
+            self._cache.move_to_end(gap)
+            return found
+        w, h = self.size
+        times = self.times[gap]
+        cum = torch.zeros(self.substeps + 1, h, w)
+        for j in range(self.substeps):
+            window = np.asarray(self.event_map(int(times[j]), int(times[j + 1])), dtype=np.float32)
+            if window.shape != (h, w):
+                raise InvalidInputError(f"event_map returned {window.shape}, expected {(h, w)}")
+            cum[j + 1] = cum[j] + torch.from_numpy(window)
+        self._nonzero[gap] = (cum != 0).flatten(1).any(-1).numpy()
+        cum = cum.to(self.device)
+        self.made += 1
+        self._cache[gap] = cum
+        while len(self._cache) > self.capacity:
+            self._cache.popitem(last=False)
+        return cum
+
+    def nonzero(self, gap: int) -> np.ndarray:
+        """[S + 1] bool: which of gap ``gap``'s running sums have a non-zero pixel (kept for every gap
+        summed once, a few bytes each)."""
+        if gap not in self._nonzero:
+            self.cumulative(gap)
+        return self._nonzero[gap]

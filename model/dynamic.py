@@ -34,9 +34,10 @@ from edmcgs.model.motion.initialization import (
     point_gaussians,
     scene_center_and_extent,
 )
-from edmcgs.model.motion.leanness import choose_sh_degree, control_reach, motion_bound
+from edmcgs.model.motion.leanness import bound_reach, choose_sh_degree, control_reach, motion_bound
 from edmcgs.model.motion.skin_plan import SkinPlan, build_plan, plan_key, skin
-from edmcgs.model.motion.skinning import identity_rotations, lbs
+from edmcgs.model.motion.skinning import identity_rotations, lbs, skinning_weights
+from edmcgs.model.motion.windows import WindowIndex, WindowRows
 from edmcgs.model.render.rasterize import rasterize
 
 NEAR = 0.01
@@ -120,6 +121,8 @@ class EdMCGS(nn.Module):
         self.skinning = lbs
         """The skinning of ``state_from_motion``: ``lbs``, or the same compiled by ``torch.compile``
         (``Trainer(compile=True)``, ``edmcgs train --compile``)."""
+        self._window_plans: dict[tuple[int, bool], SkinPlan] = {}
+        self._windows: WindowIndex | None = None
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -205,12 +208,12 @@ class EdMCGS(nn.Module):
                                               birth=torch.full((len(points),), STATIC, dtype=torch.long))
         else:
             points, colors, scales, views = backproject_anchors(
-                images[:k], poses[:k], intrinsics, center, extent, config.init_points, rng, background,
+                images[:k], poses[:k], intrinsics, center, extent, config.initial_points(k), rng, background,
                 threshold=config.dynamic_threshold, return_views=True)
             gaussians = Gaussians.from_points(points, colors, scales, sh_degree=config.sh_degree,
                                               opacity=config.init_opacity,
                                               birth=views if config.anchor_windows else None)
-        m = min(config.num_control_points, len(gaussians))
+        m = min(config.control_points(k), len(gaussians))
         control = ControlPoints.sample(gaussians.means.detach(), m, skin_k=config.skin_k,
                                        graph_k=config.graph_k, radius=config.radius_init * extent,
                                        birth=gaussians.birth)
@@ -252,9 +255,28 @@ class EdMCGS(nn.Module):
         """World points -> scene coordinates (centre 0, extent 1), the networks' input frame."""
         return (points - self.center) / self.extent
 
+    @property
+    def windowed(self) -> bool:
+        """Anchor windows and no static set: a query at t draws one window's Gaussians, moved by that
+        window's control points, so its work is one window's rows (``window_rows``). A static set is
+        drawn in every window, skinned by none: such a model queries every row, the windows' visible."""
+        return self.gaussians.birth is not None and not self.config.static_set
+
+    def window_rows(self, window: int) -> WindowRows:
+        """The rows of anchor ``window`` (config.anchor_windows): its Gaussians and the control points they
+        need (``motion.windows``); built once per binding."""
+        g, cp = self.gaussians, self.control
+        if g.birth is None or cp.birth is None:
+            raise InvalidInputError("the model has no anchor windows (config.anchor_windows)")
+        key = plan_key(g.birth, cp.birth, cp.bind, cp.graph)
+        if self._windows is None or self._windows.key != key:
+            self._windows = WindowIndex(key)
+        return self._windows.rows(int(window), g.birth, cp.birth, cp.bind, cp.graph)
+
     def control_motion(self, t: float, event_map: Tensor | None = None, ev_w2c: Tensor | None = None, *,
                        static: bool = False, since: float | None = None,
-                       nonzero: bool | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
+                       nonzero: bool | None = None,
+                       window: int | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
         """Control-point transforms at normalised time ``t``.
 
         event_map: Tensor  # [He, We] float32 signed polarity sum over [tau(t), t), or None (empty)
@@ -264,9 +286,15 @@ class EdMCGS(nn.Module):
                is taken relative to it, f(x, t) - f(x, since), so the state at the anchor is canonical
         nonzero: whether ``event_map`` has a non-zero entry, when the caller knows it (training's event
                  grid does); None: looked at here, which on a GPU waits for the device
+        window: with anchor windows, only that window's control points (``window_rows(window).control``,
+               in that order), moved since its anchor (unless ``since`` says otherwise)
         returns (translations [M, 3], rotations [M, 4] unit, event displacement [M, 3] or None)
         """
         cp = self.control.positions
+        if window is not None and self.windowed:
+            cp = cp[self.window_rows(window).control]
+            if since is None:
+                since = self.meta.normalized_time(int(self.meta.anchors_us[window]))
         if static:
             return torch.zeros_like(cp), identity_rotations(cp.shape[0], device=cp.device), None
         x = self.normalize_points(cp)
@@ -292,6 +320,21 @@ class EdMCGS(nn.Module):
             trans = trans + event_disp
         return trans, rot, event_disp
 
+    def window_state(self, trans: Tensor, rot: Tensor, window: int, *,
+                     motion_only: bool = False) -> GaussianState:
+        """The Gaussians of anchor ``window`` alone, skinned by its control points' transforms (as
+        ``control_motion(..., window=window)`` gives them): what is drawn in its gap, whatever the
+        number of windows. motion_only: as in ``state_from_motion``."""
+        rows = self.window_rows(window)
+        g, cp = self.gaussians, self.control
+        canon = g.activated(rows.gaussians)
+        if motion_only:
+            canon = [t.detach() for t in canon]
+        positions = cp.positions[rows.control]
+        weights = skinning_weights(canon[0].detach(), positions, cp.log_radius[rows.control], rows.bind)
+        means, quats = self.skinning(canon[0], canon[1], positions, rot, trans, rows.bind, weights)
+        return GaussianState(means, quats, canon[2], canon[3], canon[4])
+
     def state_from_motion(self, trans: Tensor, rot: Tensor, window: int | None = None, *,
                           motion_only: bool = False, weights: Tensor | None = None) -> GaussianState:
         """Skin the canonical Gaussians by control-point transforms [M, 3], [M, 4]; with anchor windows,
@@ -302,7 +345,7 @@ class EdMCGS(nn.Module):
         g = self.gaussians
         if weights is None:
             weights = self.control.weights(g.means)
-        canon = [g.means, g.quats, g.scales(), g.opacities(), g.colors()]
+        canon = g.activated()
         if motion_only:
             canon = [t.detach() for t in canon]
         static = g.static()
@@ -325,8 +368,11 @@ class EdMCGS(nn.Module):
                  static: bool = False, window: int | None = None,
                  weights: Tensor | None = None) -> GaussianState:
         """The (differentiable) Gaussians at normalised time ``t``; see ``control_motion``. ``window``:
-        the anchor (index) whose Gaussians are drawn, moved relative to that anchor's time. weights:
-        as in ``state_from_motion``."""
+        the anchor (index) whose Gaussians are drawn, moved relative to that anchor's time (with anchor
+        windows only they are returned: ``window_state``). weights: as in ``state_from_motion``."""
+        if window is not None and self.windowed:
+            trans, rot, _ = self.control_motion(t, event_map, ev_w2c, static=static, window=window)
+            return self.window_state(trans, rot, window)
         since = None if window is None or self.gaussians.birth is None else \
             self.meta.normalized_time(int(self.meta.anchors_us[window]))
         trans, rot, _ = self.control_motion(t, event_map, ev_w2c, static=static, since=since)
@@ -375,8 +421,20 @@ class EdMCGS(nn.Module):
             w2c = torch.as_tensor(world_to_camera(np.asarray(ev_c2w, dtype=np.float64)),
                                   dtype=torch.float32, device=device)
         window = None if self.gaussians.birth is None else self._anchor_index(tau)
+        t = self.meta.normalized_time(t_us)
+        if window is not None and self.windowed:  # that window's Gaussians alone: one window's work
+            trans, rot, _ = self.control_motion(t, emap, w2c, window=window)
+            own = self.window_rows(window).own  # the other windows' points: their own windows decide
+            lean = False
+            if self.meta.frozen is not None:
+                plan = self.window_plan(window, frozen=True)
+                f = plan.frozen[:own]
+                lean = bool((motion_bound(trans[:own][f], rot[:own][f], plan.reach[:own][f])
+                             <= self.meta.freeze_threshold).all())
+            plan = self.window_plan(window, frozen=lean)
+            return skin(plan, self.control.positions[self.window_rows(window).control], rot, trans)
         since = None if window is None else self.meta.normalized_time(tau)
-        trans, rot, _ = self.control_motion(self.meta.normalized_time(t_us), emap, w2c, since=since)
+        trans, rot, _ = self.control_motion(t, emap, w2c, since=since)
         # Frozen Gaussians keep their canonical pose only while every frozen point's motion at this very
         # query (prior and events) stays within the threshold: the stated bound then holds at any time,
         # not only at the times the freeze decision sampled.
@@ -391,29 +449,58 @@ class EdMCGS(nn.Module):
         visible = self.gaussians.visible_in(window)
         if visible is not None:
             state = GaussianState(state.means, state.quats, state.scales,
-                                  state.opacities * visible.to(device), state.colors)
+                                  state.opacities * visible.to(state.opacities.device), state.colors)
         return state
+
+    def _plan_key(self) -> tuple:
+        g, cp = self.gaussians, self.control
+        return (*plan_key(g.means, g.quats, g.log_scales, g.opacity_logits, g.features, cp.positions,
+                          cp.log_radius, cp.bind), id(self.meta.frozen), cp.positions.device)
+
+    def _frozen_mask(self) -> Tensor | None:
+        """[M] bool: the checkpoint's frozen control points (None: none)."""
+        cp = self.control
+        if self.meta.frozen is None:
+            return None
+        if len(self.meta.frozen) != cp.num_points:
+            raise InvalidInputError(f"meta.frozen marks {len(self.meta.frozen)} control points, the model "
+                                    f"has {cp.num_points}")
+        return torch.as_tensor(self.meta.frozen, dtype=torch.bool, device=cp.positions.device)
 
     def skin_plan(self, *, frozen: bool = True) -> SkinPlan:
         """The time-independent half of ``deform`` (weights, activated canonical Gaussians), built once
         and rebuilt only when a parameter it derives from changed. frozen: leave frozen points still."""
         g, cp = self.gaussians, self.control
-        key = (*plan_key(g.means, g.quats, g.log_scales, g.opacity_logits, g.features, cp.positions,
-                         cp.log_radius, cp.bind), id(self.meta.frozen), cp.positions.device)
+        key = self._plan_key()
         plan = self._plans.get(frozen)
         if plan is None or plan.key != key:
             with torch.no_grad():
-                mask = None
-                if frozen and self.meta.frozen is not None:
-                    if len(self.meta.frozen) != cp.num_points:
-                        raise InvalidInputError(f"meta.frozen marks {len(self.meta.frozen)} control points, "
-                                                f"the model has {cp.num_points}")
-                    mask = torch.as_tensor(self.meta.frozen, dtype=torch.bool, device=cp.positions.device)
+                mask = self._frozen_mask() if frozen else None
                 canonical = GaussianState(g.means, g.quats, g.scales(), g.opacities(), g.colors())
                 plan = self._plans[frozen] = build_plan(canonical, cp.bind, cp.weights(g.means), mask, key,
                                                         g.static())
                 if mask is not None:
                     plan.frozen, plan.reach = mask, control_reach(self)
+        return plan
+
+    def window_plan(self, window: int, *, frozen: bool = True) -> SkinPlan:
+        """``skin_plan`` of anchor ``window``'s Gaussians alone (indices local to ``window_rows``: its
+        Gaussians, its control points); ``reach`` over the window's Gaussians. Built once per window."""
+        key = (*self._plan_key(), window)
+        plan = self._window_plans.get((window, frozen))
+        if plan is None or plan.key != key:
+            rows = self.window_rows(window)
+            cp = self.control
+            with torch.no_grad():
+                mask = self._frozen_mask() if frozen else None
+                local = None if mask is None else mask[rows.control]
+                canonical = GaussianState(*self.gaussians.activated(rows.gaussians))
+                positions = cp.positions[rows.control]
+                weights = skinning_weights(canonical.means, positions, cp.log_radius[rows.control], rows.bind)
+                plan = self._window_plans[(window, frozen)] = build_plan(canonical, rows.bind, weights, local,
+                                                                          key)
+                if local is not None:
+                    plan.frozen, plan.reach = local, bound_reach(canonical.means, positions, rows.bind)
         return plan
 
     @torch.no_grad()

@@ -114,6 +114,16 @@ class Gaussians(nn.Module):
             return torch.sigmoid(self.features[:, 0])
         return self.features
 
+    def activated(self, rows: Tensor | None = None) -> list[Tensor]:
+        """[means, quats, scales, opacities, colors] of the Gaussians ``rows`` (all when None), each as
+        ``scales()``, ``opacities()``, ``colors()`` give it (quats as stored): the work follows the rows."""
+        if rows is None:
+            return [self.means, self.quats, self.scales(), self.opacities(), self.colors()]
+        features = self.features[rows]
+        colors = torch.sigmoid(features[:, 0]) if features.shape[1] == 1 else features
+        return [self.means[rows], self.quats[rows], torch.exp(self.log_scales[rows]),
+                torch.sigmoid(self.opacity_logits[rows]), colors]
+
     def replace(self, tensors: dict[str, Tensor]) -> None:
         """Swap in new per-Gaussian parameters (after densification); N may change."""
         for name in PER_GAUSSIAN:

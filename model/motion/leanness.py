@@ -74,10 +74,15 @@ def control_reach(model) -> torch.Tensor:
     """[M] float32: per control point, the distance to the farthest Gaussian bound to it (world units),
     the lever arm its rotation moves that Gaussian by."""
     cp = model.control
-    means = model.gaussians.means.detach()
-    dist = (means[:, None, :] - cp.positions[cp.bind]).norm(dim=-1)          # [N, K]
-    return torch.zeros(cp.num_points, device=means.device).scatter_reduce(
-        0, cp.bind.reshape(-1), dist.reshape(-1), reduce="amax")
+    return bound_reach(model.gaussians.means.detach(), cp.positions, cp.bind)
+
+
+def bound_reach(means: torch.Tensor, positions: torch.Tensor, bind: torch.Tensor) -> torch.Tensor:
+    """[M] ``control_reach`` of Gaussians ``means`` [N, 3] bound by ``bind`` [N, K] to ``positions`` [M, 3]
+    (0 for a point no Gaussian is bound to)."""
+    dist = (means[:, None, :] - positions[bind]).norm(dim=-1)                   # [N, K]
+    return torch.zeros(positions.shape[0], device=means.device).scatter_reduce(
+        0, bind.reshape(-1), dist.reshape(-1), reduce="amax")
 
 
 def motion_bound(trans: torch.Tensor, rot: torch.Tensor, reach: torch.Tensor) -> torch.Tensor:
@@ -111,12 +116,20 @@ def control_motion_bound(model, samples: int = FREEZE_SAMPLES) -> torch.Tensor:
     starts = [meta.normalized_time(int(a)) for a in meta.anchors_us]
     ends = [*starts[1:], 1.0]
     for w, (since, end) in enumerate(zip(starts, ends, strict=True)):
-        mine = cp.birth == w
-        if not bool(mine.any()):
+        if not model.windowed:  # a static set beside the windows: every point's motion, kept for its own
+            mine = cp.birth == w
+            for t in np.linspace(since, end, samples):
+                trans, rot, _ = model.control_motion(float(t), since=since)
+                bound = torch.where(mine, torch.maximum(bound, motion_bound(trans, rot, reach)), bound)
             continue
+        rows = model.window_rows(w)
+        if rows.own == 0:
+            continue
+        mine = rows.control[:rows.own]  # the window's own points, moved only there: one window's work
         for t in np.linspace(since, end, samples):
-            trans, rot, _ = model.control_motion(float(t), since=since)
-            bound = torch.where(mine, torch.maximum(bound, motion_bound(trans, rot, reach)), bound)
+            trans, rot, _ = model.control_motion(float(t), window=w)
+            moved = motion_bound(trans[:rows.own], rot[:rows.own], reach[mine])
+            bound[mine] = torch.maximum(bound[mine], moved)
     return bound
 
 

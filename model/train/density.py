@@ -19,11 +19,17 @@ class GradientStats:
         self.total = torch.zeros(n, device=device)
         self.count = torch.zeros(n, device=device)
 
-    def add(self, grad_ndc: Tensor) -> None:
-        """grad_ndc: Tensor  # [N] norm of dL/d(mean in NDC) of one render (0 where not seen)."""
+    def add(self, grad_ndc: Tensor, rows: Tensor | None = None) -> None:
+        """grad_ndc: Tensor  # [N] norm of dL/d(mean in NDC) of one render (0 where not seen), or [R]
+        of the Gaussians ``rows`` (a render of one anchor window's)."""
         seen = grad_ndc > 0
-        self.total += torch.where(seen, grad_ndc, torch.zeros_like(grad_ndc))
-        self.count += seen.float()
+        values = torch.where(seen, grad_ndc, torch.zeros_like(grad_ndc))
+        if rows is None:
+            self.total += values
+            self.count += seen.float()
+        else:
+            self.total.index_add_(0, rows, values)
+            self.count.index_add_(0, rows, seen.float())
 
     def mean(self) -> Tensor:
         return self.total / self.count.clamp_min(1.0)

@@ -1,5 +1,11 @@
 """Training of EdMCGS: composes the losses, schedules and density control of their own modules.
 
+A run takes ``config.total_steps`` steps (a fixed number, or a number per span between anchors). With
+anchor windows a step works on the windows it draws alone (their Gaussians and control points, the
+event sums of their gap: ``EventGrid`` makes them on demand), so its cost does not grow with the
+recording's length; the optimizer steps those rows alone (``RowAdam``). Data-parallel: each worker draws
+from its ``shard`` of the windows and ``sync`` averages the gradients (``sync.GradientSync``).
+
 One iteration:
   * an anchor frame: the state at tau_n with an empty window, photometric loss (L1 + D-SSIM);
   * with events: a gap n and two sub-step times t_a < t_b in it (t_a may be the anchor, t_b the next
@@ -47,7 +53,9 @@ from edmcgs.model.train.density import (
 )
 from edmcgs.model.train.losses import event_loss, laplacian_smoothness, photometric_loss, pyramid_l1, tli_loss
 from edmcgs.model.train.resume import remove_sidecar, save_final
+from edmcgs.model.train.row_adam import RowAdam
 from edmcgs.model.train.schedule import exp_decay, ramp
+from edmcgs.model.train.sync import GradientSync
 
 MAX_BAD_STEPS = 20
 """Consecutive non-finite losses after which training stops with a TrainingError."""
@@ -61,16 +69,29 @@ def _resize(images: Tensor, height: int, width: int) -> Tensor:
 
 
 class Trainer:
-    """Optimises a model on one recording's arrays; ``fit`` runs to ``config.iterations``."""
+    """Optimises a model on one recording's arrays; ``fit`` runs to ``total_steps``.
+
+    sync: a data-parallel run's exchange (``sync.GradientSync``): this worker draws its samples from its
+    shard of the windows, takes ``1 / world`` of the steps (each counting ``world`` samples: ``step``
+    advances by ``world``), and only rank 0 evaluates and writes checkpoints.
+    """
 
     def __init__(self, model: EdMCGS, data: TrainingData, *, device: str | torch.device = "cpu",
                  progress: bool = True, clock: Callable[[], float] = time.perf_counter,
-                 compile: bool = False):
+                 compile: bool = False, sync: GradientSync | None = None):
         """compile: skin the Gaussians with ``torch.compile``'s fused kernels (``EdMCGS.skinning``): after
         a compile of some seconds on the first steps, each step is faster (on the CPU too: the fused
         blend never builds the gathered [N, K, 12] maps); the values agree with the default to float32
         rounding, not bit for bit."""
         self.cfg = cfg = model.config
+        self.sync = sync
+        rank, world = (0, 1) if sync is None else (sync.rank, sync.world)
+        self.lead = rank == 0
+        """Whether this process evaluates and writes checkpoints (rank 0 of a data-parallel run)."""
+        self.stride = world
+        """Samples per step (the workers'): ``step`` counts samples, so schedules read the same."""
+        self.total_steps = cfg.total_steps(len(data.anchors_t_us))
+        """Samples of the whole run (``config.total_steps``)."""
         self.clock = clock
         """Seconds for ``train_seconds`` (a test passes its own)."""
         if cfg.events and data.event_map is None:
@@ -84,7 +105,7 @@ class Trainer:
         self.extent = float(model.extent)
         """The scene's extent (a constant buffer), read once: the schedules need it every step."""
         self.data = data
-        self.progress = progress
+        self.progress = progress and self.lead
         intr = model.meta.intrinsics
         w, h = max(8, round(intr.width * cfg.train_scale)), max(8, round(intr.height * cfg.train_scale))
         self.intr = intr if (w, h) == (intr.width, intr.height) else intr.scaled(w, h)
@@ -97,9 +118,15 @@ class Trainer:
         self.anchor_w2c = self._w2c(data.anchor_poses)
         self.anchor_w2c_host = self.anchor_w2c.cpu().numpy()
         self.anchor_times = [model.meta.normalized_time(int(t)) for t in data.anchors_t_us]
-        self.grid = EventGrid.build(data, cfg.substeps, progress=progress) if cfg.events else None
+        self.anchor_shard = np.array_split(np.arange(len(self.anchor_times)), world)[rank]
+        """The anchors this worker draws (all but in a data-parallel run)."""
+        self.grid = EventGrid.build(data, cfg.substeps, device=self.device) if cfg.events else None
+        self.gap_shard = None
         if self.grid is not None:
-            self.grid.cum = self.grid.cum.to(self.device)
+            self.gap_shard = np.array_split(np.arange(self.grid.num_gaps), world)[rank]
+            if len(self.anchor_shard) == 0 or len(self.gap_shard) == 0:
+                raise InvalidInputError(f"{world} workers for {len(self.anchor_times)} anchors: each needs "
+                                        "at least one window")
             g, s1 = self.grid.times.shape
             self.grid_w2c = self._w2c(data.trajectory.at(self.grid.times.reshape(-1))).reshape(g, s1, 4, 4)
             self.grid_w2c_host = self.grid_w2c.cpu().numpy()
@@ -109,7 +136,9 @@ class Trainer:
         self.stats = GradientStats(len(model.gaussians), self.device)
         self.step = 0
         self.bad_steps = 0
-        self.rng = np.random.default_rng(cfg.seed)
+        if sync is not None:
+            sync.broadcast(self.model)  # one model everywhere, whatever each worker's initialisation
+        self.rng = np.random.default_rng(cfg.seed if rank == 0 else [cfg.seed, rank])
         self.generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
         self.history: list[dict] = []
         self.train_seconds = 0.0
@@ -144,8 +173,10 @@ class Trainer:
         if m.transition is not None:
             groups.append({"name": "event", "params": [*m.encoder.parameters(), *m.transition.parameters()],
                            "lr": cfg.lr_event})
-        # On CUDA one fused kernel per step instead of several per parameter group.
-        return torch.optim.Adam(groups, eps=1e-15, fused=True if self.device.type == "cuda" else None)
+        # With anchor windows a step moves only the Gaussians of the windows it drew; on CUDA one fused
+        # kernel per step for the other groups instead of several per parameter group.
+        rows = PER_GAUSSIAN if m.windowed else ()
+        return RowAdam(groups, row_groups=rows, eps=1e-15, fused=True if self.device.type == "cuda" else None)
 
     def _set_schedules(self, progress: float) -> None:
         cfg = self.cfg
@@ -169,16 +200,33 @@ class Trainer:
             layer = layer.detach() if detach_layer else layer
         return render_image(state, w2c, intr, self.background, layer)
 
-    def _gap_motion(self, gap: int, k: int):
-        """Control-point motion at grid time (gap, k): the next anchor's state at the gap's end (with
-        anchor windows: the gap's own Gaussians moved by all of its events)."""
-        grid = self.grid
-        if k == grid.substeps and grid.ends_at_anchor[gap] and not model_has_windows(self.model):
-            return self.model.control_motion(self.anchor_times[gap + 1])
-        emap = grid.cum[gap, k] if k > 0 else None
-        since = self.anchor_times[gap] if model_has_windows(self.model) else None
-        return self.model.control_motion(self.grid_t[gap][k], emap, self.grid_w2c[gap, k], since=since,
-                                         nonzero=bool(grid.nonzero[gap, k]))
+    def _gap_motion(self, gap: int, k: int, cum: Tensor):
+        """Control-point motion at grid time (gap, k), ``cum`` the gap's running event sums: the next
+        anchor's state at the gap's end (with anchor windows: the gap's own control points, moved by all
+        of its events)."""
+        grid, model = self.grid, self.model
+        emap = cum[k] if k > 0 else None
+        if model.windowed:
+            return model.control_motion(self.grid_t[gap][k], emap, self.grid_w2c[gap, k], window=gap,
+                                        nonzero=bool(grid.nonzero(gap)[k]))
+        windows = model_has_windows(model)  # with a static set: every point, moved since the gap's anchor
+        if k == grid.substeps and grid.ends_at_anchor[gap] and not windows:
+            return model.control_motion(self.anchor_times[gap + 1])
+        return model.control_motion(self.grid_t[gap][k], emap, self.grid_w2c[gap, k],
+                                    since=self.anchor_times[gap] if windows else None,
+                                    nonzero=bool(grid.nonzero(gap)[k]))
+
+    def _draw(self, shard: np.ndarray) -> int:
+        return int(shard[int(self.rng.integers(len(shard)))])
+
+    def _graph(self, window: int | None) -> tuple[Tensor, Tensor]:
+        """(control-point positions, their graph) the regularisers of a step read: with anchor windows
+        those of ``window`` (its own points' edges), else every point's."""
+        cp = self.model.control
+        if window is None:
+            return cp.positions, cp.graph
+        rows = self.model.window_rows(window)
+        return cp.positions[rows.control], rows.graph
 
     def train_step(self) -> dict[str, float]:
         """One optimisation step; returns the loss terms (floats).
@@ -186,8 +234,8 @@ class Trainer:
         On a GPU the step reads the device back once, for the loss and its terms together (whether the
         loss is finite decides the step); everything else stays queued on the device."""
         cfg, model = self.cfg, self.model
-        # Past ``iterations`` (``fit(until=...)`` beyond it) every schedule stays at its end.
-        progress = min(self.step / cfg.iterations, 1.0)
+        # Past the run's steps (``fit(until=...)`` beyond them) every schedule stays at its end.
+        progress = min(self.step / self.total_steps, 1.0)
         self._set_schedules(progress)
         if not self.lifted and progress >= cfg.lift_at:
             with stage("lift movers"):
@@ -195,12 +243,18 @@ class Trainer:
         static = progress < cfg.deform_from
         terms: dict[str, Tensor] = {}
 
-        n = int(self.rng.integers(len(self.anchor_times)))
+        n = self._draw(self.anchor_shard)
         windows = model_has_windows(model)
+        rowwise = model.windowed  # a step's work: the rows of the windows it draws (no static set)
+        drawn = [n]  # the windows whose Gaussians this step moves
         with stage("anchor: deform"):
-            weights = model.control.weights(model.gaussians.means)  # the same for every skin of this step
-            anchor_state = model.state_at(self.anchor_times[n], static=static, window=n if windows else None,
-                                          weights=weights)
+            weights = None
+            if rowwise:
+                anchor_state = model.state_at(self.anchor_times[n], static=static, window=n)
+            else:
+                weights = model.control.weights(model.gaussians.means)  # the same for every skin of this step
+                anchor_state = model.state_at(self.anchor_times[n], static=static,
+                                              window=n if windows else None, weights=weights)
             anchor_state.means.retain_grad()
         with stage("anchor: render"):
             image = self._render(anchor_state, self.anchor_w2c_host[n])
@@ -208,40 +262,44 @@ class Trainer:
             terms["photo"] = photometric_loss(image, self.anchor_images[n], cfg.lambda_dssim)
         loss = terms["photo"]
 
-        cp = model.control.positions
         if not static and self.grid is not None:
-            gap = int(self.rng.integers(self.grid.num_gaps))
+            gap = self._draw(self.gap_shard)
             s = self.grid.substeps
             a = 0 if self.rng.random() < cfg.anchored_pairs else int(self.rng.integers(0, s))
             b = int(self.rng.integers(a + 1, min(s, a + cfg.max_pair_steps) + 1))
+            with stage("event pair: sums"):
+                cum = self.grid.cumulative(gap)
             with stage("event pair: control motion"):
-                trans_a, rot_a, disp_a = self._gap_motion(gap, a)
-                trans_b, rot_b, disp_b = self._gap_motion(gap, b)
+                trans_a, rot_a, disp_a = self._gap_motion(gap, a, cum)
+                trans_b, rot_b, disp_b = self._gap_motion(gap, b, cum)
             renders = []
-            window = gap if windows else None
             for trans, rot, k in ((trans_a, rot_a, a), (trans_b, rot_b, b)):
                 with stage("event pair: skin"):
-                    st = model.state_from_motion(trans, rot, window, weights=weights)
+                    st = model.window_state(trans, rot, gap) if rowwise else \
+                        model.state_from_motion(trans, rot, gap if windows else None, weights=weights)
                     st = GaussianState(st.means, st.quats, st.scales, st.opacities, st.colors.detach())
                 with stage("event pair: render"):
                     renders.append(self._render(st, self.grid_w2c_host[gap, k], self.event_intr,
                                                 detach_layer=True))
             with stage("event pair: event loss"):
-                events = self.grid.cum[gap, b] - self.grid.cum[gap, a]
+                events = cum[b] - cum[a]
                 ei = self.event_intr
                 events = _resize(events[None, :, :, None], ei.height, ei.width)[0, :, :, 0]
                 terms["event"] = event_loss(renders[0], renders[1], events, cfg.contrast_threshold,
                                             cfg.log_eps, levels=cfg.event_loss_levels)
             loss = loss + cfg.lambda_event * terms["event"]
+            cp, graph = self._graph(gap if rowwise else None)
             if cfg.tli:
-                terms["tli"] = tli_loss(cp + trans_a, cp + trans_b, model.control.graph)
+                terms["tli"] = tli_loss(cp + trans_a, cp + trans_b, graph)
                 loss = loss + cfg.lambda_tli * terms["tli"]
+            if rowwise:
+                drawn.append(gap)
             if windows and cfg.lambda_next > 0 and self.grid.ends_at_anchor[gap] and self.lifted:
                 # The gap's Gaussians carried by all its events to the next anchor frame.
                 with stage("next anchor"):
-                    s_end = self.grid.substeps
-                    trans_e, rot_e, _ = (trans_b, rot_b, None) if b == s_end else self._gap_motion(gap, s_end)
-                    st = model.state_from_motion(trans_e, rot_e, gap, motion_only=True, weights=weights)
+                    trans_e, rot_e, _ = (trans_b, rot_b, None) if b == s else self._gap_motion(gap, s, cum)
+                    st = model.window_state(trans_e, rot_e, gap, motion_only=True) if rowwise else \
+                        model.state_from_motion(trans_e, rot_e, gap, motion_only=True, weights=weights)
                     image_next = self._render(st, self.anchor_w2c_host[gap + 1])
                     target = self.anchor_images[gap + 1]
                     terms["next"] = photometric_loss(image_next, target, cfg.lambda_dssim) \
@@ -252,38 +310,53 @@ class Trainer:
                 terms["edisp"] = torch.stack([d.detach().norm(dim=-1).mean() for d in disps]).mean() \
                     / model.extent
                 terms["dead"] = model.encoder.dead
-                graph = model.control.graph
                 terms["smooth"] = sum(laplacian_smoothness(d, graph) for d in disps) / len(disps)
                 loss = loss + cfg.lambda_smooth * terms["smooth"]
         elif not static and cfg.tli:
             # Time-only model: isometry between two nearby times, dt one sub-step of an average gap.
             dt = 1.0 / (max(len(self.anchor_times) - 1, 1) * cfg.substeps)
             t = float(self.rng.uniform(dt / 2, 1 - dt / 2))
-            trans_1, _, _ = model.control_motion(t - dt / 2)
-            trans_2, _, _ = model.control_motion(t + dt / 2)
-            terms["tli"] = tli_loss(cp + trans_1, cp + trans_2, model.control.graph)
+            window = n if rowwise else None  # with anchor windows: the drawn anchor's points
+            trans_1, _, _ = model.control_motion(t - dt / 2, window=window)
+            trans_2, _, _ = model.control_motion(t + dt / 2, window=window)
+            cp, graph = self._graph(window)
+            terms["tli"] = tli_loss(cp + trans_1, cp + trans_2, graph)
             loss = loss + cfg.lambda_tli * terms["tli"]
 
         self.optimizer.zero_grad(set_to_none=True)
         values = torch.stack([loss.detach(), *(v.detach().float() for v in terms.values())]).tolist()
-        if not math.isfinite(values[0]):
+        finite = math.isfinite(values[0])
+        if self.sync is not None:  # every worker skips the step when one has a non-finite loss
+            flag = torch.tensor([0.0 if finite else 1.0])
+            self.sync.sum_(flag)
+            finite = float(flag) == 0.0
+        if not finite:
             self.bad_steps += 1
             if self.bad_steps > MAX_BAD_STEPS:
                 raise TrainingError(f"the loss was not finite for {self.bad_steps} steps in a row "
                                     f"(step {self.step})")
-            self.step += 1
+            self.step += self.stride
             return {"loss": float("nan")}
         with stage("backward"):
             loss.backward()
+        rows = None
+        if rowwise:
+            rows = torch.unique(torch.cat([model.window_rows(w).gaussians for w in drawn]))
+        if self.sync is not None:
+            with stage("all-reduce"):
+                rows = None if rows is None else self.sync.union(rows)
+                self.sync.average(self.optimizer, self.optimizer.row_groups, rows)
+        self.optimizer.rows = rows
         self._sanitize_gradients()
         self.bad_steps = 0
         if cfg.densify_from <= progress < cfg.densify_until and anchor_state.means.grad is not None:
             self.stats.add(screen_space_grad(anchor_state.means.grad, anchor_state.means.detach(),
                                              self.anchor_w2c[n], self.intr.fx, self.intr.fy,
-                                             self.intr.width, self.intr.height))
+                                             self.intr.width, self.intr.height),
+                           model.window_rows(n).gaussians if rowwise else None)
         with stage("optimizer step"):
             self.optimizer.step()
-        self.step += 1
+        self.step += self.stride
         with stage("density control"):
             self._density_control(progress)
         out = dict(zip(terms, values[1:], strict=True))
@@ -330,6 +403,10 @@ class Trainer:
         self._forget("radius")
         self.stats = GradientStats(len(g), self.device)
 
+    def _due(self, every: int) -> bool:
+        """Whether the last step crossed a multiple of ``every`` (a step counts ``stride`` samples)."""
+        return bool(every) and self.step // every != (self.step - self.stride) // every
+
     def _sanitize_gradients(self) -> None:
         # A single degenerate splat can produce a NaN gradient entry; zeroing it keeps Adam's moments finite.
         for group in self.optimizer.param_groups:
@@ -341,7 +418,9 @@ class Trainer:
         cfg, model = self.cfg, self.model
         if not (cfg.densify_from <= progress < cfg.densify_until):
             return
-        if self.step % cfg.densify_every == 0:
+        if self._due(cfg.densify_every):
+            if self.sync is not None:  # every worker's views: the same Gaussians added everywhere
+                self.sync.sum_(self.stats.total, self.stats.count)
             extent = self.extent
             densify_and_prune(model.gaussians, self.optimizer, self.stats, grad_threshold=cfg.densify_grad,
                               extent=extent, percent_dense=cfg.percent_dense, min_opacity=cfg.prune_opacity,
@@ -354,7 +433,7 @@ class Trainer:
                 self._forget("radius")
             else:
                 model.control.rebind(model.gaussians.means, birth=model.gaussians.birth)
-        if cfg.opacity_reset_every and self.step % cfg.opacity_reset_every == 0:
+        if self._due(cfg.opacity_reset_every):
             reset_opacity(model.gaussians, self.optimizer)
 
     def _forget(self, name: str) -> None:
@@ -379,7 +458,7 @@ class Trainer:
 
     def fit(self, checkpoint_path: str | os.PathLike | None = None, *, until: int | None = None,
             stop: threading.Event | None = None, curves: Curves | None = None) -> list[dict]:
-        """Train to step ``until`` (default ``config.iterations``; past it the schedules stay at their end);
+        """Train to step ``until`` (default ``total_steps``; past it the schedules stay at their end);
         periodic evaluation and resumable checkpoints. Returns the evaluation history ({step, psnr, ssim,
         frames, seconds, gaussians}); ``seconds`` counts training steps only (evaluations and checkpoints
         are off the clock).
@@ -390,7 +469,7 @@ class Trainer:
         curves: receives the scalars of every step and evaluation (``curves.Curves``).
         """
         cfg = self.cfg
-        until = cfg.iterations if until is None else int(until)
+        until = self.total_steps if until is None else int(until)
         self.interrupted = False
         bar = tqdm(total=until, initial=self.step, desc="train", disable=not self.progress,
                    dynamic_ncols=True)
@@ -413,12 +492,12 @@ class Trainer:
             if curves is not None:
                 curves.scalars(self.step, "train", {**last, "gaussians": len(self.model.gaussians),
                                                     "step_seconds": took})
-            bar.update(1)
-            if self.step % 10 == 0 or self.step == until:
+            bar.update(min(self.stride, until - bar.n))
+            if self._due(10) or self.step >= until:
                 post = {k: f"{v:.4g}" for k, v in ema.items()}
                 post["N"] = len(self.model.gaussians)
                 bar.set_postfix(post, refresh=False)
-            if cfg.eval_every and self.step % cfg.eval_every == 0 and self.data.evaluable().size:
+            if self.lead and self._due(cfg.eval_every) and self.data.evaluable().size:
                 result = {"step": self.step, **self.evaluate(cfg.eval_frames), "seconds": self.train_seconds,
                           "gaussians": len(self.model.gaussians), **{k: ema[k] for k in HEALTH if k in ema}}
                 self.history.append(result)
@@ -429,11 +508,10 @@ class Trainer:
                           f"SSIM {result['ssim']:.4f} "
                           f"({result['frames']} frames), {len(self.model.gaussians)} Gaussians"
                           + "".join(f", {k} {result[k]:.4g}" for k in HEALTH if k in result))
-            if stop is not None and stop.is_set() and self.step < until:
+            if stop is not None and stop.is_set() and self.step < until:  # (not in a data-parallel run)
                 self.interrupted = True
                 break
-            if checkpoint_path and cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0 \
-                    and self.step < until:
+            if checkpoint_path and self.lead and self._due(cfg.checkpoint_every) and self.step < until:
                 self.save_resumable(checkpoint_path)
                 if curves is not None:  # the curves on disk reach the checkpoint, whatever comes next
                     curves.flush()
@@ -441,12 +519,12 @@ class Trainer:
         if curves is not None:
             curves.flush()
         if self.interrupted:
-            if checkpoint_path:
+            if checkpoint_path and self.lead:
                 self.save_resumable(checkpoint_path)
             return self.history
         self.model.event_scale.fill_(1.0)
         self.model.eval()
-        if checkpoint_path:
+        if checkpoint_path and self.lead:
             save_final(self.model, checkpoint_path, self.train_state())
             self.saved_step = self.step
         return self.history

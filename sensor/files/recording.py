@@ -45,6 +45,7 @@ import numpy as np
 from edmcgs.atomic import atomic_output, ensure_room
 from edmcgs.errors import EdmcgsError, InvalidInputError, RecordingError, ReplayFormatError, translated
 from edmcgs.sensor.events import Events
+from edmcgs.sensor.files.event_file import FileEvents
 from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.imu import IMU_DTYPE
 
@@ -63,7 +64,9 @@ def _check_resolution(width, height) -> tuple[int, int]:
     return int(width), int(height)
 
 
-def _check_events_in(events: Events, width: int, height: int, what: str = "events") -> None:
+def _check_events_in(events: Events | FileEvents, width: int, height: int, what: str = "events") -> None:
+    if isinstance(events, FileEvents):
+        return  # a file's: checked as each block is read (``RecordingFile.read_events``)
     if not isinstance(events, Events):
         raise InvalidInputError(f"{what} must be an Events batch, got {type(events).__name__}")
     if len(events) and (int(events.x.max()) >= width or int(events.y.max()) >= height):
@@ -165,8 +168,9 @@ class Recording:
     width: int
     """Event (and frame) resolution, pixels."""
     height: int
-    events: Events
-    """All events; absolute Unix-epoch µs for real sensors, any int64 µs origin for synthetic data."""
+    events: Events | FileEvents
+    """All events; absolute Unix-epoch µs for real sensors, any int64 µs origin for synthetic data (or
+    those left in the recording's file: ``read_recording(..., lazy_events=True)``)."""
     anchors: Frames
     """The sparse RGB/APS frames, with their poses when known."""
     held_out: Frames | None = None
@@ -565,6 +569,15 @@ class RecordingFile:
         c = self.event_columns
         return self._read(f"events [{i0}, {i1})", lambda: tuple(c[k][i0:i1] for k in "txyp"))
 
+    def read_times(self, i0: int, i1: int, step: int = 1) -> np.ndarray:
+        """int64 times of events [i0, i1), every ``step``-th (a time index's pass over the file)."""
+        column = self.event_columns["t"]
+        return self._read(f"events/t [{i0}, {i1})", lambda: np.asarray(column[i0:i1:step], np.int64))
+
+    def events(self) -> FileEvents:
+        """The events left in the file, read a window at a time (``event_file.FileEvents``)."""
+        return FileEvents(self)
+
     def read_events(self, i0: int = 0, i1: int | None = None) -> Events:
         """Events [i0, i1), validated (strict: a file breaking the contract raises ReplayFormatError)."""
         i1 = self.n_events if i1 is None else i1
@@ -598,11 +611,13 @@ class RecordingFile:
         return self._read("trajectory", lambda: (f["trajectory/t_us"][:], f["trajectory/c2w"][:])
                           if "trajectory" in f else (None, None))
 
-    def read(self) -> Recording:
-        """The whole recording in memory."""
+    def read(self, *, lazy_events: bool = False) -> Recording:
+        """The whole recording in memory (with ``lazy_events``: all but its events, read from the open
+        file when asked for: ``events()``)."""
         intr, traj, points = self.intrinsics(), self.trajectory(), self.points()
         return self._read("recording", lambda: Recording(
-            width=self.width, height=self.height, events=self.read_events(), anchors=self.frames("anchors"),
+            width=self.width, height=self.height, events=self.events() if lazy_events else self.read_events(),
+            anchors=self.frames("anchors"),
             held_out=self.frames("held_out"), intrinsics=intr, trajectory_t_us=traj[0],
             trajectory_c2w=traj[1], contrast_threshold=self.contrast_threshold, sensor=self.sensor,
             metadata=self.metadata, imu=self.imu(), novel_views=self.frames("novel_views"),
@@ -618,7 +633,16 @@ class RecordingFile:
         self.close()
 
 
-def read_recording(path: str | os.PathLike) -> Recording:
-    """Load a whole recording. Raises ReplayFormatError for a missing, truncated, corrupt or foreign file."""
-    with RecordingFile(path) as f:
-        return f.read()
+def read_recording(path: str | os.PathLike, *, lazy_events: bool = False) -> Recording:
+    """Load a whole recording. Raises ReplayFormatError for a missing, truncated, corrupt or foreign file.
+    lazy_events: its events stay in the file (``FileEvents``; the file stays open while they are used),
+    so a recording of any length takes the memory of its frames."""
+    f = RecordingFile(path)
+    try:
+        rec = f.read(lazy_events=lazy_events)
+    except BaseException:
+        f.close()
+        raise
+    if not lazy_events:
+        f.close()
+    return rec

@@ -163,7 +163,8 @@ class Learner:
         # the schedules (learning-rate decay, the event branch's warm-in) run over the round's steps; the
         # first round renders at first_scale of the frames' size, so that a model is live soon
         scale = base.train_scale if previous is not None else min(base.train_scale, cfg.first_scale)
-        model = new_model(data, base.replace(iterations=max(steps, 1), train_scale=scale))
+        # (a fixed total per round: the round's steps, not the preset's per anchor window)
+        model = new_model(data, base.replace(iterations=max(steps, 1), steps_per_window=0, train_scale=scale))
         if self.model is not None:
             warm_start(model, self.model)
         self.model, self.data = model, data

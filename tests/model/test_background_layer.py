@@ -87,13 +87,13 @@ def test_windows_draw_only_the_anchors_gaussians_in_their_canonical_pose():
     birth = model.gaussians.birth
     assert birth is not None and set(birth.tolist()) <= {0, 1, 2}
     for k, t in enumerate(data.anchors_t_us):
-        state = model.deform(int(t))
+        state = model.deform(int(t))  # the window's Gaussians alone, in their order
         assert model.window(int(t)) == k
-        assert torch.equal(state.opacities == 0, birth != k)
-        torch.testing.assert_close(state.means[birth == k], model.gaussians.means.detach()[birth == k])
+        torch.testing.assert_close(state.means, model.gaussians.means.detach()[birth == k])
+        assert bool((state.opacities > 0).all())
     t = int(data.held_out_t_us[1])  # in gap 1
     assert model.window(t) == 1
-    assert torch.equal(model.deform(t).opacities == 0, birth != 1)
+    assert len(model.deform(t)) == int((birth == 1).sum())
 
 
 def test_leaky_encoder_keeps_zero_events_exactly_zero():

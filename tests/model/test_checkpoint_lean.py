@@ -98,6 +98,10 @@ def _worst_shift(lean, model, times, data, windowed=False) -> float:
         events = None if emap is None else torch.as_tensor(emap)
         trans, rot, _ = model.control_motion(model.meta.normalized_time(t), events, w2c, since=since)
         full, got = model.state_from_motion(trans, rot), lean.deform(t, emap)
+        if windowed:  # the window's Gaussians alone
+            full = full.means[lean.window_rows(lean.window(t)).gaussians]
+            worst = max(worst, float((got.means - full).norm(dim=-1).max()))
+            continue
         drawn = got.opacities.reshape(-1) > 0
         worst = max(worst, float((got.means - full.means)[drawn].norm(dim=-1).max()))
     return worst

@@ -99,6 +99,9 @@ def test_training_grid_over_a_day_is_exact_integer_microseconds():
     assert grid.times.dtype == np.int64
     np.testing.assert_array_equal(grid.times[:, 0], ANCHORS[:2])
     np.testing.assert_array_equal(grid.times[:, -1], ANCHORS[1:])
+    assert calls == []  # a gap's sums are made when a step first needs them
+    for gap in range(grid.num_gaps):
+        grid.cumulative(gap)
     # consecutive windows tile each gap without a gap or an overlap of even one microsecond
     assert calls[0][0] == T0 and calls[-1][1] == T0 + DAY and len(calls) == 2 * 7
     assert all(a1 == b0 for (_, a1), (b0, _) in itertools.pairwise(calls))

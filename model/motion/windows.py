@@ -1,0 +1,65 @@
+"""Anchor windows (config.anchor_windows): which Gaussians and control points one window draws and moves.
+
+With anchor windows a Gaussian is drawn only in the gap after the anchor it was lifted from, moved by
+that window's control points. Whatever the recording's length, a query at t (a render, a training step)
+then needs one window's rows alone: its Gaussians, the control points they are bound to, the points
+born in the window and their graph neighbours (a window with fewer than K points binds some of its
+Gaussians to a neighbouring window's). ``WindowRows`` are those rows, local indices included, so that
+the work of a step or a render follows the window, not the number of windows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+
+@dataclass(frozen=True)
+class WindowRows:
+    """The rows of one anchor window (indices into the model's tensors, int64, on their device).
+
+    gaussians: Tensor  # [Nw] the Gaussians living in the window, ascending
+    control: Tensor    # [Mw] the control points the window needs: its own first (ascending), then the
+                       #      others its Gaussians are bound to or its own points neighbour (ascending)
+    own: int           # how many of ``control`` are born in the window (the first ``own``)
+    bind: Tensor       # [Nw, K] each Gaussian's control points, as indices into ``control``
+    graph: Tensor      # [own, K_conn] the own points' graph neighbours, as indices into ``control``
+    """
+
+    gaussians: Tensor
+    control: Tensor
+    own: int
+    bind: Tensor
+    graph: Tensor
+
+
+def window_rows(gaussian_birth: Tensor, control_birth: Tensor, bind: Tensor, graph: Tensor,
+                window: int) -> WindowRows:
+    """The rows of ``window`` from the Gaussians' and control points' windows, the binding [N, K] and
+    the control points' graph [M, K_conn]."""
+    gaussians = torch.nonzero(gaussian_birth == window)[:, 0]
+    own = torch.nonzero(control_birth == window)[:, 0]
+    needed = torch.cat([bind[gaussians].reshape(-1), graph[own].reshape(-1)])
+    others = torch.unique(needed[control_birth[needed] != window])  # ascending
+    control = torch.cat([own, others])
+    local = torch.full((control_birth.shape[0],), -1, dtype=torch.long, device=control.device)
+    local[control] = torch.arange(control.shape[0], device=control.device)
+    return WindowRows(gaussians, control, int(own.shape[0]), local[bind[gaussians]], local[graph[own]])
+
+
+class WindowIndex:
+    """Each window's rows, built on first use and kept while the tensors they derive from are unchanged
+    (``key``: the binding and the windows of a model; a rebind or a densification changes it)."""
+
+    def __init__(self, key: tuple):
+        self.key = key
+        self._rows: dict[int, WindowRows] = {}
+
+    def rows(self, window: int, gaussian_birth: Tensor, control_birth: Tensor, bind: Tensor,
+             graph: Tensor) -> WindowRows:
+        found = self._rows.get(window)
+        if found is None:
+            found = self._rows[window] = window_rows(gaussian_birth, control_birth, bind, graph, window)
+        return found

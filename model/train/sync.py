@@ -1,0 +1,82 @@
+"""Data-parallel training: what the workers exchange so that they stay one run (``torch.distributed``,
+any backend: gloo on CPUs; the caller sets up the process group, e.g. Ray Train: ``edmcgs.data_parallel``).
+
+Each worker draws its samples from its own shard of the anchor windows; every step their gradients are
+averaged (one all-reduce of one flat buffer), so every worker applies the same update to the same
+parameters. With anchor windows only the rows of the windows the workers drew are exchanged (their
+union first: a small all-gather), not every Gaussian of the recording: the bytes per step follow the
+windows drawn, not the recording's length. Density control sums the workers' gradient statistics first,
+and draws from generators seeded alike, so that it adds and removes the same Gaussians everywhere.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.distributed as dist
+from torch import Tensor
+
+
+class GradientSync:
+    """The averaging of one data-parallel run (the process group must be initialised)."""
+
+    def __init__(self) -> None:
+        if not dist.is_available() or not dist.is_initialized():
+            raise RuntimeError("data-parallel training needs an initialised torch.distributed process group")
+        self.rank = dist.get_rank()
+        self.world = dist.get_world_size()
+
+    def broadcast(self, module: torch.nn.Module) -> None:
+        """Rank 0's parameters and buffers everywhere (the workers start from one model)."""
+        for tensor in [*module.parameters(), *module.buffers()]:
+            dist.broadcast(tensor.data, src=0)
+
+    def union(self, rows: Tensor) -> Tensor:
+        """[R] int64: every worker's ``rows`` together, ascending and unique."""
+        size = torch.tensor([rows.numel()], dtype=torch.long)
+        sizes = [torch.zeros_like(size) for _ in range(self.world)]
+        dist.all_gather(sizes, size)
+        longest = int(max(s.item() for s in sizes))
+        padded = torch.full((longest,), -1, dtype=torch.long)
+        padded[:rows.numel()] = rows.cpu()
+        gathered = [torch.empty_like(padded) for _ in range(self.world)]
+        dist.all_gather(gathered, padded)
+        out = torch.unique(torch.cat(gathered))
+        return out[out >= 0].to(rows.device)
+
+    def average(self, optimizer: torch.optim.Optimizer, row_groups: frozenset[str],
+                rows: Tensor | None) -> None:
+        """Average every parameter's gradient over the workers, in one all-reduce (a worker without one
+        gives zeros; a parameter no worker has a gradient for keeps none, as torch's Adam then skips
+        it); for the ``row_groups`` only ``rows`` (None: all rows)."""
+        parts: list[tuple[Tensor, Tensor | None]] = []
+        had = []
+        for group in optimizer.param_groups:
+            for p in group["params"]:
+                had.append(p.grad is not None)
+                if p.grad is None:
+                    p.grad = torch.zeros_like(p)
+                parts.append((p, rows if group.get("name") in row_groups and rows is not None else None))
+        flat = torch.cat([*[(p.grad if r is None else p.grad[r]).reshape(-1) for p, r in parts],
+                          torch.tensor(had, dtype=parts[0][0].grad.dtype, device=parts[0][0].grad.device)])
+        dist.all_reduce(flat)
+        anyone = flat[-len(parts):] > 0
+        flat = flat[:-len(parts)] / self.world
+        offset = 0
+        for (p, r), keep in zip(parts, anyone.tolist(), strict=True):
+            view = p.grad if r is None else p.grad[r]
+            chunk = flat[offset:offset + view.numel()].view_as(view)
+            offset += view.numel()
+            if not keep:
+                p.grad = None
+            elif r is None:
+                p.grad.copy_(chunk)
+            else:
+                p.grad[r] = chunk
+
+    def sum_(self, *tensors: Tensor) -> None:
+        """Sum each tensor over the workers, in place."""
+        for t in tensors:
+            dist.all_reduce(t)
+
+    def barrier(self) -> None:
+        dist.barrier()

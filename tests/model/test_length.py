@@ -1,0 +1,152 @@
+"""Training whose cost follows the recording: the schedule per anchor window, the event sums made per gap
+on demand, and a step of a model drawn in anchor windows working on its windows alone."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from edmcgs.model.config import preset
+from edmcgs.model.data import EventGrid
+from edmcgs.model.train.row_adam import RowAdam
+from edmcgs.model.train.trainer import Trainer
+from tests.support import tiny_scene
+from tests.support.models import TINY, build, one_torch_thread  # noqa: F401
+
+WINDOWED = TINY.replace(bg_layer=True, anchor_windows=True, event_act="leaky", dynamic_threshold=0.06,
+                        lambda_next=1.0, init_opacity=0.7, anchored_pairs=0.5, densify_until=0.0)
+
+
+def test_the_real_preset_takes_steps_points_and_gaussians_per_anchor_window():
+    real = preset("real")
+    # 3 s at 5 fps: 16 anchors, 15 spans: the 1500 steps, 512 points and 60000 Gaussians it always had
+    assert (real.total_steps(16), real.control_points(16), real.initial_points(16)) == (1500, 512, 60000)
+    assert (real.total_steps(301), real.control_points(301), real.initial_points(301)) == \
+        (30000, 9632, 1_128_750)
+    assert real.total_steps(1) == 100  # one anchor: one span, to the recording's end
+    demo = preset("demo")  # no steps per window: a fixed total, whatever the length
+    assert (demo.total_steps(16), demo.total_steps(301)) == (1500, 1500)
+    assert (demo.control_points(301), demo.initial_points(301)) == (demo.num_control_points, demo.init_points)
+    fixed = real.with_overrides(["iterations=700"])  # a total given: fixed
+    assert (fixed.steps_per_window, fixed.total_steps(301)) == (0, 700)
+    both = real.with_overrides(["iterations=700", "steps_per_window=5"])
+    assert both.total_steps(301) == 1500
+    unwindowed = real.replace(anchor_windows=False)
+    assert unwindowed.control_points(301) == 512 and unwindowed.initial_points(301) == 60000
+
+
+def test_a_new_model_gets_points_per_window():
+    model, _ = build(WINDOWED.replace(control_points_per_window=5, num_control_points=32))
+    assert model.control.num_points == 15  # three anchors
+    assert torch.bincount(model.control.birth, minlength=3).tolist() == [5, 5, 5]
+
+
+def _reference(data, substeps: int) -> tuple[np.ndarray, torch.Tensor]:
+    """Every gap's running sums, made up front as training made them before sums were made on demand."""
+    grid = EventGrid.build(data, substeps)
+    w, h = data.event_size
+    cum = torch.zeros(grid.num_gaps, substeps + 1, h, w)
+    for n in range(grid.num_gaps):
+        for j in range(substeps):
+            window = np.asarray(data.event_map(int(grid.times[n, j]), int(grid.times[n, j + 1])), np.float32)
+            cum[n, j + 1] = cum[n, j] + torch.from_numpy(window)
+    return grid.times, cum
+
+
+def test_event_sums_made_on_demand_equal_the_sums_made_up_front():
+    data = tiny_scene.data(anchors_ms=(0, 40, 100, 130, 200))
+    times, reference = _reference(data, 5)
+    w, h = data.event_size
+    one_gap = 6 * h * w * 4
+    # a cache of one gap, of two (least recently used out), of all: the same sums, made again when gone
+    for gaps, made in ((1, 9), (2, 8), (100, 4)):
+        grid = EventGrid.build(data, 5, cache_bytes=gaps * one_gap)
+        np.testing.assert_array_equal(grid.times, times)
+        for gap in [2, 0, 2, 3, 1, 0, 3, 3, 1, 2]:
+            assert torch.equal(grid.cumulative(gap), reference[gap])
+        assert (grid.capacity, grid.made) == (gaps, made)
+
+
+def test_row_adam_steps_the_rows_given_as_adam_does_and_leaves_the_rest():
+    torch.manual_seed(0)
+    rows = torch.tensor([1, 4, 5])
+    start = torch.randn(7, 3)
+    ours = torch.nn.Parameter(start.clone())
+    theirs = torch.nn.Parameter(start.clone())
+    sub = torch.nn.Parameter(start[rows].clone())
+    row_adam = RowAdam([{"name": "means", "params": [ours], "lr": 0.1}], row_groups=("means",), eps=1e-15)
+    adam = torch.optim.Adam([theirs], lr=0.1, eps=1e-15)
+    adam_sub = torch.optim.Adam([sub], lr=0.1, eps=1e-15)
+    for step in range(5):
+        grad = torch.randn(7, 3)
+        if step:
+            grad[[0, 2, 3, 6]] = 0.0  # the rows no drawn window holds
+        for p, g in ((ours, grad), (theirs, grad), (sub, grad[rows])):
+            p.grad = g.clone()
+        row_adam.rows = None if step == 0 else rows  # first every row, as torch's Adam
+        row_adam.step(), adam.step()
+        if step == 0:
+            torch.testing.assert_close(ours.detach(), theirs.detach(), rtol=0, atol=0)
+            adam_sub = torch.optim.Adam([sub], lr=0.1, eps=1e-15)
+            with torch.no_grad():
+                sub.copy_(ours[rows])
+            moved = ours.detach().clone()
+            adam_sub.state[sub] = {k: (v[rows].clone() if v.dim() else v.clone())
+                                   for k, v in row_adam.state[ours].items()}
+            continue
+        adam_sub.step()
+    torch.testing.assert_close(ours.detach()[rows], sub.detach(), rtol=1e-6, atol=1e-7)
+    others = torch.tensor([0, 2, 3, 6])
+    assert torch.equal(ours.detach()[others], moved[others])  # no momentum drift outside the rows
+    assert not torch.equal(theirs.detach()[others], moved[others])  # as torch's Adam would drift them
+
+
+@torch.no_grad()
+def test_a_window_state_is_the_full_state_of_its_gaussians():
+    model, data = build(WINDOWED)
+    t = int(data.held_out_t_us[0])
+    emap = torch.as_tensor(data.event_map(model.tau(t), t))
+    w2c = torch.eye(4)
+    window = model.window(t)
+    full = model.state_from_motion(*model.control_motion(model.meta.normalized_time(t), emap, w2c,
+                                                         since=model.meta.normalized_time(model.tau(t)))[:2],
+                                   window)
+    rows = model.window_rows(window)
+    local = model.window_state(*model.control_motion(model.meta.normalized_time(t), emap, w2c,
+                                                      window=window)[:2], window)
+    for name in ("means", "quats", "scales", "opacities", "colors"):
+        torch.testing.assert_close(getattr(local, name), getattr(full, name)[rows.gaussians], rtol=1e-5,
+                                   atol=1e-6)
+    assert bool((full.opacities[rows.gaussians] > 0).all())
+    others = torch.ones(len(model.gaussians), dtype=torch.bool)
+    others[rows.gaussians] = False
+    assert float(full.opacities[others].abs().max()) == 0.0  # nothing else is drawn there
+
+
+def test_a_windowed_step_moves_only_the_gaussians_of_the_windows_it_drew():
+    model, data = build(WINDOWED.replace(iterations=8, lr_means=0.05))
+    trainer = Trainer(model, data, progress=False)
+    birth = model.gaussians.birth
+    for _ in range(8):
+        drawn_before = {name: getattr(model.gaussians, name).detach().clone()
+                        for name in ("means", "opacity_logits", "features")}
+        state = trainer.rng.bit_generator.state
+        n = trainer._draw(trainer.anchor_shard)  # the draws the step will make
+        gap = trainer._draw(trainer.gap_shard)
+        trainer.rng.bit_generator.state = state
+        terms = trainer.train_step()
+        assert np.isfinite(terms["loss"])
+        untouched = (birth != n) & (birth != gap)
+        for name, before in drawn_before.items():
+            after = getattr(model.gaussians, name).detach()
+            assert torch.equal(after[untouched], before[untouched]), name
+        assert not torch.equal(model.gaussians.means.detach()[birth == n], drawn_before["means"][birth == n])
+
+
+def test_a_windowed_run_takes_its_steps_per_window():
+    cfg = WINDOWED.replace(steps_per_window=3)
+    model, data = build(cfg)
+    trainer = Trainer(model, data, progress=False)
+    assert trainer.total_steps == 6  # three anchors: two spans
+    trainer.fit()
+    assert trainer.step == 6
