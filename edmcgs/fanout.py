@@ -1,5 +1,6 @@
 """Independent jobs as Ray tasks (the optional ``ray`` extra): ``edmcgs train --ray`` over several
-recordings, ``bench.report --ray`` over its training grid.
+recordings, ``bench.report --ray`` over its training grid; and the Ray session both these and the
+data-parallel training (``edmcgs.data_parallel``) run in.
 
 Each task reserves ``threads`` CPUs and runs torch (and numba) on that many threads, so tasks side by
 side never oversubscribe the cores Ray gave them. Results come back in the jobs' order; files a job
@@ -13,14 +14,15 @@ after; a Ray already initialised by the caller is used as it is.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any
 
 from edmcgs.errors import InvalidInputError
 
 
-def _with_threads(fn: Callable[[Any], Any], job: Any, threads: int) -> Any:
-    """Runs in the task's worker: its own thread counts, then the job."""
+def with_threads(fn: Callable[[Any], Any], job: Any, threads: int) -> Any:
+    """Runs in a Ray worker: its own thread counts, then the job."""
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     import torch
 
@@ -34,33 +36,46 @@ def _with_threads(fn: Callable[[Any], Any], job: Any, threads: int) -> Any:
     return fn(job)
 
 
+@contextmanager
+def ray_session(num_cpus: int | None = None) -> Iterator[Any]:
+    """The ``ray`` module, initialised for the block: joins ``RAY_ADDRESS`` when set, else a local Ray of
+    ``num_cpus`` (default: every core), shut down after it; a Ray the caller initialised is used as it is."""
+    try:
+        import ray
+    except ImportError as exc:
+        raise InvalidInputError(f"--ray needs the 'ray' extra (pip install 'edmcgs[ray]'): {exc}") from None
+    started_here = not ray.is_initialized()
+    if started_here:
+        joined = bool(os.environ.get("RAY_ADDRESS"))
+        ray.init(num_cpus=None if joined else num_cpus, include_dashboard=False)
+    try:
+        yield ray
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
+def check_cpus(ray, wanted: float, what: str) -> None:
+    """InvalidInputError unless the cluster has ``wanted`` CPUs (``what`` wants them)."""
+    cpus = ray.cluster_resources().get("CPU", 0)
+    if cpus < wanted:
+        raise InvalidInputError(f"{what} wants {wanted:g} CPUs but the Ray cluster has {cpus:g}")
+
+
 def fan_out(fn: Callable[[Any], Any], jobs: Sequence[Any], *, threads: int = 1,
             num_cpus: int | None = None) -> list[Any]:
     """``[fn(job) for job in jobs]``, each call a Ray task with ``threads`` CPUs; ``num_cpus``: the
     size of the local Ray started here (default: every core). A failed job raises its own error."""
     if threads < 1:
         raise InvalidInputError(f"threads per task must be >= 1, got {threads}")
-    try:
-        import ray
-    except ImportError as exc:
-        raise InvalidInputError(f"--ray needs the 'ray' extra (pip install 'edmcgs[ray]'): {exc}") from None
     if not jobs:
         return []
-    started_here = not ray.is_initialized()
-    if started_here:
-        joined = bool(os.environ.get("RAY_ADDRESS"))
-        ray.init(num_cpus=None if joined else num_cpus, include_dashboard=False)
-    try:
-        cpus = ray.cluster_resources().get("CPU", 0)
-        if cpus < threads:
-            raise InvalidInputError(f"a task wants {threads} CPUs but the Ray cluster has {cpus:g}")
-        task = ray.remote(num_cpus=threads, max_retries=0)(_with_threads)
+    with ray_session(num_cpus) as ray:
+        check_cpus(ray, threads, "a task")
+        task = ray.remote(num_cpus=threads, max_retries=0)(with_threads)
         refs = [task.remote(fn, job, threads) for job in jobs]
         try:
             return ray.get(refs)
         except ray.exceptions.RayTaskError as exc:
             cause = exc.cause if getattr(exc, "cause", None) is not None else exc
             raise cause from None
-    finally:
-        if started_here:
-            ray.shutdown()

@@ -3,7 +3,10 @@ becomes training data and config through ``edmcgs.pipeline``).
 
 ``edmcgs train REC1 REC2 ... -o FOLDER [--ray]``: one run per recording, each checkpoint
 ``FOLDER/<recording's stem>.ckpt``; with ``--ray`` the runs are Ray tasks side by side (``--threads``
-CPUs each; ``edmcgs.fanout``), else one after another."""
+CPUs each; ``edmcgs.fanout``), else one after another.
+
+``edmcgs train REC -o CKPT --ray --workers N``: one run of one recording, data-parallel over N Ray Train
+workers (``edmcgs.data_parallel``), the same single checkpoint."""
 
 from __future__ import annotations
 
@@ -25,10 +28,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("recording", nargs="*", help="the recording: AEDAT4, or HDF5 (edmcgs, DSEC, v2e); "
                                                      "several: one run each")
     parser.add_argument("-o", "--output", help="checkpoint to write (atomically); with several recordings "
-                                               "or --ray, a folder for one checkpoint per recording")
+                                               "or --ray (without --workers), a folder for one checkpoint "
+                                               "per recording")
     parser.add_argument("--ray", action="store_true",
-                        help="run each recording's training as a Ray task (the 'ray' extra; joins "
-                             "RAY_ADDRESS, else a local Ray)")
+                        help="run each recording's training as a Ray task, or with --workers one recording's "
+                             "training data-parallel (the 'ray' extra; joins --ray-address or RAY_ADDRESS, "
+                             "else a local Ray)")
+    parser.add_argument("--workers", type=int, metavar="N",
+                        help="with --ray: train the one recording data-parallel on N Ray Train workers "
+                             "(--threads CPUs each), each a shard of the anchor windows, the gradients "
+                             "averaged every step; one checkpoint, as a single run writes")
+    parser.add_argument("--ray-address", metavar="ADDR", help="the Ray cluster --ray joins (default: "
+                                                              "RAY_ADDRESS, else a local Ray)")
     parser.add_argument("--ray-cpus", type=int, metavar="N", help="CPUs of the local Ray --ray starts")
     parser.add_argument("--list-config", action="store_true",
                         help="print every config key of the preset, by part, with its value and description, "
@@ -64,7 +75,20 @@ def main(argv: list[str] | None = None) -> int:
         return _list_config(args.config or "demo")
     if not args.recording or args.output is None:
         parser.error("give RECORDING and -o CHECKPOINT (or --list-config)")
-    many = len(args.recording) > 1 or args.ray  # -o is a folder: each checkpoint is checked in _run_many
+    if args.workers is not None:
+        if not args.ray:
+            parser.error("--workers N trains data-parallel on Ray: give --ray too")
+        if args.workers < 1 or len(args.recording) > 1:
+            parser.error("--workers N (N >= 1) trains one recording")
+        if args.resume is not None or args.steps is not None or args.tensorboard:
+            parser.error("--workers runs a whole training: --resume, --steps and --tensorboard are for a "
+                         "single process")
+    if args.ray_address:
+        if not args.ray:
+            parser.error("--ray-address ADDR goes with --ray")
+        os.environ["RAY_ADDRESS"] = args.ray_address
+    # -o is a folder: each checkpoint is checked in _run_many
+    many = len(args.recording) > 1 or (args.ray and args.workers is None)
     if not many and args.resume is None and not args.force and os.path.exists(args.output):
         parser.error(f"{args.output} exists: --force replaces it, --resume continues its run")
     if args.steps is not None and args.steps < 1:
@@ -82,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
         if many:
             return _run_many(args)
         args.recording = args.recording[0]
-        return _run(args)
+        return _run(args) if args.workers is None else _run_parallel(args)
     except EdmcgsError as exc:
         print(f"edmcgs train: {exc}", file=sys.stderr)
         return 1
@@ -144,7 +168,7 @@ def _train_one(args: argparse.Namespace) -> int:
 def _shared_argv(args: argparse.Namespace) -> list[str]:
     """The command line's arguments that every recording's run shares (for its resume hint): without
     the recordings, the output and the Ray flags."""
-    drop_with_value = {"-o", "--output", "--ray-cpus", "--tensorboard"}
+    drop_with_value = {"-o", "--output", "--ray-cpus", "--ray-address", "--tensorboard"}
     out, skip = [], False
     for arg in args.argv:
         if skip:
@@ -270,9 +294,6 @@ def _run(args) -> int:
 
     from edmcgs.model.checkpoint import load_checkpoint, read_checkpoint
     from edmcgs.model.devices import check_device
-    from edmcgs.model.eval.baselines import BASELINES, score_baselines
-    from edmcgs.model.eval.compare import Comparison
-    from edmcgs.model.eval.evaluation import evaluate
     from edmcgs.model.train.curves import TensorBoardCurves
     from edmcgs.model.train.resume import resume_state
     from edmcgs.model.train.trainer import Trainer, write_history_csv
@@ -353,16 +374,42 @@ def _run(args) -> int:
         print(f"interrupted at step {trainer.step} of {until}: saved a resumable checkpoint to {out}; "
               f"continue with: {resume_command(args.argv, out, more)}", file=sys.stderr)
         return INTERRUPTED
-    written = f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB, {len(trainer.model.gaussians)} Gaussians)"
+    return _report(trainer.model, data, out)
+
+
+def _run_parallel(args) -> int:
+    """One recording trained data-parallel on ``args.workers`` Ray Train workers, then scored here."""
+    from edmcgs.data_parallel import Job, train
+    from edmcgs.model.checkpoint import load_checkpoint
+    from edmcgs.pipeline import open_recording, training_data
+
+    if args.device != "cpu":
+        raise InvalidInputError("--workers trains on the CPU (gloo); leave out --device")
+    job = Job(recording=args.recording, output=args.output, config=args.config, overrides=args.overrides,
+              options=RecordingOptions.from_args(args), threads=args.threads, quiet=args.quiet,
+              history=args.history)
+    print(f"training {args.recording} on {args.workers} Ray Train worker(s), {args.threads} thread(s) each")
+    train(job, args.workers, num_cpus=args.ray_cpus)
+    data = training_data(open_recording(args.recording, job.options, lazy_events=True))
+    return _report(load_checkpoint(args.output), data, Path(args.output))
+
+
+def _report(model, data, out: Path) -> int:
+    """The line a finished run prints: the checkpoint, and its held-out scores beside the baselines."""
+    from edmcgs.model.eval.baselines import BASELINES, score_baselines
+    from edmcgs.model.eval.compare import Comparison
+    from edmcgs.model.eval.evaluation import evaluate
+
+    written = f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB, {len(model.gaussians)} Gaussians)"
     if not data.evaluable().size:
         print(f"{written}; the recording has no held-out frames to score it on")
         return 0
-    comparison = Comparison({"model": evaluate(trainer.model, data), **score_baselines(data)})
+    comparison = Comparison({"model": evaluate(model, data), **score_baselines(data)})
     summary = comparison.summary()
-    model = summary.pop("model")
+    ours = summary.pop("model")
     baselines = ", ".join(f"{name}: {s['psnr']:.2f} dB / {s['ssim']:.4f}" for name, s in summary.items())
-    print(f"{written}; held-out PSNR {model['psnr']:.2f} dB, SSIM {model['ssim']:.4f} (3DGS convention "
-          f"{model['ssim_3dgs']:.4f}) over {model['frames']} frames; {baselines}")
+    print(f"{written}; held-out PSNR {ours['psnr']:.2f} dB, SSIM {ours['ssim']:.4f} (3DGS convention "
+          f"{ours['ssim_3dgs']:.4f}) over {ours['frames']} frames; {baselines}")
     for line in comparison.losses("model", BASELINES):
         print(f"WARNING: the {line}")
     return 0

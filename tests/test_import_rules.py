@@ -23,9 +23,9 @@ MODEL_ROOMS = ("render", "motion", "train", "eval", "online")
 MODEL_CORE = ("edmcgs.model.dynamic", "edmcgs.model.motion", "edmcgs.model.render", "edmcgs.model.config",
               "edmcgs.model.data", "edmcgs.model.checkpoint")
 """The inference core and what it is built from: it never imports what trains, scores or extends it."""
-RAY_ROOMS = ("edmcgs.server.ray_serve", "edmcgs.fanout")
+RAY_ROOMS = ("edmcgs.server.ray_serve", "edmcgs.fanout", "edmcgs.data_parallel")
 """The only installed modules that import ``ray`` (the optional extra): the Serve application and the
-training fan-out."""
+training fan-out and data-parallel training."""
 BENCH_ONLY = ("matplotlib",)
 """Third-party packages of the ``bench`` extra, which only ``bench/`` imports."""
 

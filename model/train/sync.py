@@ -73,6 +73,14 @@ class GradientSync:
             else:
                 p.grad[r] = chunk
 
+    def agree(self, module: torch.nn.Module) -> bool:
+        """Whether every worker holds the same parameters (a checksum of each compared, bit for bit)."""
+        sums = torch.stack([p.detach().double().sum() for p in module.parameters()])
+        low, high = sums.clone(), sums.clone()
+        dist.all_reduce(low, op=dist.ReduceOp.MIN)
+        dist.all_reduce(high, op=dist.ReduceOp.MAX)
+        return bool(torch.equal(low, high))
+
     def sum_(self, *tensors: Tensor) -> None:
         """Sum each tensor over the workers, in place."""
         for t in tensors:

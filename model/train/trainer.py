@@ -522,6 +522,8 @@ class Trainer:
             if checkpoint_path and self.lead:
                 self.save_resumable(checkpoint_path)
             return self.history
+        if self.sync is not None and not self.sync.agree(self.model):
+            raise TrainingError("the data-parallel workers' models differ at the end: nothing was written")
         self.model.event_scale.fill_(1.0)
         self.model.eval()
         if checkpoint_path and self.lead:
