@@ -32,6 +32,7 @@ import hashlib
 import json
 import os
 import platform
+import resource
 import sys
 import time
 from pathlib import Path
@@ -242,6 +243,7 @@ def event_path_child(path: Path) -> dict:
     from edmcgs.sensor.sources.pacing import Pacing
     from edmcgs.server.settings import Settings
 
+    imports_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6  # the interpreter and its modules
     ring = EventRingBuffer(Settings.model_fields["ring_events"].default)
     started = time.perf_counter()
     maps, nonzero = 0, 0
@@ -263,7 +265,8 @@ def event_path_child(path: Path) -> dict:
         raise ingest.error
     stats = ring.stats()
     return {"events": stats.pushed, "seconds": time.perf_counter() - started, "maps": maps,
-            "ring_mb": stats.nbytes / 1e6, "overflowed": stats.overflowed, "nonzero_pixels": nonzero}
+            "ring_mb": stats.nbytes / 1e6, "overflowed": stats.overflowed, "nonzero_pixels": nonzero,
+            "imports_gb": imports_gb}
 
 
 def event_path(source: Path, cache: Path) -> dict:
@@ -351,7 +354,9 @@ def markdown(r: dict, command: str) -> str:
                   f"{EVENT_PATH_S} s, {e['events'] / 1e6:.0f} M events) replayed as fast as it reads through "
                   f"the HDF5 replay into the server's ring ({e['ring_mb']:.0f} MB), I_E of the newest "
                   f"{EVENT_WINDOW_US // 1000} ms taken {e['maps']} times as it filled: {e['seconds']:.0f} s, "
-                  f"peak resident memory **{e['peak_gb']:.2f} GB**.", ""]
+                  f"peak resident memory **{e['peak_gb']:.2f} GB**"
+                  + (f", {e['imports_gb']:.2f} GB of it the interpreter and its modules (torch, numba) "
+                     "before the first event" if "imports_gb" in e else "") + ".", ""]
     if "ray" in r:
         lines += ["## Data-parallel training on Ray Train", "",
                   "`edmcgs train REC --config real --threads 1 --ray --workers N --ray-cpus 2` on the "

@@ -23,7 +23,8 @@ from edmcgs.options import RecordingOptions
 
 @dataclass
 class Job:
-    """What every worker of a data-parallel run needs: the same recording, config and output."""
+    """What every worker of a data-parallel run needs: the same recording, config and output (paths
+    absolute: a worker runs in another directory, on a cluster on another machine)."""
 
     recording: str
     output: str

@@ -379,18 +379,25 @@ def _run(args) -> int:
 
 def _run_parallel(args) -> int:
     """One recording trained data-parallel on ``args.workers`` Ray Train workers, then scored here."""
+    from dataclasses import replace
+
     from edmcgs.data_parallel import Job, train
     from edmcgs.model.checkpoint import load_checkpoint
     from edmcgs.pipeline import open_recording, training_data
 
     if args.device != "cpu":
         raise InvalidInputError("--workers trains on the CPU (gloo); leave out --device")
-    job = Job(recording=args.recording, output=args.output, config=args.config, overrides=args.overrides,
-              options=RecordingOptions.from_args(args), threads=args.threads, quiet=args.quiet,
-              history=args.history)
+    # Ray's workers run elsewhere (another directory, on a cluster another machine): absolute paths.
+    options = RecordingOptions.from_args(args)
+    files = {name: os.path.abspath(value) for name in ("poses", "intrinsics")
+             if (value := getattr(options, name)) is not None and os.path.isfile(value)}
+    job = Job(recording=os.path.abspath(args.recording), output=os.path.abspath(args.output),
+              config=args.config, overrides=args.overrides, options=replace(options, **files),
+              threads=args.threads, quiet=args.quiet,
+              history=None if args.history is None else os.path.abspath(args.history))
     print(f"training {args.recording} on {args.workers} Ray Train worker(s), {args.threads} thread(s) each")
     train(job, args.workers, num_cpus=args.ray_cpus)
-    data = training_data(open_recording(args.recording, job.options, lazy_events=True))
+    data = training_data(open_recording(job.recording, job.options, lazy_events=True))
     return _report(load_checkpoint(args.output), data, Path(args.output))
 
 

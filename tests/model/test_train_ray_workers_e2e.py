@@ -25,17 +25,18 @@ def _train(rec, out, *extra) -> int:
                  "--threads", "1", "-q", *[a for s in TINY_REAL for a in ("--set", s)], *extra])
 
 
-def test_two_workers_write_the_one_checkpoint_a_single_run_writes(tmp_path, capsys):
+def test_two_workers_write_the_one_checkpoint_a_single_run_writes(tmp_path, capsys, monkeypatch):
     import ray
 
     rec, _ = build_scene(tmp_path / "scene", width=48, height=32, duration_s=0.8, event_rate=20_000,
                          frames_per_anchor=2, init_points=300, control_points=16, seed=3)
     single, parallel = tmp_path / "single.ckpt", tmp_path / "parallel.ckpt"
     assert _train(rec, single) == 0
-    assert _train(rec, parallel, "--ray", "--workers", "2", "--ray-cpus", "2") == 0
+    monkeypatch.chdir(tmp_path)  # paths relative to here: the workers run elsewhere
+    assert _train(rec.relative_to(tmp_path), parallel.name, "--ray", "--workers", "2", "--ray-cpus", "2") == 0
     assert not ray.is_initialized(), "the local Ray started for the run is shut down"
     printed = capsys.readouterr().out
-    assert f"wrote {parallel}" in printed and "held-out PSNR" in printed
+    assert f"wrote {parallel.name}" in printed and "held-out PSNR" in printed
     a, b = read_checkpoint(single), read_checkpoint(parallel)
     assert a.keys() == b.keys() and a["sizes"] == b["sizes"] and a["meta"].keys() == b["meta"].keys()
     assert {k: tuple(v.shape) for k, v in a["state_dict"].items()} == \
