@@ -10,7 +10,7 @@ pytest.importorskip("ray.train", reason="the 'ray' extra (ray[train]) is not ins
 
 from edmcgs.cli import main
 from edmcgs.model.checkpoint import load_checkpoint, read_checkpoint
-from tests.support.server import build_scene
+from harness.server import build_scene
 
 pytestmark = pytest.mark.slow
 
