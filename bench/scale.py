@@ -167,7 +167,7 @@ def serve_once(rec: Path, ckpt: Path, seconds: float) -> dict:
     """One server of ``ckpt`` replaying ``rec``: /render p50 (one client) and the server's RSS."""
     from bench.serve import measure_single
     from edmcgs.clients.client import Client
-    from tests.support.server import ServerProcess
+    from harness.server import ServerProcess
 
     server = ServerProcess(["--replay", str(rec), "--checkpoint", str(ckpt), "--loop", "--speed", "4"])
     try:

@@ -10,8 +10,6 @@ other group as torch's Adam does. The state keeps torch's layout (``step``, ``ex
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 
@@ -59,12 +57,12 @@ class RowAdam(torch.optim.Adam):
             state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
             state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
         state["step"] += 1
-        step = float(state["step"])
+        step = state["step"].double()  # the bias corrections as tensors: nothing read back to the host
         rows = self.rows
         exp_avg = state["exp_avg"][rows].lerp_(grad, 1 - beta1)
         exp_avg_sq = state["exp_avg_sq"][rows].mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
         state["exp_avg"][rows] = exp_avg
         state["exp_avg_sq"][rows] = exp_avg_sq
         step_size = group["lr"] / (1 - beta1 ** step)
-        denom = (exp_avg_sq.sqrt() / math.sqrt(1 - beta2 ** step)).add_(group["eps"])
-        p[rows] = p[rows].addcdiv_(exp_avg, denom, value=-step_size)
+        denom = (exp_avg_sq.sqrt() / (1 - beta2 ** step).sqrt()).add_(group["eps"])
+        p[rows] = p[rows] - step_size * (exp_avg / denom)
