@@ -40,7 +40,8 @@ class Structure:
     """M: control points sampled by farthest-point sampling of the canonical means."""
     control_points_per_window: int = 0
     """With anchor windows: M = this many times the number of anchors (farthest-point sampling gives each
-    window about this many), so that a longer recording keeps as many per window; 0: num_control_points."""
+    window about this many), so that a longer recording keeps as many per window, and never fewer than
+    num_control_points (a short recording keeps what it had); 0: num_control_points."""
     skin_k: int = 3
     """K: control points each Gaussian is bound to (linear blend skinning)."""
     graph_k: int = 10
@@ -99,7 +100,7 @@ class Initialisation:
     from the background when there are fewer such pixels)."""
     init_points_per_window: int = 0
     """With anchor windows: at most this many times the number of anchors Gaussians at initialisation (a
-    longer recording keeps its density of movers); 0: init_points."""
+    longer recording keeps its density of movers), and never fewer than init_points; 0: init_points."""
     init_opacity: float = 0.1
     """Opacity of every Gaussian at initialisation."""
     init_anchors: int = 0
@@ -148,11 +149,12 @@ class Schedule:
     evaluation and checkpoints."""
 
     iterations: int = 30000
-    """Optimisation steps (unless steps_per_window is set; ``--set iterations=N`` alone sets
-    steps_per_window to 0: a fixed total)."""
+    """Optimisation steps (with steps_per_window: the fewest, those of a short recording; ``--set
+    iterations=N`` alone sets steps_per_window to 0: a fixed total)."""
     steps_per_window: int = 0
     """Optimisation steps per span between two consecutive anchors: the run's steps grow with the length
-    of the recording (``total_steps``); 0: ``iterations`` whatever the length."""
+    of the recording, never below ``iterations`` (``total_steps``); 0: ``iterations`` whatever the
+    length."""
     train_scale: float = 1.0
     """Render and supervise at this fraction of the image resolution (the event maps fed to Phi stay
     at full resolution)."""
@@ -255,21 +257,21 @@ class EdmcgsConfig(Schedule, Losses, Initialisation, Structure):
 
     def total_steps(self, anchors: int) -> int:
         """The run's steps for a recording of ``anchors`` anchor frames: ``steps_per_window`` per span
-        between consecutive anchors (one span for a single anchor), else ``iterations``."""
+        between consecutive anchors (one span for a single anchor), at least ``iterations``."""
         if self.steps_per_window <= 0:
             return self.iterations
-        return self.steps_per_window * max(int(anchors) - 1, 1)
+        return max(self.iterations, self.steps_per_window * max(int(anchors) - 1, 1))
 
     def control_points(self, anchors: int) -> int:
         """M for a recording of ``anchors`` anchor frames (``control_points_per_window``)."""
         if self.anchor_windows and self.control_points_per_window > 0:
-            return self.control_points_per_window * int(anchors)
+            return max(self.num_control_points, self.control_points_per_window * int(anchors))
         return self.num_control_points
 
     def initial_points(self, anchors: int) -> int:
         """The most Gaussians at initialisation for ``anchors`` anchor frames (``init_points_per_window``)."""
         if self.anchor_windows and self.init_points_per_window > 0:
-            return self.init_points_per_window * int(anchors)
+            return max(self.init_points, self.init_points_per_window * int(anchors))
         return self.init_points
 
     def frozen_changes(self, other: EdmcgsConfig) -> list[str]:
@@ -395,8 +397,9 @@ def _real() -> EdmcgsConfig:
     # from the anchor (anchored_pairs 1: the anchor state is exact, so the events since it say where the
     # edges went) plus the next anchor frame seen through a 6-level pyramid (alone, with free start
     # times, it pushes movers off the frame). Its cost follows the recording: 100 steps, 32 control
-    # points and at most 3750 Gaussians per anchor window (a 3 s clip at 5 fps: 1500 steps, 512 points,
-    # 60000 Gaussians at most). Figures: docs/benchmarks/real.md.
+    # points and at most 3750 Gaussians per anchor window, never fewer than a 3 s clip at 5 fps has
+    # (1500 steps, 512 points, 60000 Gaussians at most: a shorter recording trains as it always did).
+    # Figures: docs/benchmarks/real.md, docs/benchmarks/scale.md.
     return _demo().replace(
         bg_layer=True, anchor_windows=True, event_act="leaky", dynamic_threshold=0.04, init_opacity=0.8,
         init_points=60000, max_gaussians=60000, densify_from=0.0, densify_until=0.0, steps_per_window=100,

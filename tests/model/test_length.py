@@ -23,7 +23,9 @@ def test_the_real_preset_takes_steps_points_and_gaussians_per_anchor_window():
     assert (real.total_steps(16), real.control_points(16), real.initial_points(16)) == (1500, 512, 60000)
     assert (real.total_steps(301), real.control_points(301), real.initial_points(301)) == \
         (30000, 9632, 1_128_750)
-    assert real.total_steps(1) == 100  # one anchor: one span, to the recording's end
+    # shorter: never below those (a 2.4 s clip trains as it always did)
+    assert (real.total_steps(12), real.control_points(12), real.initial_points(12)) == (1500, 512, 60000)
+    assert real.replace(iterations=1).total_steps(1) == 100  # one anchor: one span, to the recording's end
     demo = preset("demo")  # no steps per window: a fixed total, whatever the length
     assert (demo.total_steps(16), demo.total_steps(301)) == (1500, 1500)
     assert (demo.control_points(301), demo.initial_points(301)) == (demo.num_control_points, demo.init_points)
@@ -36,7 +38,7 @@ def test_the_real_preset_takes_steps_points_and_gaussians_per_anchor_window():
 
 
 def test_a_new_model_gets_points_per_window():
-    model, _ = build(WINDOWED.replace(control_points_per_window=5, num_control_points=32))
+    model, _ = build(WINDOWED.replace(control_points_per_window=5, num_control_points=12))
     assert model.control.num_points == 15  # three anchors
     assert torch.bincount(model.control.birth, minlength=3).tolist() == [5, 5, 5]
 
@@ -144,7 +146,7 @@ def test_a_windowed_step_moves_only_the_gaussians_of_the_windows_it_drew():
 
 
 def test_a_windowed_run_takes_its_steps_per_window():
-    cfg = WINDOWED.replace(steps_per_window=3)
+    cfg = WINDOWED.replace(steps_per_window=3, iterations=1)
     model, data = build(cfg)
     trainer = Trainer(model, data, progress=False)
     assert trainer.total_steps == 6  # three anchors: two spans
