@@ -56,6 +56,11 @@ def _worker(config: dict) -> None:
     history = trainer.fit(job.output if trainer.lead else None)
     if trainer.lead and job.history:
         write_history_csv(history, job.history)
+    if trainer.lead:  # the split a cluster's speed-up is estimated from (bench.scale reads this line)
+        steps = max(trainer.step // sync.world, 1)
+        print(f"data-parallel: {sync.world} workers, {steps} steps each, {trainer.train_seconds:.1f} s "
+              f"training, {sync.seconds:.1f} s of it exchanging gradients "
+              f"({sync.bytes / steps / 1e6:.3f} MB per step)", flush=True)
 
 
 def train(job: Job, workers: int, *, num_cpus: int | None = None) -> None:

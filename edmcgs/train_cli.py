@@ -80,9 +80,9 @@ def main(argv: list[str] | None = None) -> int:
             parser.error("--workers N trains data-parallel on Ray: give --ray too")
         if args.workers < 1 or len(args.recording) > 1:
             parser.error("--workers N (N >= 1) trains one recording")
-        if args.resume is not None or args.steps is not None or args.tensorboard:
-            parser.error("--workers runs a whole training: --resume, --steps and --tensorboard are for a "
-                         "single process")
+        if args.resume is not None or args.steps is not None or args.tensorboard or args.compile:
+            parser.error("--workers runs a whole training: --resume, --steps, --tensorboard and --compile "
+                         "are for a single process")
     if args.ray_address:
         if not args.ray:
             parser.error("--ray-address ADDR goes with --ray")

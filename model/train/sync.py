@@ -11,6 +11,8 @@ and draws from generators seeded alike, so that it adds and removes the same Gau
 
 from __future__ import annotations
 
+import time
+
 import torch
 import torch.distributed as dist
 from torch import Tensor
@@ -24,6 +26,15 @@ class GradientSync:
             raise RuntimeError("data-parallel training needs an initialised torch.distributed process group")
         self.rank = dist.get_rank()
         self.world = dist.get_world_size()
+        self.seconds = 0.0
+        """Wall time in the exchanges of every step (``union``, ``average``, ``sum_``), waits for the
+        slower workers included: what a run spends beyond its own computing."""
+        self.bytes = 0
+        """Bytes this worker contributed to those exchanges (what a network would carry, once)."""
+
+    def _timed(self, started: float, *tensors: Tensor) -> None:
+        self.seconds += time.perf_counter() - started
+        self.bytes += sum(t.numel() * t.element_size() for t in tensors)
 
     def broadcast(self, module: torch.nn.Module) -> None:
         """Rank 0's parameters and buffers everywhere (the workers start from one model)."""
@@ -32,6 +43,7 @@ class GradientSync:
 
     def union(self, rows: Tensor) -> Tensor:
         """[R] int64: every worker's ``rows`` together, ascending and unique."""
+        started = time.perf_counter()
         size = torch.tensor([rows.numel()], dtype=torch.long)
         sizes = [torch.zeros_like(size) for _ in range(self.world)]
         dist.all_gather(sizes, size)
@@ -41,6 +53,7 @@ class GradientSync:
         gathered = [torch.empty_like(padded) for _ in range(self.world)]
         dist.all_gather(gathered, padded)
         out = torch.unique(torch.cat(gathered))
+        self._timed(started, size, padded)
         return out[out >= 0].to(rows.device)
 
     def average(self, optimizer: torch.optim.Optimizer, row_groups: frozenset[str],
@@ -48,6 +61,7 @@ class GradientSync:
         """Average every parameter's gradient over the workers, in one all-reduce (a worker without one
         gives zeros; a parameter no worker has a gradient for keeps none, as torch's Adam then skips
         it); for the ``row_groups`` only ``rows`` (None: all rows)."""
+        started = time.perf_counter()
         parts: list[tuple[Tensor, Tensor | None]] = []
         had = []
         for group in optimizer.param_groups:
@@ -59,6 +73,7 @@ class GradientSync:
         flat = torch.cat([*[(p.grad if r is None else p.grad[r]).reshape(-1) for p, r in parts],
                           torch.tensor(had, dtype=parts[0][0].grad.dtype, device=parts[0][0].grad.device)])
         dist.all_reduce(flat)
+        self._timed(started, flat)
         anyone = flat[-len(parts):] > 0
         flat = flat[:-len(parts)] / self.world
         offset = 0
@@ -83,8 +98,10 @@ class GradientSync:
 
     def sum_(self, *tensors: Tensor) -> None:
         """Sum each tensor over the workers, in place."""
+        started = time.perf_counter()
         for t in tensors:
             dist.all_reduce(t)
+        self._timed(started, *tensors)
 
     def barrier(self) -> None:
         dist.barrier()

@@ -15,7 +15,8 @@ from harness.server import build_scene
 pytestmark = pytest.mark.slow
 
 # The real preset (anchor windows: each worker draws its shard's windows, the rows exchanged), tiny.
-TINY_REAL = ["steps_per_window=4", "control_points_per_window=4", "init_points_per_window=150", "graph_k=3",
+TINY_REAL = ["iterations=1", "steps_per_window=4", "num_control_points=4", "control_points_per_window=4",
+             "init_points=150", "init_points_per_window=150", "graph_k=3",
              "deform_width=16", "deform_depth=2", "substeps=2", "max_pair_steps=2", "eval_every=0",
              "checkpoint_every=0"]
 
@@ -56,3 +57,6 @@ def test_workers_need_ray_and_one_recording(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["train", "a.h5", "b.h5", "-o", str(tmp_path / "m"), "--ray", "--workers", "2"])
     assert "trains one recording" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["train", "a.h5", "-o", str(tmp_path / "m.ckpt"), "--ray", "--workers", "2", "--compile"])
+    assert "--compile are for a single process" in capsys.readouterr().err
