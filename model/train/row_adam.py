@@ -3,8 +3,9 @@
 A training step of such a model draws one or two windows: the other windows' Gaussians have no
 gradient. torch's Adam would still move each of them by its decaying momentum, and cost a pass over
 every Gaussian of the recording per step. ``RowAdam`` steps the per-Gaussian groups on ``rows`` alone
-(a lazy Adam: the other rows' moments wait, unchanged, until their window is drawn again) and every
-other group as torch's Adam does. The state keeps torch's layout (``step``, ``exp_avg``,
+(the trainer gives the windows drawn in the last steps, whose momentum still moves them: torch's Adam
+for those; the other rows' moments wait, unchanged, until their window is drawn again) and every other
+group as torch's Adam does. The state keeps torch's layout (``step``, ``exp_avg``,
 ``exp_avg_sq`` per parameter), so resuming and density control read and edit it as before.
 """
 

@@ -3,7 +3,8 @@
 A run takes ``config.total_steps`` steps (a fixed number, or a number per span between anchors). With
 anchor windows a step works on the windows it draws alone (their Gaussians and control points, the
 event sums of their gap: ``EventGrid`` makes them on demand), so its cost does not grow with the
-recording's length; the optimizer steps those rows alone (``RowAdam``). Data-parallel: each worker draws
+recording's length; the optimizer steps the rows of the windows drawn in the last ``MOMENTUM_STEPS``
+steps alone (``RowAdam``: those Adam's momentum still moves). Data-parallel: each worker draws
 from its ``shard`` of the windows and ``sync`` averages the gradients (``sync.GradientSync``).
 
 One iteration:
@@ -24,6 +25,7 @@ import math
 import os
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 
 import numpy as np
@@ -56,6 +58,11 @@ from edmcgs.model.train.resume import remove_sidecar, save_final
 from edmcgs.model.train.row_adam import RowAdam
 from edmcgs.model.train.schedule import exp_decay, ramp
 from edmcgs.model.train.sync import GradientSync
+
+MOMENTUM_STEPS = math.ceil(math.log(1e-3) / math.log(0.9))
+"""Steps after its last draw that a window's Gaussians keep moving by Adam's momentum (beta1 0.9: 66
+steps, after which a step is below 1e-3 of the one that drew it), as torch's Adam moves them; past
+that they wait for their next draw (``RowAdam``), so a step's work is bounded whatever the length."""
 
 MAX_BAD_STEPS = 20
 """Consecutive non-finite losses after which training stops with a TrainingError."""
@@ -141,6 +148,8 @@ class Trainer:
         self.rng = np.random.default_rng(cfg.seed if rank == 0 else [cfg.seed, rank])
         self.generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
         self.history: list[dict] = []
+        self.recent: deque[list[int]] = deque(maxlen=MOMENTUM_STEPS)
+        """The windows each of the last steps drew (their Gaussians are the rows ``RowAdam`` steps)."""
         self.train_seconds = 0.0
         """Wall-clock seconds spent in training steps (not in evaluation or checkpointing)."""
         self.interrupted = False
@@ -246,7 +255,7 @@ class Trainer:
         n = self._draw(self.anchor_shard)
         windows = model_has_windows(model)
         rowwise = model.windowed  # a step's work: the rows of the windows it draws (no static set)
-        drawn = [n]  # the windows whose Gaussians this step moves
+        drawn = [n]  # the windows this step draws
         with stage("anchor: deform"):
             weights = None
             if rowwise:
@@ -341,7 +350,10 @@ class Trainer:
             loss.backward()
         rows = None
         if rowwise:
-            rows = torch.unique(torch.cat([model.window_rows(w).gaussians for w in drawn]))
+            # the Gaussians of the windows drawn in the last MOMENTUM_STEPS steps: Adam still moves them
+            self.recent.append(drawn)
+            moving = sorted({w for step in self.recent for w in step})
+            rows = torch.unique(torch.cat([model.window_rows(w).gaussians for w in moving]))
         if self.sync is not None:
             with stage("all-reduce"):
                 rows = None if rows is None else self.sync.union(rows)
@@ -543,7 +555,7 @@ class Trainer:
         return {"step": self.step, "optimizer": self.optimizer.state_dict(), "stats": self.stats.state_dict(),
                 "rng": self.rng.bit_generator.state, "generator": self.generator.get_state(),
                 "history": self.history, "train_seconds": self.train_seconds, "lifted": self.lifted,
-                "lift_counts": self.lift_counts}
+                "lift_counts": self.lift_counts, "recent": list(self.recent)}
 
     def load_train_state(self, state: dict) -> None:
         """Continue from ``train_state()`` output (the model must come from the same checkpoint)."""
@@ -556,6 +568,8 @@ class Trainer:
         self.train_seconds = float(state.get("train_seconds", 0.0))
         self.lifted = bool(state.get("lifted", not self.cfg.static_set))
         self.lift_counts = list(state.get("lift_counts", []))
+        self.recent.clear()
+        self.recent.extend([int(w) for w in step] for step in state.get("recent", []))
 
 
 def model_has_windows(model: EdMCGS) -> bool:

@@ -3,13 +3,15 @@ on demand, and a step of a model drawn in anchor windows working on its windows 
 
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 import torch
 
 from edmcgs.model.config import preset
 from edmcgs.model.data import EventGrid
 from edmcgs.model.train.row_adam import RowAdam
-from edmcgs.model.train.trainer import Trainer
+from edmcgs.model.train.trainer import MOMENTUM_STEPS, Trainer
 from tests.support import tiny_scene
 from tests.support.models import TINY, build, one_torch_thread  # noqa: F401
 
@@ -125,24 +127,35 @@ def test_a_window_state_is_the_full_state_of_its_gaussians():
     assert float(full.opacities[others].abs().max()) == 0.0  # nothing else is drawn there
 
 
-def test_a_windowed_step_moves_only_the_gaussians_of_the_windows_it_drew():
+def test_a_windowed_step_moves_the_gaussians_of_the_windows_drawn_lately_alone():
+    """The windows drawn in the last steps move (the step's by their gradients, the earlier ones' by Adam's
+    momentum); the others wait. A run remembers MOMENTUM_STEPS steps; here two."""
     model, data = build(WINDOWED.replace(iterations=8, lr_means=0.05))
     trainer = Trainer(model, data, progress=False)
+    assert trainer.recent.maxlen == MOMENTUM_STEPS == 66
+    trainer.recent = deque(maxlen=2)
     birth = model.gaussians.birth
+    momentum_seen = False
     for _ in range(8):
         drawn_before = {name: getattr(model.gaussians, name).detach().clone()
                         for name in ("means", "opacity_logits", "features")}
         state = trainer.rng.bit_generator.state
         n = trainer._draw(trainer.anchor_shard)  # the draws the step will make
-        gap = trainer._draw(trainer.gap_shard)
         trainer.rng.bit_generator.state = state
         terms = trainer.train_step()
         assert np.isfinite(terms["loss"])
-        untouched = (birth != n) & (birth != gap)
+        lately = torch.tensor(sorted({w for step in trainer.recent for w in step}))
+        untouched = ~torch.isin(birth, lately)
         for name, before in drawn_before.items():
             after = getattr(model.gaussians, name).detach()
             assert torch.equal(after[untouched], before[untouched]), name
         assert not torch.equal(model.gaussians.means.detach()[birth == n], drawn_before["means"][birth == n])
+        before = trainer.recent[0][0] if len(trainer.recent) == 2 else None  # the anchor the step before drew
+        if before is not None and before not in trainer.recent[-1]:
+            momentum_seen = True  # not drawn now: moved by its momentum alone
+            moved = model.gaussians.means.detach()[birth == before]
+            assert not torch.equal(moved, drawn_before["means"][birth == before])
+    assert momentum_seen
 
 
 def test_a_windowed_run_takes_its_steps_per_window():
