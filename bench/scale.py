@@ -32,6 +32,7 @@ import hashlib
 import json
 import os
 import platform
+import re
 import resource
 import sys
 import time
@@ -79,15 +80,25 @@ def _cached(path: Path, make) -> dict:
 
 # ------------------------------------------------------------------------------- 1. recordings
 
-def recording(cache: Path, scene: str, seconds: int) -> Path:
+SIZES = {"full": (346, 260), "small": (173, 130)}
+"""``edmcgs synth --size``: the DAVIS346's resolution, or half of it (a quarter of the cost)."""
+
+
+def recording_path(cache: Path, scene: str, seconds: int, size: str = "full") -> Path:
+    return cache / (f"{scene}_fps{FPS}_s{seconds}_seed0.h5" if size == "full" else
+                    f"{scene}_{size}_fps{FPS}_s{seconds}_seed0.h5")
+
+
+def recording(cache: Path, scene: str, seconds: int, size: str = "full") -> Path:
     """The scene at ``seconds`` (built once)."""
-    path = cache / f"{scene}_fps{FPS}_s{seconds}_seed0.h5"
+    path = recording_path(cache, scene, seconds, size)
     if not path.exists():
         cache.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".partial.h5")
         print(f"building {path.name} ...", file=sys.stderr)
         usage = measured_run([*_edmcgs(), "synth", scene, "--fps", str(FPS), "--seconds", str(seconds),
-                              "--seed", "0", "-q", "-o", str(tmp)], path.with_suffix(".build.log"))
+                              "--seed", "0", "--size", size, "-q", "-o", str(tmp)],
+                             path.with_suffix(".build.log"))
         path.with_suffix(".build.json").write_text(json.dumps(usage))
         tmp.replace(path)
     return path
@@ -142,6 +153,15 @@ def _steps(history: Path) -> int | None:
     return int(lines[-1].split(",")[0]) if lines else None
 
 
+def planned_steps(rec: Path, extra: list[str]) -> int:
+    """The run's steps as its config resolves them (``total_steps``), for a run that evaluated never."""
+    from edmcgs.pipeline import build_config, open_recording
+
+    r = open_recording(rec, lazy_events=True)
+    overrides = [extra[i + 1] for i, a in enumerate(extra[:-1]) if a == "--set"]
+    return build_config("real", overrides, r).total_steps(len(r.anchors))
+
+
 # ------------------------------------------------------------------------------- 3. scores
 
 def score(rec: Path, run: dict, cache: Path) -> dict:
@@ -178,7 +198,8 @@ def serve_once(rec: Path, ckpt: Path, seconds: float) -> dict:
             enough = min(scene["t_end_us"] - 20_000, scene["t_start_us"] + 2_000_000)
             while (client.scene()["renderable"] or {}).get("t_us_max", 0) < enough:
                 time.sleep(0.1)
-            out = measure_single(client, client.scene(), seconds, (346, 260))
+            intr = scene["intrinsics"]  # the camera's own size
+            out = measure_single(client, client.scene(), seconds, (intr["width"], intr["height"]))
             out["server_rss_mb"] = server.rss_mb()
             out["num_gaussians"] = client.scene()["num_gaussians"]
     finally:
@@ -285,13 +306,34 @@ def event_path(source: Path, cache: Path) -> dict:
 
 # ------------------------------------------------------------------------------- 6. data-parallel
 
-def data_parallel(rec: Path, cache: Path) -> dict:
-    """1 and 2 local Ray Train workers on ``rec``: wall time and held-out PSNR of each."""
+SPLIT = re.compile(r"data-parallel: (\d+) workers, (\d+) steps each, ([\d.]+) s training, ([\d.]+) s of it "
+                   r"exchanging gradients \(([\d.]+) MB per step\)")
+"""Rank 0's last line (``edmcgs.data_parallel``): how its training time splits."""
+
+
+def data_parallel(rec: Path, cache: Path, extra: list[str] | None = None) -> dict:
+    """1 and 2 local Ray Train workers on ``rec``: wall time, held-out PSNR, and rank 0's training time
+    split into computing and exchanging gradients."""
     out = {}
     for workers in (1, 2):
-        run = train(rec, cache, ["--ray", "--workers", str(workers), "--ray-cpus", "2"])
+        run = train(rec, cache, [*(extra or []), "--ray", "--workers", str(workers), "--ray-cpus", "2"])
+        log = cache / f"{Path(run['checkpoint']).stem}.log"
+        found = SPLIT.findall(log.read_text()) if log.exists() else []
+        if found:
+            _, steps, train_s, sync_s, mb = found[-1]
+            run |= {"steps_per_worker": int(steps), "train_s": float(train_s), "exchange_s": float(sync_s),
+                    "compute_s": float(train_s) - float(sync_s), "exchange_mb_per_step": float(mb)}
         out[workers] = run | {"scores": score(rec, run, cache)}
     return out
+
+
+def cluster_estimate(two: dict, machines: int) -> float:
+    """Speed-up of ``machines`` workers over one, from the split two workers measured (both halves under
+    the same load): a step's computing and its exchange (on a network at least that: it grows with the
+    bytes and the round trips), each of N workers taking 1/N of the steps."""
+    compute = two["compute_s"] / two["steps_per_worker"]
+    exchange = two["exchange_s"] / two["steps_per_worker"]
+    return machines * compute / (compute + exchange)
 
 
 # ------------------------------------------------------------------------------- the report
@@ -302,28 +344,40 @@ def summarise(results: dict) -> dict:
         margins = [r["margin_db"] for r in rows.values() if "margin_db" in r]
         if margins:
             s[f"{scene}_margin_db_min"] = min(margins)
-        if "3" in rows and "60" in rows and "cpu_per_s" in rows["3"] and "cpu_per_s" in rows["60"]:
-            s[f"{scene}_cpu_per_s_ratio_60_3"] = rows["60"]["cpu_per_s"] / rows["3"]["cpu_per_s"]
-        if "60" in rows and "peak_gb" in rows["60"]:
-            s[f"{scene}_train_peak_gb_60"] = rows["60"]["peak_gb"]
-        if "3" in rows and "60" in rows and "render_p50_ms" in rows["3"] and "render_p50_ms" in rows["60"]:
-            s[f"{scene}_render_p50_ratio_60_3"] = rows["60"]["render_p50_ms"] / rows["3"]["render_p50_ms"]
+        # the longest length against the shortest (the targets name 60 s against 3 s)
+        lengths = sorted(rows, key=int)
+        short, long = (lengths[0], lengths[-1]) if len(lengths) > 1 else (None, None)
+        for key, name in (("cpu_per_s", "cpu_per_s_ratio"), ("render_p50_ms", "render_p50_ratio")):
+            if short and key in rows[short] and key in rows[long]:
+                s[f"{scene}_{name}_{long}_{short}"] = rows[long][key] / rows[short][key]
+        if long and "peak_gb" in rows[long]:
+            s[f"{scene}_train_peak_gb_{long}"] = rows[long]["peak_gb"]
     if "event_path" in results:
         s["event_path_peak_gb_600s"] = results["event_path"]["peak_gb"]
     if "ray" in results:
         one, two = results["ray"]["1"], results["ray"]["2"]
         s["ray_psnr_diff_db"] = abs(one["scores"]["model"]["psnr"] - two["scores"]["model"]["psnr"])
         s["ray_speedup_2_workers"] = one["wall_s"] / two["wall_s"]
+        if "compute_s" in one and "compute_s" in two:
+            s["ray_training_speedup_2_workers"] = one["train_s"] / two["train_s"]
+            s["ray_exchange_share_2_workers"] = two["exchange_s"] / two["train_s"]
+            for n in (4, 8, 16):
+                s[f"ray_estimated_speedup_{n}_machines"] = cluster_estimate(two, n)
     return s
 
 
 def markdown(r: dict, command: str) -> str:
+    w, h = SIZES[r.get("size", "full")]
+    overrides = r.get("overrides", [])
+    sets = "".join(f" --set {kv}" for kv in overrides)
+    per = next((kv.split("=", 1)[1] for kv in overrides if kv.startswith("steps_per_window=")), "100")
     lines = ["# Scale benchmark: training, memory, quality and serving against the recording's length", "",
-             f"`{command}` on {r['machine']}, a machine shared with other work (load average during the "
-             "runs in the tables). Scenes: `edmcgs synth SCENE --fps 5 --seconds S --seed 0` (346x260, "
-             "DAVIS346-like); training `edmcgs train REC --config real --threads 1` in its own process "
-             "(100 steps per span between anchors; CPU time is user + system of that process, peak memory "
-             "its resident set); PSNR over every held-out frame.", ""]
+             f"`{command}` on {r['machine']}, a machine shared with other work. Scenes: `edmcgs synth "
+             f"SCENE --fps 5 --seconds S --seed 0 --size {r.get('size', 'full')}` ({w}x{h}, DAVIS346-like); "
+             f"training `edmcgs train REC --config real --threads 1{sets}` in its own process ({per} steps "
+             "per span between anchors; CPU time is user + system of that process, peak memory its "
+             "resident set); PSNR over every held-out frame beside the three baselines on the same frames "
+             "(margin: the model over the best of them).", ""]
     for scene, rows in r["scenes"].items():
         lines += [f"## {scene}", "",
                   "| length | anchors | events | steps | train wall | train CPU | CPU per s of recording "
@@ -359,14 +413,21 @@ def markdown(r: dict, command: str) -> str:
                      "before the first event" if "imports_gb" in e else "") + ".", ""]
     if "ray" in r:
         lines += ["## Data-parallel training on Ray Train", "",
-                  "`edmcgs train REC --config real --threads 1 --ray --workers N --ray-cpus 2` on the "
-                  "shortest traffic recording; a step of N workers takes N samples, so each takes 1/N of "
-                  "the steps.", "",
-                  "| workers | wall | PSNR model | steps per worker |", "|---|---|---|---|"]
-        for w, run in sorted(r["ray"].items()):
-            steps = "—" if not run.get("steps") else str(run["steps"] // int(w))
-            lines.append(f"| {w} | {run['wall_s'] / 60:.1f} min | {run['scores']['model']['psnr']:.2f} "
-                         f"| {steps} |")
+                  f"`edmcgs train REC --config real --threads 1{sets} --ray --workers N --ray-cpus 2` on the "
+                  "shortest traffic recording, the workers local (gloo over loopback, the machine's 2 "
+                  "cores); a step of N workers takes N samples, so each takes 1/N of the steps. Rank 0's "
+                  "training time (evaluations and start-up left out) splits into computing and exchanging "
+                  "gradients (the all-reduce and the union of the drawn rows, waits for the slower worker "
+                  "included).", "",
+                  "| workers | wall | PSNR model | steps per worker | training | computing | exchanging "
+                  "| MB per step |", "|---|---|---|---|---|---|---|---|"]
+        for n, run in sorted(r["ray"].items()):
+            cells = [n, f"{run['wall_s'] / 60:.1f} min", f"{run['scores']['model']['psnr']:.2f}",
+                     str(run.get("steps_per_worker", "—"))]
+            for key in ("train_s", "compute_s", "exchange_s"):
+                cells.append("—" if key not in run else f"{run[key]:.0f} s")
+            cells.append("—" if "exchange_mb_per_step" not in run else f"{run['exchange_mb_per_step']:.2f}")
+            lines.append("| " + " | ".join(cells) + " |")
         lines.append("")
     lines += ["```", table(r["summary"], TARGETS), "```", ""]
     return "\n".join(lines)
@@ -380,6 +441,10 @@ def _parser() -> argparse.ArgumentParser:
                                                            "are read from the cache where they are)")
     p.add_argument("--out", type=Path, default=Path("reports"), help="where scale.md and bench/scale.json go")
     p.add_argument("--cache", type=Path, default=Path("reports/cache/scale"), help="recordings, runs, scores")
+    p.add_argument("--size", choices=sorted(SIZES), default="full", help="the recordings' resolution "
+                   "(edmcgs synth --size; small: 173x130)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="a config override of every training (edmcgs train --set), e.g. steps_per_window=20")
     p.add_argument("--serve-rounds", type=int, default=2)
     p.add_argument("--serve-seconds", type=float, default=8.0)
     p.add_argument("--event-path-child", type=Path, help=argparse.SUPPRESS)
@@ -404,25 +469,28 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"bench.scale: unknown {unknown}; scenes {list(SCENES)}, steps {list(STEPS)}")
     cache = args.cache
     cache.mkdir(parents=True, exist_ok=True)
-    results = {"machine": f"{platform.machine()}, {os.cpu_count()} CPUs", "scenes": {}}
+    sets = [a for kv in args.overrides for a in ("--set", kv)]
+    results = {"machine": f"{platform.machine()}, {os.cpu_count()} CPUs", "size": args.size,
+               "overrides": args.overrides, "scenes": {}}
     for scene in scenes:
         rows, recs, runs = {}, {}, {}
         for length in lengths:
-            path = cache / f"{scene}_fps{FPS}_s{length}_seed0.h5"
+            path = recording_path(cache, scene, length, args.size)
             if "build" in only:
-                path = recording(cache, scene, length)
+                path = recording(cache, scene, length, args.size)
             if not path.exists():
                 continue
             recs[length] = path
             row = describe(path)
-            key = run_key(path, [])
+            key = run_key(path, sets)
             if "train" in only or (cache / f"{key}.json").exists():
-                run = train(path, cache)
+                run = train(path, cache, sets)
                 runs[length] = run
                 row |= {"wall_min": run["wall_s"] / 60, "cpu_min": run["cpu_s"] / 60,
                         "cpu_per_s": run["cpu_s"] / row["seconds"], "peak_gb": run["peak_gb"],
                         "checkpoint_mb": run["checkpoint_mb"], "gaussians": run["gaussians"],
-                        "steps": run["steps"], "load_average": run.get("load_average")}
+                        "steps": run["steps"] or planned_steps(path, sets),
+                        "load_average": run.get("load_average")}
                 scores_path = cache / f"{Path(run['checkpoint']).stem}.scores.json"
                 if "score" in only or scores_path.exists():
                     sc = score(path, run, cache)
@@ -437,9 +505,9 @@ def main(argv: list[str] | None = None) -> int:
         results["scenes"][scene] = rows
     if "events" in only:
         results["event_path"] = event_path(recording(cache, "traffic", EVENT_SOURCE_S), cache)
-    shortest = cache / f"traffic_fps{FPS}_s{min(lengths)}_seed0.h5"
+    shortest = recording_path(cache, "traffic", min(lengths), args.size)
     if "ray" in only and shortest.exists():
-        results["ray"] = {str(k): v for k, v in data_parallel(shortest, cache).items()}
+        results["ray"] = {str(k): v for k, v in data_parallel(shortest, cache, sets).items()}
     results["summary"] = summarise(results)
     results["targets_met"] = {k: meets(v, TARGETS[k]) for k, v in results["summary"].items() if k in TARGETS}
     command = "python -m bench.scale" + (f" {' '.join(argv)}" if argv else "")
