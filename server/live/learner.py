@@ -181,6 +181,7 @@ class Learner:
         rnd.steps = min(2 * rnd.steps, rnd.full)
         model = rnd.trainer.model
         model.config = rnd.trainer.cfg = model.config.replace(iterations=rnd.steps)
+        rnd.trainer.total_steps = rnd.steps  # the round's schedules read it (steps_per_window is 0)
         model.meta.config = model.config.to_dict()
 
     def publish(self, path: Path | None = None) -> Path:
