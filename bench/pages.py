@@ -29,7 +29,7 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
-from bench.results import meets
+from bench.results import meets, numeric
 from edmcgs.errors import InvalidInputError
 
 PLACEHOLDER = re.compile(r"\{\{\s*(.+?)\s*\}\}")
@@ -153,9 +153,7 @@ class Figures:
             raise InvalidInputError(f"figures: reports/{name} has no results to tabulate")
         targets = data.get("targets", {})
         rows = ["| result | value | target |", "|---|---:|---|"]
-        for key, value in results.items():
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                continue
+        for key, value in numeric(results):
             target = targets.get(key)
             mark = ""
             if target is not None:

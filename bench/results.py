@@ -19,12 +19,24 @@ def meets(value: float, target: tuple[str, float]) -> bool:
     return value <= bound if op == "<=" else value >= bound
 
 
+def pick_variants(text: str, variants: dict, prog: str) -> list[str]:
+    """The names in the comma-separated ``text``, each one of ``variants`` (else a one-line exit)."""
+    names = [v.strip() for v in text.split(",") if v.strip()]
+    unknown = [v for v in names if v not in variants]
+    if unknown or not names:
+        raise SystemExit(f"{prog}: unknown variant(s) {unknown}; choose from {list(variants)}")
+    return names
+
+
+def numeric(results: dict):
+    """(key, value) of the numeric entries of ``results`` (booleans are not numbers here)."""
+    return ((k, v) for k, v in results.items() if isinstance(v, int | float) and not isinstance(v, bool))
+
+
 def table(results: dict, targets: dict[str, tuple[str, float]]) -> str:
     """The numeric entries of ``results``, one per row, with their target and whether it is met."""
     rows = [f"{'metric':<30}{'value':>12}  target"]
-    for key, value in results.items():
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            continue
+    for key, value in numeric(results):
         target = targets.get(key)
         mark = ""
         if target is not None:

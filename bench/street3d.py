@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.results import meets, table, write_json
+from bench.results import meets, pick_variants, table, write_json
 from bench.traffic import _edmcgs, measured_run, train
 
 PRESET = "moving"
@@ -314,10 +314,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    names = [v.strip() for v in args.variants.split(",") if v.strip()]
-    unknown = [v for v in names if v not in VARIANTS]
-    if unknown or not names:
-        raise SystemExit(f"bench.street3d: unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
+    names = pick_variants(args.variants, VARIANTS, "bench.street3d")
     import torch
 
     from edmcgs.model.checkpoint import load_checkpoint

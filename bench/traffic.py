@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.results import meets, table, write_json
+from bench.results import meets, pick_variants, table, write_json
 
 SCENE_ARGS = ["--fps", "5", "--seconds", "3", "--seed", "0"]
 VARIANTS = {"full": [], "markov=false": ["markov=false"], "events=false": ["events=false"],
@@ -260,10 +260,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    names = [v.strip() for v in args.variants.split(",") if v.strip()]
-    unknown = [v for v in names if v not in VARIANTS]
-    if unknown or not names:
-        raise SystemExit(f"bench.traffic: unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
+    names = pick_variants(args.variants, VARIANTS, "bench.traffic")
     import torch
 
     from bench.report.lean import measure

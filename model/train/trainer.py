@@ -161,6 +161,15 @@ class Trainer:
         self.lift_counts: list[int] = []
         """Gaussians lifted into each anchor's window (config.static_set), once lifted."""
 
+    def reschedule(self, iterations: int) -> None:
+        """The run's schedule set to ``iterations`` steps (fixed, not per window), training going on from
+        this step: the schedules read the new length from the next step, as ``edmcgs train --resume --set
+        iterations=N`` does."""
+        model = self.model
+        model.config = self.cfg = self.cfg.replace(iterations=int(iterations), steps_per_window=0)
+        model.meta.config = model.config.to_dict()
+        self.total_steps = self.cfg.total_steps(len(self.data.anchors_t_us))
+
     # ------------------------------------------------------------------ setup
     def _w2c(self, c2w: np.ndarray) -> Tensor:
         return torch.as_tensor(world_to_camera(c2w), dtype=torch.float32, device=self.device)

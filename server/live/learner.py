@@ -179,10 +179,7 @@ class Learner:
         a short schedule's end, its learning rates at their floor, and never reach the preset's model."""
         rnd = self.round
         rnd.steps = min(2 * rnd.steps, rnd.full)
-        model = rnd.trainer.model
-        model.config = rnd.trainer.cfg = model.config.replace(iterations=rnd.steps)
-        rnd.trainer.total_steps = rnd.steps  # the round's schedules read it (steps_per_window is 0)
-        model.meta.config = model.config.to_dict()
+        rnd.trainer.reschedule(rnd.steps)
 
     def publish(self, path: Path | None = None) -> Path:
         """Save the current model (a final checkpoint: what the server loads) and report it."""
