@@ -175,37 +175,43 @@ class Trainer:
         return torch.as_tensor(world_to_camera(c2w), dtype=torch.float32, device=self.device)
 
     def _build_optimizer(self) -> torch.optim.Adam:
-        cfg, m = self.cfg, self.model
+        m = self.model
         g = m.gaussians
-        groups = [
-            {"name": "means", "params": [g.means], "lr": cfg.lr_means * self.extent},
-            {"name": "quats", "params": [g.quats], "lr": cfg.lr_quats},
-            {"name": "log_scales", "params": [g.log_scales], "lr": cfg.lr_scales},
-            {"name": "opacity_logits", "params": [g.opacity_logits], "lr": cfg.lr_opacity},
-            {"name": "features", "params": [g.features], "lr": cfg.lr_features},
-            {"name": "radius", "params": [m.control.log_radius], "lr": cfg.lr_radius},
-            {"name": "deform", "params": list(m.prior.parameters()), "lr": cfg.lr_deform},
-        ]
+        params = {"means": [g.means], "quats": [g.quats], "log_scales": [g.log_scales],
+                  "opacity_logits": [g.opacity_logits], "features": [g.features],
+                  "radius": [m.control.log_radius], "deform": list(m.prior.parameters())}
         if m.bg_layer is not None:
-            groups.append({"name": "background", "params": [m.bg_layer.texture], "lr": cfg.lr_background})
+            params["background"] = [m.bg_layer.texture]
         if m.transition is not None:
-            groups.append({"name": "event", "params": [*m.encoder.parameters(), *m.transition.parameters()],
-                           "lr": cfg.lr_event})
+            params["event"] = [*m.encoder.parameters(), *m.transition.parameters()]
         # With anchor windows a step moves only the Gaussians of the windows it drew; on CUDA one fused
         # kernel per step for the other groups instead of several per parameter group.
         rows = PER_GAUSSIAN if m.windowed else ()
+        # Data parallel: a step averages `world` samples, so a parameter every sample moves takes 1/world
+        # of the updates; Adam's square-root rule keeps its path (a window's rows are drawn as often as in
+        # one process and keep their rate). 3 s of traffic, 2 workers: -0.48 dB against one without it,
+        # -0.09 dB with it.
+        self.lr_scale = {name: 1.0 if name in rows else math.sqrt(self.stride) for name in params}
+        lrs = self._learning_rates(0.0)
+        groups = [{"name": name, "params": p, "lr": lrs[name]} for name, p in params.items()]
         return RowAdam(groups, row_groups=rows, eps=1e-15, fused=True if self.device.type == "cuda" else None)
 
-    def _set_schedules(self, progress: float) -> None:
+    def _learning_rates(self, progress: float) -> dict[str, float]:
+        """Each parameter group's learning rate at ``progress`` (data-parallel scale included)."""
         cfg = self.cfg
-        lrs = {"means": exp_decay(cfg.lr_means * self.extent, 0.01, progress),
-               "deform": exp_decay(cfg.lr_deform, 0.02, progress),
-               "event": exp_decay(cfg.lr_event, 0.1, progress)}
+        lrs = {"means": exp_decay(cfg.lr_means * self.extent, 0.01, progress), "quats": cfg.lr_quats,
+               "log_scales": cfg.lr_scales, "opacity_logits": cfg.lr_opacity, "features": cfg.lr_features,
+               "radius": cfg.lr_radius, "deform": exp_decay(cfg.lr_deform, 0.02, progress),
+               "background": cfg.lr_background, "event": exp_decay(cfg.lr_event, 0.1, progress)}
+        return {name: lr * self.lr_scale[name] for name, lr in lrs.items() if name in self.lr_scale}
+
+    def _set_schedules(self, progress: float) -> None:
+        # every group, every step: a run resumed on another number of workers takes its own rates
+        lrs = self._learning_rates(progress)
         for group in self.optimizer.param_groups:
-            if group["name"] in lrs:
-                group["lr"] = lrs[group["name"]]
+            group["lr"] = lrs[group["name"]]
         if self.model.transition is not None:
-            self.model.event_scale.fill_(ramp(progress, *cfg.event_warmup))
+            self.model.event_scale.fill_(ramp(progress, *self.cfg.event_warmup))
 
     # ------------------------------------------------------------------ one step
     def _render(self, state: GaussianState, w2c: np.ndarray, intr=None, *,

@@ -3,8 +3,11 @@ local Ray of 2 CPUs, gloo), the one checkpoint laid out as a single-process run'
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
+import torch
 
 pytest.importorskip("ray.train", reason="the 'ray' extra (ray[train]) is not installed")
 
@@ -44,6 +47,16 @@ def test_two_workers_write_the_one_checkpoint_a_single_run_writes(tmp_path, caps
         {k: tuple(v.shape) for k, v in b["state_dict"].items()}
     assert b["meta"]["config"] == a["meta"]["config"]
     assert (parallel.parent / "parallel.ckpt.train-state").exists()  # resumable like a single run's
+    # a step averages both workers' samples: the groups every sample moves take Adam's square-root rate,
+    # a window's Gaussians (drawn as often as in one process) their own
+    lr = {}
+    for name, path in (("single", single), ("parallel", parallel)):
+        state = torch.load(f"{path}.train-state", weights_only=False)["train_state"]["optimizer"]
+        lr[name] = {g["name"]: g["lr"] for g in state["param_groups"]}
+    # (the groups of a fixed rate: the decaying ones end one step apart)
+    assert lr["parallel"]["radius"] == pytest.approx(math.sqrt(2) * lr["single"]["radius"], rel=1e-6)
+    for group in ("quats", "features", "opacity_logits"):
+        assert lr["parallel"][group] == pytest.approx(lr["single"][group], rel=1e-6)
     model = load_checkpoint(parallel)
     t = int(model.meta.anchors_us[1]) + 20_000
     image = model.render(model.deform(t), model.meta.trajectory.at(t), model.meta.intrinsics)
