@@ -19,7 +19,9 @@ rate, the learner's CPU (these three once the load below is over). For ``--load-
 requests, the p99 latency and every stream reset. With ``--offline CACHE``: the recording trained
 offline by ``edmcgs train --config real`` (bench.traffic's cached run, one thread), and at the end
 the learner's saved model and the offline one scored on the held-out frames by the same code
-(``bench.traffic.score``), with the learner's CPU seconds beside the offline run's.
+(``bench.traffic.score``), with the learner's CPU seconds beside the offline run's; and the first model
+the learner published once it had spent the offline run's CPU seconds (copied when the service said it
+went live), scored the same way: the target's comparison, at equal CPU.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import shutil
 import signal
 import sys
 import tempfile
@@ -198,7 +201,10 @@ class Load:
                 "load_failed_requests": sum(not ok for _, _, ok in self.requests)}
 
 
-def run(rec_path: Path, minutes: float, every: float, workdir: Path, env: dict, load_s: float = 0.0) -> dict:
+def run(rec_path: Path, minutes: float, every: float, workdir: Path, env: dict, load_s: float = 0.0,
+        snapshot: tuple[float, Path] | None = None) -> dict:
+    """snapshot: (CPU seconds, path): the first model published once the learner had spent them is
+    copied there (the learner keeps its two newest checkpoints: each poll sees the newest)."""
     from edmcgs.clients.client import Client
     from edmcgs.sensor.files.recording import read_recording
     from harness.server import ServerProcess
@@ -207,7 +213,7 @@ def run(rec_path: Path, minutes: float, every: float, workdir: Path, env: dict, 
     frames, _ = baselines(rec)
     first_frame_s = (int(rec.anchors.t_us[0]) - rec.t_range_us[0]) / 1e6
     srv = ServerProcess(["--replay", str(rec_path), "--learn-dir", str(workdir)], env=env)
-    rows, models, rounds, load = [], {}, [], None
+    rows, models, rounds, load, snapped = [], {}, [], None, None
     try:
         srv.wait_ready()
         started, started_unix = time.monotonic(), time.time()  # the replay started with the service
@@ -227,7 +233,10 @@ def run(rec_path: Path, minutes: float, every: float, workdir: Path, env: dict, 
                 scene = client.scene()
                 learning = scene["learning"]
                 if learning["model"] is not None:
-                    models.setdefault(learning["model"]["version"], learning["model"])
+                    model = models.setdefault(learning["model"]["version"], learning["model"])
+                    if snapshot is not None and snapped is None and model["cpu_s"] >= snapshot[0]:
+                        shutil.copyfile(workdir / f"learned-{model['version']:04d}.ckpt", snapshot[1])
+                        snapped = model
                     if fps is None and (load is None or time.time() > load.stop_at):
                         fps = stream_fps(srv.url)
                 batch = score_round(client, frames, started, scene["head_us"] or 0)
@@ -256,19 +265,25 @@ def run(rec_path: Path, minutes: float, every: float, workdir: Path, env: dict, 
             "render_p50_ms": float(np.median(quiet)) if (quiet := [
                 r["latency_ms"] for r in rows
                 if load is None or started_unix + r["wall_s"] > load.stop_at]) else None,
-            "log": srv.log()}
+            "snapshot": snapped, "log": srv.log()}
 
 
-def offline(rec_path: Path, cache: Path, learnt_ckpt: Path) -> dict:
-    """The offline real preset's run (cached) and both models scored on the held-out frames."""
-    from bench.traffic import score, train
+def offline_run(rec_path: Path, cache: Path) -> dict:
+    """The offline real preset's run of the recording (cached)."""
+    from bench.traffic import train
+
+    return train(rec_path, "offline", [], cache)
+
+
+def offline(rec_path: Path, cache: Path, run_info: dict, learnt: dict[str, Path]) -> dict:
+    """The offline model and each ``learnt`` one scored on the held-out frames."""
+    from bench.traffic import score
     from edmcgs.model.checkpoint import load_checkpoint
     from edmcgs.pipeline import open_recording, training_data
 
-    run_info = train(rec_path, "offline", [], cache)
     data = training_data(open_recording(rec_path))
     models = {"offline": load_checkpoint(cache / run_info["checkpoint"]),
-              "learnt": load_checkpoint(learnt_ckpt)}
+              **{name: load_checkpoint(path) for name, path in learnt.items()}}
     scores, _ = score(data, models, static_camera=True)
     return {"offline_run": run_info, "scores": scores}
 
@@ -278,7 +293,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--recording", type=Path, required=True)
     p.add_argument("--minutes", type=float, default=12.0, help="how long the service runs (default 12)")
     p.add_argument("--every", type=float, default=20.0, help="seconds between scoring rounds (default 20)")
-    p.add_argument("--preset", default="real", help="the config the learner trains (default real)")
+    p.add_argument("--preset", default="auto", help="the config the learner trains (default auto: moving for "
+                   "a camera that translates, else real)")
     p.add_argument("--load-minutes", type=float, default=3.0,
                    help="4 render clients and 2 live streams on the service for its first minutes, so that "
                         "the first swaps happen under load (default 3; 0: none)")
@@ -290,8 +306,10 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     env = {"EDMCGS_LEARN_PRESET": args.preset}
     with tempfile.TemporaryDirectory() as tmp:
-        workdir = Path(tmp) / "learnt"
-        r = run(args.recording, args.minutes, args.every, workdir, env, args.load_minutes * 60)
+        workdir, equal = Path(tmp) / "learnt", Path(tmp) / "equal-cpu.ckpt"
+        run_info = offline_run(args.recording, args.offline) if args.offline is not None else None
+        snapshot = None if run_info is None else (run_info["cpu_s"], equal)
+        r = run(args.recording, args.minutes, args.every, workdir, env, args.load_minutes * 60, snapshot)
         results = {k: v for k, v in r.items() if k not in ("rows", "log")}
         last = r["rounds"][-1]["bands"] if r["rounds"] else []
         every_band = [b for rnd in r["rounds"] for b in rnd["bands"]]
@@ -306,11 +324,15 @@ def main(argv: list[str] | None = None) -> int:
             saved = workdir / "learned.ckpt"
             if not saved.is_file():
                 raise SystemExit(f"the learner saved no checkpoint; its log:\n{r['log'][-4000:]}")
-            results["offline"] = offline(args.recording, args.offline, saved)
+            learnt = {"learnt": saved} | ({"learnt at equal CPU": equal} if equal.is_file() else {})
+            results["offline"] = offline(args.recording, args.offline, run_info, learnt)
             s = results["offline"]["scores"]
-            results["learnt_minus_offline_db"] = s["learnt"]["psnr"] - s["offline"]["psnr"]
+            results["learnt_final_minus_offline_db"] = s["learnt"]["psnr"] - s["offline"]["psnr"]
             results["learner_cpu_s"] = r["models"][-1]["cpu_s"] if r["models"] else None
-            results["offline_cpu_s"] = results["offline"]["offline_run"]["cpu_s"]
+            results["offline_cpu_s"] = run_info["cpu_s"]
+            if r["snapshot"] is not None:  # the target: once the learner has spent the offline run's CPU
+                results["learnt_minus_offline_db"] = s["learnt at equal CPU"]["psnr"] - s["offline"]["psnr"]
+                results["equal_cpu_model"] = r["snapshot"]
     if args.csv is not None and r["rows"]:
         args.csv.parent.mkdir(parents=True, exist_ok=True)
         with open(args.csv, "w", newline="") as f:

@@ -147,6 +147,11 @@ class LearntModel(_Body):
     gaussians: int
     cpu_s: float
     """The learner's CPU seconds when it was published."""
+    preset: str
+    """The config it trained (``auto`` resolved: ``moving`` or ``real``)."""
+    camera: str
+    """How its camera poses are known: ``stated`` (by the stream), ``estimated: moving`` (``turning``,
+    ``still``: structure from motion over its anchor frames), or ``still`` (assumed)."""
     heldout: HeldOut | None
     """Null: the stream has no frame between its anchors yet."""
     live_unix: float
@@ -159,6 +164,7 @@ class Learning(_Body):
     workdir: str
     """Where it writes its checkpoints; on stop ``learned.ckpt`` (resumable) and ``learned.h5``."""
     preset: str
+    """The config asked for (``auto``: ``moving`` for a camera that translates, else ``real``)."""
     anchor_fps: float
     running: bool
     error: str | None

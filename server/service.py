@@ -223,11 +223,22 @@ class Service:
                                                                         info.height))
             elif extras.intrinsics is not None:
                 intrinsics = tuple(extras.intrinsics)
-            else:
+            else:  # the learner estimates them with the poses when it can
+                intrinsics = None
+                log.warning("no intrinsics given or stated: the learner estimates them with the camera's "
+                            "poses if it moves, else assumes fx = fy = width, centred (--intrinsics)")
+            config = LearnConfig(workdir=settings.learn_dir, intrinsics=intrinsics,
+                                 contrast_threshold=extras.contrast_threshold, preset=settings.learn_preset,
+                                 overrides=tuple(settings.learn_set), poses=settings.learn_poses,
+                                 trajectory=None if extras.trajectory_t_us is None else
+                                 (extras.trajectory_t_us, extras.trajectory_c2w),
+                                 anchor_fps=settings.learn_anchor_fps, first_steps=settings.learn_first_steps,
+                                 publish_s=settings.learn_publish_s)
+            for each in config.presets():  # a typo is said now, not later
+                preset(each).with_overrides(settings.learn_set)
+            if intrinsics is None:
                 w, h = info.width, info.height
                 intrinsics = (float(w), float(w), (w - 1) / 2, (h - 1) / 2)
-                log.warning("no intrinsics given or stated: assuming fx = fy = width, centred (--intrinsics)")
-            preset(settings.learn_preset).with_overrides(settings.learn_set)  # a typo is said now, not later
             contrast = extras.contrast_threshold or DEFAULT_CONTRAST
             ring = EventRingBuffer(settings.ring_events)
             frames = AnchorStore(settings.frames_kept)
@@ -236,13 +247,6 @@ class Service:
                               info.height, 1, contrast)
             engine = Engine(FramesTimebase(meta, frames), ring, cache_size=settings.deform_cache,
                             raster_threads=settings.raster_threads)
-            config = LearnConfig(workdir=settings.learn_dir, intrinsics=intrinsics,
-                                 contrast_threshold=extras.contrast_threshold, preset=settings.learn_preset,
-                                 overrides=tuple(settings.learn_set),
-                                 trajectory=None if extras.trajectory_t_us is None else
-                                 (extras.trajectory_t_us, extras.trajectory_c2w),
-                                 anchor_fps=settings.learn_anchor_fps, first_steps=settings.learn_first_steps,
-                                 publish_s=settings.learn_publish_s)
             service = cls(settings, inputs, source, ring, engine, frames,
                           Learning(config, info.width, info.height))
             seconds = _warm_up(engine)

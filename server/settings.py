@@ -152,7 +152,10 @@ class Settings(BaseSettings):
     learn_dir: Path = Field(LEARN.workdir, description="Where a cold start's learner writes the checkpoints "
                             "it publishes, and on stop learned.ckpt (resumable) and learned.h5 (the stream).")
     learn_preset: str = Field(LEARN.preset, description="The config a cold start's learner trains (edmcgs "
-                              "train --config).")
+                              "train --config); auto: moving for a camera that translates, else real.")
+    learn_poses: Literal["auto", "static"] = Field(LEARN.poses, description="With no poses stated: auto, "
+                                                   "structure from motion over each round's anchor frames "
+                                                   "(edmcgs poses); static, the camera taken as still.")
     learn_set: list[str] = Field(list(LEARN.overrides), description="key=value changes to that config "
                                  "(edmcgs train --set; EDMCGS_LEARN_SET is a JSON list).")
     learn_anchor_fps: float = Field(LEARN.anchor_fps, gt=0, le=1000, description="Frames at this rate are "

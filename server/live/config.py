@@ -56,13 +56,19 @@ class LearnConfig:
     workdir: Path = Path("edmcgs-learned")
     """Where it writes the checkpoints it publishes, and on stop ``learned.ckpt`` and ``learned.h5``."""
     intrinsics: tuple[float, float, float, float] | None = None
-    """The frames' camera: fx, fy, cx, cy in pixels (None: fx = fy = width, centred)."""
+    """The frames' camera: fx, fy, cx, cy in pixels (None: estimated with the poses, else fx = fy = width,
+    centred)."""
     contrast_threshold: float | None = None
     """The events' C, when the stream states it (else the preset's)."""
     trajectory: tuple[np.ndarray, np.ndarray] | None = None
-    """The camera's poses (t_us [T], c2w [T, 4, 4]) when the stream states them (else a static camera)."""
-    preset: str = "real"
-    """The configuration trained (``edmcgs train --config``)."""
+    """The camera's poses (t_us [T], c2w [T, 4, 4]) when the stream states them (else ``poses`` decides)."""
+    poses: str = "auto"
+    """With no stated trajectory: ``auto``, structure from motion over each round's anchor frames
+    (``edmcgs poses``: a camera that did not move is called static, one that only turned gets rotations);
+    ``static``, the camera taken as still without looking."""
+    preset: str = "auto"
+    """The configuration trained (``edmcgs train --config``); ``auto``: ``moving`` for a camera that
+    translates (its poses and 3D points from structure from motion), else ``real``."""
     overrides: tuple[str, ...] = ()
     """``key=value`` changes to it (``edmcgs train --set``)."""
     anchor_fps: float = 5.0
@@ -80,3 +86,16 @@ class LearnConfig:
     """Held-out frames scored at each publication."""
     threads: int = 1
     """CPU threads of the learner process."""
+
+    def __post_init__(self):
+        if self.poses not in POSES:
+            raise InvalidInputError(f"poses must be one of {', '.join(POSES)}, got {self.poses!r}")
+
+    def presets(self) -> tuple[str, ...]:
+        """Every preset a round may train (``auto``: either)."""
+        return AUTO_PRESETS if self.preset == "auto" else (self.preset,)
+
+
+POSES = ("auto", "static")
+AUTO_PRESETS = ("real", "moving")
+"""What ``preset="auto"`` picks from: a still or turning camera, a translating one."""

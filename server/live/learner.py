@@ -7,8 +7,8 @@ EdMCGS on the stream's frames and events as they arrive, and publishes checkpoin
               (model/train/warm.py), trained ``steps`` (``first_steps`` at ``first_scale`` of the frames'
               size, then twice the round before at full size, up to the preset's iterations), published
               every ``publish_s`` and at the round's end.
-              A round that ends with no new anchor goes on with the same model, its schedule twice as
-              long (up to the preset's iterations; then it trains on at the schedule's end).
+              A round that ends with no new anchor goes on with the same model on the preset's whole
+              schedule (then it trains on at the schedule's end), until new anchors start a round.
     stop ──>  the model and the stream saved: ``learned.ckpt`` (with its train state beside it) and
               ``learned.h5``; ``edmcgs train learned.h5 -o learned.ckpt --resume`` continues the run and
               ``edmcgs-serve --replay learned.h5 --checkpoint learned.ckpt`` serves it.
@@ -55,6 +55,10 @@ class Round:
     """Anchors the round was built from."""
     full: int
     """The preset's iterations: the longest schedule a round gets."""
+    preset: str = ""
+    """The preset it trains (``LearnConfig.preset``, ``auto`` resolved)."""
+    lengthened: bool = False
+    """Whether the round runs past its own schedule (``Learner._lengthen``): new anchors end it at once."""
 
 
 class Stream:
@@ -133,10 +137,12 @@ class Learner:
                 return False
             self._new_round()
             self.published_at = time.monotonic()
-        elif rnd.trainer.step >= rnd.steps:  # the round is over
+        elif rnd.trainer.step >= rnd.steps or rnd.lengthened:
             if self.anchors_available() > rnd.anchors:
                 self._new_round()
-            elif rnd.steps < rnd.full:  # no new anchor: the same model, on a longer schedule
+            elif rnd.trainer.step < rnd.steps:  # a lengthened round, no new anchor yet
+                pass
+            elif rnd.steps < rnd.full:  # no new anchor: the same model, on the preset's schedule
                 self._lengthen()
             else:  # at the preset's schedule: it trains on at its end
                 rnd.steps *= 2
@@ -150,13 +156,17 @@ class Learner:
     def _new_round(self) -> None:
         from edmcgs.model.train.trainer import Trainer
         from edmcgs.model.train.warm import warm_start
-        from edmcgs.pipeline import build_config, new_model, training_data
+        from edmcgs.pipeline import build_config, default_preset, new_model, training_data
 
         cfg = self.config
-        rec = self.stream.recording(cfg)
-        data = training_data(rec)
-        base = build_config(cfg.preset, list(cfg.overrides), rec)
         previous = self.round
+        rec = self.stream.recording(cfg)
+        if cfg.trajectory is None and cfg.poses == "auto":
+            rec = self._with_poses(rec, None if previous is None else previous.recording)
+        name = cfg.preset if cfg.preset != "auto" else \
+            ("moving" if default_preset(rec)[0] == "moving" else "real")
+        data = training_data(rec)
+        base = build_config(name, list(cfg.overrides), rec)
         steps = cfg.first_steps if previous is None else min(2 * previous.steps, base.iterations)
         if previous is not None and previous.steps >= base.iterations:
             steps = base.iterations
@@ -169,16 +179,53 @@ class Learner:
             warm_start(model, self.model)
         self.model, self.data = model, data
         self.round = Round(Trainer(model, data, progress=False), rec, steps, len(data.anchors_t_us),
-                           base.iterations)
+                           base.iterations, preset=name)
+
+    @staticmethod
+    def _with_poses(rec, previous):
+        """``rec`` with the poses structure from motion finds over its anchor frames (the held-out ones
+        follow the trajectory between them), in the world frame of the round before when both moved: the
+        similarity fitted on the anchors they share carries the poses and points over, so that a pose a
+        viewer holds means the same place after a swap. When it fails (too few frames registered, as the
+        first anchors may), the round takes a still camera, said on the learner's output."""
+        from dataclasses import replace
+
+        from edmcgs.geometry import Similarity, Trajectory
+        from edmcgs.pipeline import estimated_poses
+        from edmcgs.sensor.frames import Frames
+
+        held = rec.held_out
+        try:
+            out = estimated_poses(replace(rec, held_out=None))
+        except EdmcgsError as exc:
+            print(f"learner: no poses from {len(rec.anchors)} anchor frames ({exc}); this round takes a "
+                  "still camera", flush=True)
+            return rec
+        out = replace(out, held_out=held if held is None else Frames(held.t_us, held.images))
+        if previous is None or previous.points_xyz is None or out.points_xyz is None:
+            return out
+        shared = np.intersect1d(previous.anchors.t_us, out.anchors.t_us)
+        try:
+            to_previous = Similarity.fit_poses(
+                Trajectory(out.trajectory_t_us, out.trajectory_c2w).at(shared),
+                Trajectory(previous.trajectory_t_us, previous.trajectory_c2w).at(shared))
+        except EdmcgsError:  # the shared anchors did not move: frames that cannot be related
+            return out
+        return replace(out, trajectory_c2w=to_previous.poses(out.trajectory_c2w),
+                       points_xyz=to_previous.points(out.points_xyz).astype(out.points_xyz.dtype))
 
     def _lengthen(self) -> None:
-        """The round's schedule twice as long (up to the preset's), the model and its optimizer kept:
-        training goes on from its step as ``edmcgs train --resume --set iterations=N`` would, the
-        schedules (learning rates, densification, the event branch's warm-in) read at the new length.
-        Without it a stream that stopped growing (a replay's end, a camera held still) would train on at
-        a short schedule's end, its learning rates at their floor, and never reach the preset's model."""
+        """The round on the preset's whole schedule, the model and its optimizer kept: training goes on
+        from its step as ``edmcgs train --resume --set iterations=N`` would, the schedules (learning rates,
+        densification, the event branch's warm-in) read at the new length. Without it a stream that
+        stopped growing (a replay's end, a camera held still) would train on at a short schedule's end, its
+        learning rates at their floor, and never reach the preset's model. One long schedule, not a
+        doubling each time: every restart of the decay costs against the offline run (at the offline run's
+        CPU time, 0.55 dB behind with doublings); publishing every ``publish_s`` keeps the models coming,
+        and new anchors end the round at once."""
         rnd = self.round
-        rnd.steps = min(2 * rnd.steps, rnd.full)
+        rnd.steps = rnd.full
+        rnd.lengthened = True
         rnd.trainer.reschedule(rnd.steps)
 
     def publish(self, path: Path | None = None) -> Path:
@@ -197,7 +244,8 @@ class Learner:
         meta = model.meta
         self.outbox.put({"kind": "published", "path": str(path), "version": self.version,
                          "span_us": [int(meta.t_start_us), int(meta.t_end_us)],
-                         "anchors": len(meta.anchors_us), "steps": trainer.step,
+                         "anchors": len(meta.anchors_us), "steps": trainer.step, "preset": self.round.preset,
+                         "camera": _camera(self.round.recording),
                          "round_steps": self.round.steps,
                          "gaussians": len(model.gaussians), "heldout": scores,
                          "cpu_s": time.process_time() - self.cpu_start,
@@ -227,6 +275,15 @@ class Learner:
             save_final(trainer.model, path, trainer.train_state())  # the two as one unit
             out.update(checkpoint=str(path), steps=trainer.step, version=self.version)
         return out
+
+
+def _camera(rec) -> str:
+    """How the round's camera is known: ``stated``, ``estimated: moving`` (or ``turning``, ``still``), or
+    ``still`` when nothing said otherwise."""
+    poses = rec.metadata.get("poses")
+    if poses is None:
+        return "still" if rec.trajectory_t_us is None else "stated"
+    return "estimated: " + ("still" if poses["static"] else "turning" if poses["rotation_only"] else "moving")
 
 
 def _drain(inbox, wait: float) -> list:

@@ -165,6 +165,7 @@ class Learning:
             "model": None if pub is None else {
                 "version": pub["version"], "span_us": pub["span_us"], "anchors": pub["anchors"],
                 "steps": pub["steps"], "gaussians": pub["gaussians"], "cpu_s": pub["cpu_s"],
+                "preset": pub["preset"], "camera": pub["camera"],
                 "heldout": pub["heldout"], "live_unix": pub["live_unix"]},
             "started_unix": self.started_unix,
             "saved": self.saved,
