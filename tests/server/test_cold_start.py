@@ -184,6 +184,25 @@ def test_the_learner_publishes_rounds_over_the_anchors_received_and_saves_what_r
     assert kept == ["learned-0002.ckpt", "learned-0003.ckpt"]
 
 
+def test_a_new_round_goes_live_once_it_has_trained_as_long_as_the_model_live(scene, tmp_path):
+    rec, _ = scene
+    t0 = int(rec.anchors.t_us[0])
+    config = LearnConfig(workdir=tmp_path, intrinsics=(60.0, 60.0, 31.5, 23.5), preset="demo",
+                         overrides=TINY, anchor_fps=10.0, min_anchors=3, first_steps=10, publish_s=0.0,
+                         eval_frames=1, poses="static")
+    stream, outbox = Stream(W, H), _Outbox()
+    learner = Learner(config, stream, outbox)
+    _feed(stream, rec, t0, t0 + 250_000)
+    while len(outbox) < 2:  # due at every chunk: published at 5 and 10 steps
+        learner.step()
+    assert [m["steps"] for m in outbox] == [5, 10]
+    _feed(stream, rec, t0 + 250_000, rec.t_range_us[1] + 1)
+    while len(outbox) < 3:
+        learner.step()
+    # the new round (20 steps) trained 5, then 10 before its first model went live
+    assert outbox[-1]["anchors"] == 11 and outbox[-1]["steps"] == 10
+
+
 def test_the_learner_process_reports_and_saves_when_told_to_stop(scene, tmp_path):
     """The process itself (spawned as the service spawns it): fed, it publishes; told to stop, it saves."""
     from edmcgs.sensor.sources.base import SensorBatch
