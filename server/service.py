@@ -111,6 +111,29 @@ class RenderedFrame:
     window: tuple[int, int]
 
 
+def learn_config(settings: Settings, info, extras) -> LearnConfig:
+    """How a cold start's learner trains on a stream (``info``, ``extras``: what its source states), the
+    settings' names checked now rather than in the learner."""
+    if settings.intrinsics is not None:
+        intrinsics = tuple(float(v) for v in parse_intrinsics(settings.intrinsics, info.width, info.height))
+    elif extras.intrinsics is not None:
+        intrinsics = tuple(extras.intrinsics)
+    else:
+        intrinsics = None
+        log.warning("no intrinsics given or stated: the learner estimates them with the camera's poses if "
+                    "it moves, else assumes fx = fy = width, centred (--intrinsics)")
+    config = LearnConfig(workdir=settings.learn_dir, intrinsics=intrinsics,
+                         contrast_threshold=extras.contrast_threshold, preset=settings.learn_preset,
+                         overrides=tuple(settings.learn_set), poses=settings.learn_poses,
+                         trajectory=None if extras.trajectory_t_us is None else
+                         (extras.trajectory_t_us, extras.trajectory_c2w),
+                         anchor_fps=settings.learn_anchor_fps, first_steps=settings.learn_first_steps,
+                         publish_s=settings.learn_publish_s)
+    for each in config.presets():
+        preset(each).with_overrides(settings.learn_set)
+    return config
+
+
 class Service:
     """Built by ``open`` (blocking: loads, opens, warms up, starts ingesting); ``close`` undoes it."""
 
@@ -135,16 +158,18 @@ class Service:
 
     # ------------------------------------------------------------------ lifecycle
     @classmethod
-    def open(cls, settings: Settings, source: EventSource | None = None) -> Service:
+    def open(cls, settings: Settings, source: EventSource | None = None, learning=None) -> Service:
         """``source``: an already open one to serve instead of the settings' (a camera shared by several
-        processes is read through one); closed with the service."""
+        processes is read through one); closed with the service. ``learning``: a cold start's learner
+        as ``Learning(config, width, height)`` builds one (default: its own process; a scene on Ray
+        takes its scene's shared learner)."""
         inputs = resolve_inputs(settings)
         if settings.torch_threads is not None:
             import torch
 
             torch.set_num_threads(settings.torch_threads)
         if inputs.checkpoint is None:
-            return cls._open_learning(settings, inputs, source)
+            return cls._open_learning(settings, inputs, source, learning)
         model = load_checkpoint(inputs.checkpoint, settings.device)
         if inputs.sensorless:
             return cls._open_sensorless(settings, inputs, model)
@@ -200,7 +225,8 @@ class Service:
         return service
 
     @classmethod
-    def _open_learning(cls, settings: Settings, inputs: Inputs, source: EventSource | None) -> Service:
+    def _open_learning(cls, settings: Settings, inputs: Inputs, source: EventSource | None,
+                       learning=None) -> Service:
         """A source without a checkpoint: serve its frames moved by the events at once, and learn."""
         pacing = Pacing(factor=settings.speed, loop=inputs.loop, batch_us=settings.replay_batch_us)
         if inputs.loop:
@@ -218,25 +244,9 @@ class Service:
                 raise InvalidInputError(f"{name}'s frames are {info.frame_size[0]}x{info.frame_size[1]}, "
                                         f"its events {info.width}x{info.height}: a cold start needs one "
                                         "resolution")
-            if settings.intrinsics is not None:
-                intrinsics = tuple(float(v) for v in parse_intrinsics(settings.intrinsics, info.width,
-                                                                        info.height))
-            elif extras.intrinsics is not None:
-                intrinsics = tuple(extras.intrinsics)
-            else:  # the learner estimates them with the poses when it can
-                intrinsics = None
-                log.warning("no intrinsics given or stated: the learner estimates them with the camera's "
-                            "poses if it moves, else assumes fx = fy = width, centred (--intrinsics)")
-            config = LearnConfig(workdir=settings.learn_dir, intrinsics=intrinsics,
-                                 contrast_threshold=extras.contrast_threshold, preset=settings.learn_preset,
-                                 overrides=tuple(settings.learn_set), poses=settings.learn_poses,
-                                 trajectory=None if extras.trajectory_t_us is None else
-                                 (extras.trajectory_t_us, extras.trajectory_c2w),
-                                 anchor_fps=settings.learn_anchor_fps, first_steps=settings.learn_first_steps,
-                                 publish_s=settings.learn_publish_s)
-            for each in config.presets():  # a typo is said now, not later
-                preset(each).with_overrides(settings.learn_set)
-            if intrinsics is None:
+            config = learn_config(settings, info, extras)
+            intrinsics = config.intrinsics
+            if intrinsics is None:  # the learner estimates them; renders before it do with this
                 w, h = info.width, info.height
                 intrinsics = (float(w), float(w), (w - 1) / 2, (h - 1) / 2)
             contrast = extras.contrast_threshold or DEFAULT_CONTRAST
@@ -248,7 +258,7 @@ class Service:
             engine = Engine(FramesTimebase(meta, frames), ring, cache_size=settings.deform_cache,
                             raster_threads=settings.raster_threads)
             service = cls(settings, inputs, source, ring, engine, frames,
-                          Learning(config, info.width, info.height))
+                          (learning or Learning)(config, info.width, info.height))
             seconds = _warm_up(engine)
             log.info("cold start on %s: learning from %s (%dx%d) into %s, warm-up %.1f s; until the first "
                      "model, renders are the newest frame moved by the events since", settings.device,

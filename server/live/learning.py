@@ -1,5 +1,6 @@
 """A cold start: the service learns its model while it serves (``edmcgs-serve --replay REC`` or ``--live``
-with no checkpoint). This is the server's side of the learner (``learner.py``, its own process).
+with no checkpoint). This is the server's side of the learner (``learner.py``, its own process; a scene
+on Ray shares one learner between its replicas, ``ray_serve/learner.py``).
 
     ingest thread ──> feed(batch) ──> the learner's inbox (a queue: the ingest never waits)
     the learner publishes a checkpoint ──> a thread here loads it ──> on_model(model, report): the
@@ -27,19 +28,16 @@ from edmcgs.server.live.config import LearnConfig
 log = logging.getLogger("edmcgs.server")
 
 
-class Learning:
-    """config: how the learner trains; width, height: the stream's event resolution."""
+class LearnerView:
+    """What the service holds of a learner, wherever it runs: the models it hands over (``on_model``),
+    the one served, and what /scene and /metrics say of it. ``Learning`` (its own process here) and a
+    Ray scene's ``RemoteLearning`` (one learner shared by the scene's replicas) are the two."""
 
-    def __init__(self, config: LearnConfig, width: int, height: int):
-        config.workdir.mkdir(parents=True, exist_ok=True)
+    def __init__(self, config: LearnConfig):
         self.config = config
         self.on_model: Callable[[object, dict], None] | None = None
         """Called with each published model (loaded) and the learner's report, on this side's reader
         thread (the service builds it into a timebase and swaps it in)."""
-        ctx = multiprocessing.get_context("spawn")  # a fresh interpreter: no copy of the server's threads
-        self.inbox, self.outbox = ctx.Queue(), ctx.Queue()
-        self.process = ctx.Process(target=learner.main, name="edmcgs-learner", daemon=True,
-                                   args=(self.inbox, self.outbox, config, width, height))
         self.published: dict | None = None
         """The last published model's report (learner.py), with ``live_unix`` once it is served."""
         self.saved: dict | None = None
@@ -47,8 +45,89 @@ class Learning:
         self.error: str | None = None
         self.fed = {"batches": 0, "events": 0, "frames": 0}
         self.started_unix: float | None = None
+
+    @property
+    def running(self) -> bool:
+        raise NotImplementedError
+
+    def _take(self, report: dict, path) -> None:
+        """Load the published checkpoint at ``path``, hand it to ``on_model``, and count it served."""
+        from edmcgs.model.checkpoint import load_checkpoint
+
+        try:
+            model = load_checkpoint(path)
+            if self.on_model is not None:
+                self.on_model(model, report)
+        except EdmcgsError as exc:  # the last model stays: the next one may load
+            log.error("learned model %d not taken: %s", report["version"], exc)
+            return
+        self.published = {**report, "live_unix": time.time()}
+        scores = report.get("heldout") or {}
+        log.info("learned model %d live: %d anchors, step %d, held-out PSNR %s", report["version"],
+                 report["anchors"], report["steps"],
+                 f"{scores['psnr']:.2f} dB" if "psnr" in scores else "(no held-out frame yet)")
+
+    def register_metrics(self, metrics) -> None:
+        """The learner's series in the service's metrics (read when scraped)."""
+        gauge, counter = metrics.readings.gauge, metrics.readings.counter
+
+        def model(key, empty=float("nan")):
+            return lambda: empty if self.published is None else float(self.published[key])
+
+        gauge("edmcgs_learned_model_version", "The learnt model served now (0: none yet, renders are the "
+              "stream's frames moved by the events).", model("version", 0.0))
+        gauge("edmcgs_learned_span_seconds", "The stream time the served model learnt.",
+              lambda: 0.0 if self.published is None else
+              (self.published["span_us"][1] - self.published["span_us"][0]) / 1e6)
+        gauge("edmcgs_learner_steps", "Training steps behind the served model (its round's).",
+              model("steps", 0.0))
+        gauge("edmcgs_learner_cpu_seconds", "The learner's CPU seconds when it published the served model.",
+              model("cpu_s", 0.0))
+        gauge("edmcgs_learned_heldout_psnr", "The served model's PSNR on stream frames it was not trained on "
+              "(NaN: none yet).", lambda: float("nan") if self.published is None
+              or not self.published.get("heldout") else float(self.published["heldout"]["psnr"]))
+        gauge("edmcgs_learner_up", "1 while the learner runs.", lambda: float(self.running))
+        counter("edmcgs_learner_fed_total", "What the server gave the learner.",
+                lambda: {k: float(v) for k, v in self.fed.items()}, "what")
+
+    def info(self) -> dict:
+        """GET /scene's ``learning``."""
+        pub = self.published
+        return {
+            "workdir": str(self.config.workdir),
+            "preset": self.config.preset,
+            "anchor_fps": self.config.anchor_fps,
+            "running": self.running,
+            "error": self.error,
+            "fed": dict(self.fed),
+            "version": None if pub is None else pub["version"],
+            "model": None if pub is None else {
+                "version": pub["version"], "span_us": pub["span_us"], "anchors": pub["anchors"],
+                "steps": pub["steps"], "gaussians": pub["gaussians"], "cpu_s": pub["cpu_s"],
+                "preset": pub["preset"], "camera": pub["camera"],
+                "heldout": pub["heldout"], "live_unix": pub["live_unix"]},
+            "started_unix": self.started_unix,
+            "saved": self.saved,
+        }
+
+
+class Learning(LearnerView):
+    """The learner in a process of its own. config: how it trains; width, height: the stream's event
+    resolution."""
+
+    def __init__(self, config: LearnConfig, width: int, height: int):
+        super().__init__(config)
+        config.workdir.mkdir(parents=True, exist_ok=True)
+        ctx = multiprocessing.get_context("spawn")  # a fresh interpreter: no copy of the server's threads
+        self.inbox, self.outbox = ctx.Queue(), ctx.Queue()
+        self.process = ctx.Process(target=learner.main, name="edmcgs-learner", daemon=True,
+                                   args=(self.inbox, self.outbox, config, width, height))
         self._saved = threading.Event()
         self._reader: threading.Thread | None = None
+
+    @property
+    def running(self) -> bool:
+        return self.process.is_alive()
 
     def start(self) -> Learning:
         self.process.start()
@@ -83,7 +162,7 @@ class Learning:
                 continue
             kind = report["kind"]
             if kind == "published":
-                self._take(report)
+                self._take(report, report["path"])
             elif kind == "saved":
                 self.saved = report
                 self._saved.set()
@@ -92,22 +171,6 @@ class Learning:
                 self.error = report["error"]
                 log.error("the learner failed: %s%s", report["error"],
                           "\n" + report["traceback"] if "traceback" in report else "")
-
-    def _take(self, report: dict) -> None:
-        from edmcgs.model.checkpoint import load_checkpoint
-
-        try:
-            model = load_checkpoint(report["path"])
-            if self.on_model is not None:
-                self.on_model(model, report)
-        except EdmcgsError as exc:  # the last model stays: the next one may load
-            log.error("learned model %d not taken: %s", report["version"], exc)
-            return
-        self.published = {**report, "live_unix": time.time()}
-        scores = report.get("heldout") or {}
-        log.info("learned model %d live: %d anchors, step %d, held-out PSNR %s", report["version"],
-                 report["anchors"], report["steps"],
-                 f"{scores['psnr']:.2f} dB" if "psnr" in scores else "(no held-out frame yet)")
 
     def close(self, timeout: float = 120.0) -> dict | None:
         """Ask the learner to save what it learnt and end; returns what it saved (None: nothing in time)."""
@@ -126,47 +189,3 @@ class Learning:
                      self.saved["checkpoint"], self.saved["recording"], self.saved["recording"],
                      self.saved["checkpoint"])
         return self.saved
-
-    def register_metrics(self, metrics) -> None:
-        """The learner's series in the service's metrics (read when scraped)."""
-        gauge, counter = metrics.readings.gauge, metrics.readings.counter
-
-        def model(key, empty=float("nan")):
-            return lambda: empty if self.published is None else float(self.published[key])
-
-        gauge("edmcgs_learned_model_version", "The learnt model served now (0: none yet, renders are the "
-              "stream's frames moved by the events).", model("version", 0.0))
-        gauge("edmcgs_learned_span_seconds", "The stream time the served model learnt.",
-              lambda: 0.0 if self.published is None else
-              (self.published["span_us"][1] - self.published["span_us"][0]) / 1e6)
-        gauge("edmcgs_learner_steps", "Training steps behind the served model (its round's).",
-              model("steps", 0.0))
-        gauge("edmcgs_learner_cpu_seconds", "The learner's CPU seconds when it published the served model.",
-              model("cpu_s", 0.0))
-        gauge("edmcgs_learned_heldout_psnr", "The served model's PSNR on stream frames it was not trained on "
-              "(NaN: none yet).", lambda: float("nan") if self.published is None
-              or not self.published.get("heldout") else float(self.published["heldout"]["psnr"]))
-        gauge("edmcgs_learner_up", "1 while the learner process runs.",
-              lambda: float(self.process.is_alive()))
-        counter("edmcgs_learner_fed_total", "What the server gave the learner.",
-                lambda: {k: float(v) for k, v in self.fed.items()}, "what")
-
-    def info(self) -> dict:
-        """GET /scene's ``learning``."""
-        pub = self.published
-        return {
-            "workdir": str(self.config.workdir),
-            "preset": self.config.preset,
-            "anchor_fps": self.config.anchor_fps,
-            "running": self.process.is_alive(),
-            "error": self.error,
-            "fed": dict(self.fed),
-            "version": None if pub is None else pub["version"],
-            "model": None if pub is None else {
-                "version": pub["version"], "span_us": pub["span_us"], "anchors": pub["anchors"],
-                "steps": pub["steps"], "gaussians": pub["gaussians"], "cpu_s": pub["cpu_s"],
-                "preset": pub["preset"], "camera": pub["camera"],
-                "heldout": pub["heldout"], "live_unix": pub["live_unix"]},
-            "started_unix": self.started_unix,
-            "saved": self.saved,
-        }

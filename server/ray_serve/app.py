@@ -51,7 +51,7 @@ def describe(scene: SceneConfig) -> dict[str, Any]:
         source = {"kind": "replay", "file": "bundled demo", "loop": True}
         checkpoint = "bundled demo"
     else:
-        checkpoint = scene.checkpoint.name
+        checkpoint = "learnt while serving (cold start)" if scene.cold else scene.checkpoint.name
         source = ({"kind": "live", "shared": True} | ({"replay": scene.replay.name} if scene.replay else {})
                   if scene.live else
                   {"kind": "replay", "file": scene.replay.name, "loop": scene.loop} if scene.replay else
@@ -72,6 +72,20 @@ def _ingest(scene: SceneConfig, values: dict[str, Any]):
         max_ongoing_requests=10_000, health_check_period_s=HEALTH_CHECK_PERIOD_S)
     replay = None if scene.replay is None else str(scene.replay)
     return deployment.bind(scene.name, replay, scene.loop, batch_us)
+
+
+def _learner(scene: SceneConfig, values: dict[str, Any], ingest):
+    """A cold-start scene's learner deployment (``learner.py``: one, on a CPU of its own), bound; None
+    for a scene with a checkpoint."""
+    if not scene.cold:
+        return None
+    from edmcgs.server.ray_serve.learner import SAVE_TIMEOUT_S, SceneLearner
+
+    deployment = serve.deployment(SceneLearner).options(
+        name=f"learner-{scene.name}", num_replicas=1, ray_actor_options={"num_cpus": 1},
+        max_ongoing_requests=1000, health_check_period_s=HEALTH_CHECK_PERIOD_S,
+        graceful_shutdown_timeout_s=SAVE_TIMEOUT_S + 10)  # time to save what it learnt
+    return deployment.bind(scene.name, values, ingest)
 
 
 def build(config: RayConfig):
@@ -102,7 +116,8 @@ def build(config: RayConfig):
             # Each open stream holds a call for its life; renders past the pool's queue get its 503.
             max_ongoing_requests=concurrency, max_queued_requests=scene.max_queued,
             health_check_period_s=HEALTH_CHECK_PERIOD_S, graceful_shutdown_timeout_s=5)
-        scenes[scene.name] = deployment.bind(scene.name, values, _ingest(scene, values))
+        ingest = _ingest(scene, values)
+        scenes[scene.name] = deployment.bind(scene.name, values, ingest, _learner(scene, values, ingest))
         info[scene.name] = describe(scene)
     gateway = serve.deployment(Gateway).options(name="gateway", num_replicas=1,
                                                 ray_actor_options={"num_cpus": 0},

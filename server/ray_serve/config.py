@@ -48,7 +48,8 @@ class HttpOptions(BaseModel):
 
 
 class SceneConfig(BaseModel):
-    """One scene: a checkpoint and its event source, served by ``replicas`` render replicas."""
+    """One scene: a checkpoint (none: a cold start, learnt while it serves) and its event source, served by
+    ``replicas`` render replicas."""
 
     model_config = ConfigDict(extra="forbid")
     name: str = Field(description="URL name: lowercase letters, digits, '-' and '_'")
@@ -74,10 +75,12 @@ class SceneConfig(BaseModel):
                              "starting with a letter or digit (it is part of the URL)")
         if self.demo and (self.checkpoint or self.replay or self.live):
             raise ValueError("demo: true serves the bundled scene; give no checkpoint, replay or live")
-        if not self.demo and self.checkpoint is None:
-            raise ValueError("give a checkpoint (or demo: true): a scene learnt from a cold start is served "
-                             "by the single-process edmcgs-serve (--replay or --live without --checkpoint), "
-                             "whose learnt checkpoint a scene here can then serve")
+        if not self.demo and self.checkpoint is None and not self.live:
+            raise ValueError("give a checkpoint (or demo: true); a scene with none learns from a cold start, "
+                             "which needs the one stream its learner and replicas share: live: true (with "
+                             "replay, the recording played as a camera)")
+        if self.checkpoint is None and self.loop:
+            raise ValueError("a cold start learns one pass of the stream: loop needs a checkpoint")
         if self.live and self.speed != 1.0:
             raise ValueError(f"speed {self.speed}: a live scene runs at the camera's pace (a replay played "
                              "as a camera is stamped with the wall clock); give speed 1 or leave it out")
@@ -89,11 +92,17 @@ class SceneConfig(BaseModel):
                              "not settings")
         return self
 
+    @property
+    def cold(self) -> bool:
+        """A cold start: no checkpoint, one learner for the scene (``learner.py``)."""
+        return not self.demo and self.checkpoint is None
+
     def settings_dict(self) -> dict[str, Any]:
         """The keyword arguments of this scene's ``edmcgs.server.settings.Settings``."""
         out: dict[str, Any] = dict(self.settings)
         if not self.demo:
-            out.update(checkpoint=str(self.checkpoint), live=self.live, loop=self.loop, speed=self.speed)
+            out.update(checkpoint=None if self.cold else str(self.checkpoint), live=self.live, loop=self.loop,
+                       speed=self.speed)
             if self.replay is not None and not self.live:  # a live scene's replay is its ingest's
                 out["replay"] = str(self.replay)
         else:

@@ -43,7 +43,7 @@ def _replica_name() -> str:
 class SceneReplica:
     """Serve deployment class of a scene (``app.py`` wraps it with ``serve.deployment``)."""
 
-    async def __init__(self, name: str, settings: dict, ingest=None):
+    async def __init__(self, name: str, settings: dict, ingest=None, learner=None):
         # As edmcgs-serve does, before torch and numba start their pools (see server/cli.py).
         os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
         from edmcgs.errors import EdmcgsError
@@ -67,7 +67,14 @@ class SceneReplica:
                 from edmcgs.server.ray_serve.shared_source import RemoteSource
 
                 source = await asyncio.to_thread(RemoteSource, ingest, name)
-            self._service = await asyncio.to_thread(Service.open, parsed, source)
+            learning = None
+            if learner is not None:  # a cold start: the scene's one learner, its models swapped in here
+                from functools import partial
+
+                from edmcgs.server.ray_serve.learner import RemoteLearning
+
+                learning = partial(RemoteLearning, learner)
+            self._service = await asyncio.to_thread(Service.open, parsed, source, learning)
         except (EdmcgsError, OSError, ValueError) as exc:
             self.failure = f"{type(exc).__name__}: {exc}"
             log.error("scene %s failed to open: %s", name, self.failure)

@@ -36,9 +36,11 @@ import uuid
 from collections import deque
 from dataclasses import replace
 
+import numpy as np
+
 from edmcgs.errors import DeviceDisconnected, SensorError
 from edmcgs.sensor.events import Events, EventStats
-from edmcgs.sensor.sources.base import SensorBatch, StreamInfo
+from edmcgs.sensor.sources.base import Extras, SensorBatch, StreamInfo
 
 log = logging.getLogger("edmcgs.server.ray")
 
@@ -152,6 +154,13 @@ class SceneIngest:
     def info(self) -> StreamInfo:
         return self._info
 
+    def extras(self) -> Extras:
+        """What the source states beside its streams, its trajectory on the replicas' clock."""
+        extras = self.source.extras
+        if extras.trajectory_t_us is None or not self._shift_us:
+            return extras
+        return replace(extras, trajectory_t_us=extras.trajectory_t_us + np.int64(self._shift_us))
+
     async def pull(self, after: int | None, wait_s: float = PULL_WAIT_S) -> dict:
         return await self.shared.pull(after, wait_s)
 
@@ -172,6 +181,7 @@ class RemoteSource:
     def __init__(self, handle, scene: str):
         self.handle, self.scene = handle, scene
         self._info: StreamInfo = handle.info.remote().result(timeout_s=60)
+        self._extras: Extras = handle.extras.remote().result(timeout_s=60)
         self._stats = EventStats()
         self.after: int | None = None
         self.received_events = 0
@@ -189,6 +199,10 @@ class RemoteSource:
     @property
     def stats(self) -> EventStats:
         return self._stats
+
+    @property
+    def extras(self) -> Extras:
+        return self._extras
 
     def read(self) -> SensorBatch | None:
         while not self.pending:

@@ -46,7 +46,17 @@ def test_a_live_scene_takes_many_replicas_and_keeps_its_replay_for_its_ingest(fi
     assert config.scene("street").replay == (files / "s.h5").resolve()
 
 
+def test_a_scene_with_no_checkpoint_is_a_cold_start_on_its_shared_stream(files):
+    config = parse_config({"scenes": [{"name": "street", "replay": "s.h5", "live": True, "replicas": 2}]},
+                          base=files)
+    street = config.scene("street")
+    assert street.cold and street.settings_dict()["checkpoint"] is None
+    assert not parse_config({"scenes": [scene()]}, base=files).scene("street").cold
+
+
 @pytest.mark.parametrize(("entry", "says"), [
+    ({"name": "x", "replay": "s.h5"}, "its learner and replicas share: live: true"),
+    ({"name": "x", "replay": "s.h5", "live": True, "loop": True}, "loop needs a checkpoint"),
     (scene(name="Street!"), "scenes[0] (Street!): name 'Street!'"),
     (scene(replicas=0), "scenes[0] (street).replicas: Input should be greater than or equal to 1"),
     (scene(settings={"port": 1}), "settings: port are the scene's own keys"),

@@ -11,7 +11,7 @@ import pytest
 
 from edmcgs.errors import SensorError
 from edmcgs.sensor.events import Events
-from edmcgs.sensor.sources.base import SensorBatch, StreamInfo
+from edmcgs.sensor.sources.base import Extras, SensorBatch, StreamInfo
 from edmcgs.server.ray_serve.shared_source import RemoteSource, SharedRing
 
 INFO = StreamInfo(width=8, height=6, sensor="test", has_frames=False, has_imu=False, live=True)
@@ -44,6 +44,7 @@ class Handle:
 
     def __init__(self, shared: SharedRing):
         self.info = Method(lambda: INFO)
+        self.extras = Method(Extras)
         self.pull = Method(lambda after, wait_s: asyncio.run(shared.pull(after, 0.0)))
 
 
@@ -116,6 +117,7 @@ class Replaceable:
     def __init__(self, shared: SharedRing):
         self.shared, self.dead_calls = shared, 0
         self.info = Method(lambda: self._call(lambda: INFO))
+        self.extras = Method(lambda: self._call(Extras))
         self.pull = Method(lambda after, wait_s: self._call(
             lambda: asyncio.run(self.shared.pull(after, 0.0))))
 
