@@ -258,10 +258,15 @@ class Engine:
         if tb.model is None:
             if (pose is not None and camera_view is not True) or mode != "rgb":
                 raise NotReady(NO_MODEL)
-            shape = (meta.event_height, meta.event_width)
-            image = event_bounds.integrate(start.frame, np.zeros(shape, np.float32) if emap is None else emap,
-                                           meta.contrast_threshold, size=(width, height), eps=meta.log_eps)
-            return Rendered(to_uint8(image), instant, n_events, start.kind,
+        # the event camera's view where no model can draw it (none yet, or a moving camera past the poses
+        # it learnt): the frame at tau moved by the events since
+        if tb.model is None or (pose is None and mode == "rgb" and start.frame is not None
+                                and not tb.pose_known(instant.t_us)):
+            sensor = meta if tb.model is None else tb.model.config  # C and eps of the integration
+            moved = np.zeros((meta.event_height, meta.event_width), np.float32) if emap is None else emap
+            image = event_bounds.integrate(start.frame, moved, sensor.contrast_threshold,
+                                           size=(width, height), eps=sensor.log_eps)
+            return Rendered(to_uint8(image), instant, n_events, "frame",
                             {"state": t1 - t0, "project": time.perf_counter() - t1}, True, model_version=None)
         c2w = own() if pose is None else pose
         if c2w is None:

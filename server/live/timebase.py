@@ -166,6 +166,20 @@ class Timebase:
         motion = online.advance(start.online.motion, event_map, pose)
         return with_spawned(state_of(self.model, motion, start.online.colors), start.online.spawned)
 
+    def pose_known(self, t_us: int) -> bool:
+        """Whether ``pose(t_us)`` is where the event camera is: within the span, past it from the
+        checkpoint's last anchor, and from an online anchor whose frame came with a pose or when the
+        camera stood still. A moving camera at an online anchor with no pose is somewhere the trajectory's
+        clamped end does not say: its view is then the frame moved by the events (``Engine.render``), not
+        the model from a stale pose."""
+        if self.online is None or int(t_us) <= self.span.end_us:
+            return True
+        newest = next((a for a in reversed(self.online.anchors()) if a.t_us <= int(t_us)), None)
+        if newest is None or newest.pose is not None:
+            return True
+        trajectory = self.meta.trajectory
+        return trajectory is None or trajectory.is_static
+
     def pose(self, t_us: int) -> np.ndarray | None:
         """The event camera's pose at scene time ``t_us``: past the span the newest online anchor's frame's
         when the stream gives poses, else the checkpoint's trajectory; None when neither knows it."""
@@ -237,3 +251,6 @@ class FramesTimebase:
 
     def pose(self, t_us: int) -> np.ndarray | None:
         return None  # nothing knows the camera's motion before a model (or poses) does
+
+    def pose_known(self, t_us: int) -> bool:
+        return False

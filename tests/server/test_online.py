@@ -4,6 +4,7 @@ a fit that falls behind skips and counts, the store stays bounded, and the engin
 
 from __future__ import annotations
 
+import copy
 import threading
 from dataclasses import replace
 
@@ -11,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from edmcgs.geometry import Trajectory
 from edmcgs.model import online as model_online
 from edmcgs.model.checkpoint import load_checkpoint
 from edmcgs.model.online.bounds import integrate
@@ -131,7 +133,8 @@ def test_a_chain_whose_events_are_gone_starts_again_and_renders_to_the_head(long
     # the ring holds the events of the last 0.3 s only; frames from ``late`` on
     ring.push(rec.events.time_slice(late - 300_000, late + 400_000), complete_until_us=late + 400_000)
     sel = (rec.anchors.t_us >= late) & (rec.anchors.t_us < late + 400_000)
-    online.on_frames(Frames(rec.anchors.t_us[sel], rec.anchors.images[sel]), tl.scene_of)
+    online.on_frames(Frames(rec.anchors.t_us[sel], rec.anchors.images[sel], rec.anchors.poses[sel]),
+                     tl.scene_of)
     assert online.restarted == 1 and online.predicted == int(sel.sum()) > 1
     out = engine.render(None, None, 64, 48)
     assert out.anchor == "predicted" and out.instant.anchor_us == online.anchors()[-1].t_us
@@ -247,6 +250,38 @@ def test_the_event_cameras_view_past_the_span_is_projected_onto_the_events_since
     assert not engine.render(model.meta.t_end_us - 10_000, None, 64, 48).projected
     online.config = replace(online.config, project=False)
     assert np.array_equal(engine.render(None, None, 64, 48).pixels, model_alone.pixels)
+
+
+def test_a_moving_camera_past_its_learnt_poses_shows_the_frame_moved_by_the_events(long_scene):
+    """Frames past the span with no pose, from a camera whose trajectory moves: where it is is unknown,
+    so its view is the newest frame moved by the events since (the model from the trajectory's clamped
+    end would draw another view); a pose given is still the model's, and a still camera's view too."""
+    rec, model = long_scene
+    assert not model.meta.trajectory.is_static
+    ring = EventRingBuffer(10**6)
+    online = OnlineAnchors(model, ring, OnlineConfig(fit=False))
+    engine = Engine(Timebase(model, online), ring, cache_size=4)
+    start = rec.t_range_us[0]
+    engine.timeline = tl = Timeline(start, start)
+    head = model.meta.t_end_us + 5 * STEP_US + 20_000
+    ring.push(rec.events.time_slice(start, head + 1), complete_until_us=head + 1)
+    sel = rec.anchors.t_us <= head
+    online.on_frames(Frames(rec.anchors.t_us[sel], rec.anchors.images[sel]), tl.scene_of)
+    out = engine.render(None, None, 64, 48)
+    anchor = online.anchors()[-1]
+    assert out.anchor == "frame" and out.model_version is None and out.instant.anchor_us == anchor.t_us
+    emap = accumulate(ring.slice(*out.instant.window), 64, 48)
+    assert np.abs(emap).sum() > 0
+    want = integrate(anchor.frame, emap, model.config.contrast_threshold, eps=model.config.log_eps)
+    assert np.abs(out.pixels.astype(int) - np.rint(np.clip(want, 0, 1) * 255).astype(int)).max() <= 1
+    pose = model.meta.trajectory.at(out.instant.t_us)
+    assert engine.render(None, pose, 64, 48, camera_view=False).anchor == "predicted"
+    # within the span, and a camera that stood still: the model's view, projected
+    assert engine.render(model.meta.t_end_us - 10_000, None, 64, 48).anchor == "checkpoint"
+    still = copy.deepcopy(model)
+    still.meta.trajectory = Trajectory(still.meta.trajectory.t_us[:1], still.meta.trajectory.c2w[:1])
+    engine.swap(Timebase(still, online))
+    assert engine.render(None, None, 64, 48).anchor == "predicted"
 
 
 REAL = {"anchor_windows": True, "bg_layer": True, "dynamic_threshold": 0.06}  # the real preset's switches
