@@ -212,6 +212,9 @@ def run(rec_path: Path, minutes: float, every: float, workdir: Path, env: dict, 
     rec = read_recording(rec_path)
     frames, _ = baselines(rec)
     first_frame_s = (int(rec.anchors.t_us[0]) - rec.t_range_us[0]) / 1e6
+    # the ring holds the whole recording: every held-out frame stays renderable from its events (a moving
+    # camera's street fires more events than the default ring keeps)
+    env = {"EDMCGS_RING_EVENTS": str(max(4_000_000, int(len(rec.events) * 1.1)))} | env
     srv = ServerProcess(["--replay", str(rec_path), "--learn-dir", str(workdir)], env=env)
     rows, models, rounds, load, snapped = [], {}, [], None, None
     try:
