@@ -140,11 +140,11 @@ class Learner:
                 return False
             self._new_round()
             self.published_at = time.monotonic()
-        elif rnd.trainer.step >= rnd.steps or rnd.lengthened:
+        elif rnd.lengthened and self.anchors_available() > rnd.anchors:  # new anchors end it at once
+            self._new_round()
+        elif rnd.trainer.step >= rnd.steps:  # the round is over
             if self.anchors_available() > rnd.anchors:
                 self._new_round()
-            elif rnd.trainer.step < rnd.steps:  # a lengthened round, no new anchor yet
-                pass
             elif rnd.steps < rnd.full:  # no new anchor: the same model, on the preset's schedule
                 self._lengthen()
             else:  # at the preset's schedule: it trains on at its end
@@ -228,9 +228,9 @@ class Learner:
         densification, the event branch's warm-in) read at the new length. Without it a stream that
         stopped growing (a replay's end, a camera held still) would train on at a short schedule's end, its
         learning rates at their floor, and never reach the preset's model. One long schedule, not a
-        doubling each time: every restart of the decay costs against the offline run (at the offline run's
-        CPU time, 0.55 dB behind with doublings); publishing every ``publish_s`` keeps the models coming,
-        and new anchors end the round at once."""
+        doubling each time: every restart of the decay cost against the offline run (traffic: 0.55 dB
+        behind at 85 % of its CPU time with doublings, 0.02 dB at 101 % without); publishing every
+        ``publish_s`` keeps the models coming, and new anchors end the round at once."""
         rnd = self.round
         rnd.steps = rnd.full
         rnd.lengthened = True
