@@ -167,12 +167,13 @@ class Timebase:
         return with_spawned(state_of(self.model, motion, start.online.colors), start.online.spawned)
 
     def pose_known(self, t_us: int) -> bool:
-        """Whether ``pose(t_us)`` is where the event camera is: within the span, past it from the
-        checkpoint's last anchor, and from an online anchor whose frame came with a pose or when the
-        camera stood still. A moving camera at an online anchor with no pose is somewhere the trajectory's
-        clamped end does not say: its view is then the frame moved by the events (``Engine.render``), not
-        the model from a stale pose."""
-        if self.online is None or int(t_us) <= self.span.end_us:
+        """Whether ``pose(t_us)`` is where the event camera is, for a cold start's model (``frames``
+        kept): within the span, past it from the model's last anchor, and from an online anchor whose
+        frame came with a pose or when the camera stood still. A moving camera at an online anchor with no
+        pose is somewhere the learnt trajectory's clamped end does not say: its view is then the frame
+        moved by the events (``Engine.render``), not the model from a stale pose. (A checkpoint given
+        keeps its trajectory's clamped end past its span.)"""
+        if self.online is None or self.frames is None or int(t_us) <= self.span.end_us:
             return True
         newest = next((a for a in reversed(self.online.anchors()) if a.t_us <= int(t_us)), None)
         if newest is None or newest.pose is not None:

@@ -17,6 +17,7 @@ from edmcgs.model import online as model_online
 from edmcgs.model.checkpoint import load_checkpoint
 from edmcgs.model.online.bounds import integrate
 from edmcgs.model.render.sh import SH_C0
+from edmcgs.sensor.buffer.anchors import AnchorStore
 from edmcgs.sensor.buffer.ring import EventRingBuffer
 from edmcgs.sensor.event_map import accumulate
 from edmcgs.sensor.events import Events
@@ -253,19 +254,22 @@ def test_the_event_cameras_view_past_the_span_is_projected_onto_the_events_since
 
 
 def test_a_moving_camera_past_its_learnt_poses_shows_the_frame_moved_by_the_events(long_scene):
-    """Frames past the span with no pose, from a camera whose trajectory moves: where it is is unknown,
+    """A cold start's model, frames past its span with no pose, a camera whose trajectory moves: where it
+    is is unknown,
     so its view is the newest frame moved by the events since (the model from the trajectory's clamped
     end would draw another view); a pose given is still the model's, and a still camera's view too."""
     rec, model = long_scene
     assert not model.meta.trajectory.is_static
     ring = EventRingBuffer(10**6)
     online = OnlineAnchors(model, ring, OnlineConfig(fit=False))
-    engine = Engine(Timebase(model, online), ring, cache_size=4)
+    kept = AnchorStore(64)  # a cold start's: its model learnt from the stream's frames
+    engine = Engine(Timebase(model, online, kept), ring, cache_size=4)
     start = rec.t_range_us[0]
     engine.timeline = tl = Timeline(start, start)
     head = model.meta.t_end_us + 5 * STEP_US + 20_000
     ring.push(rec.events.time_slice(start, head + 1), complete_until_us=head + 1)
     sel = rec.anchors.t_us <= head
+    kept.add_frames(Frames(rec.anchors.t_us[sel], rec.anchors.images[sel]))
     online.on_frames(Frames(rec.anchors.t_us[sel], rec.anchors.images[sel]), tl.scene_of)
     out = engine.render(None, None, 64, 48)
     anchor = online.anchors()[-1]
@@ -280,7 +284,10 @@ def test_a_moving_camera_past_its_learnt_poses_shows_the_frame_moved_by_the_even
     assert engine.render(model.meta.t_end_us - 10_000, None, 64, 48).anchor == "checkpoint"
     still = copy.deepcopy(model)
     still.meta.trajectory = Trajectory(still.meta.trajectory.t_us[:1], still.meta.trajectory.c2w[:1])
-    engine.swap(Timebase(still, online))
+    engine.swap(Timebase(still, online, kept))
+    assert engine.render(None, None, 64, 48).anchor == "predicted"
+    # a checkpoint given (no frames kept) draws from its trajectory's end past its span
+    engine.swap(Timebase(model, online))
     assert engine.render(None, None, 64, 48).anchor == "predicted"
 
 
