@@ -356,7 +356,11 @@ def _run(args) -> int:
     try:
         history = trainer.fit(out, until=until, stop=stop, curves=curves)
     except KeyboardInterrupt:  # the second Ctrl-C
-        saved = f"{out} holds step {trainer.saved_step}" if trainer.saved_step is not None else \
+        # what the file holds, read back: the interrupt may have cut a save after its rename, before the
+        # trainer noted the step
+        held = _held_step(out)
+        held = trainer.saved_step if held is None else held
+        saved = f"{out} holds step {held}" if held is not None else \
             f"nothing was saved by this run ({out} is as it was before)"
         print(f"edmcgs train: abandoned at step {trainer.step}; {saved}", file=sys.stderr)
         curves = None  # the interrupt may have landed inside its writer, whose close could then wait forever;
@@ -375,6 +379,17 @@ def _run(args) -> int:
               f"continue with: {resume_command(args.argv, out, more)}", file=sys.stderr)
         return INTERRUPTED
     return _report(trainer.model, data, out)
+
+
+
+def _held_step(path) -> int | None:
+    """The training step of the checkpoint at ``path`` (None: none there, or one without its state)."""
+    from edmcgs.model.checkpoint import read_checkpoint
+
+    try:
+        return int(read_checkpoint(path)["train_state"]["step"])
+    except (EdmcgsError, OSError, KeyError, TypeError, ValueError):
+        return None
 
 
 def _run_parallel(args) -> int:
