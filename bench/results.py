@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
@@ -26,6 +27,20 @@ def pick_variants(text: str, variants: dict, prog: str) -> list[str]:
     if unknown or not names:
         raise SystemExit(f"{prog}: unknown variant(s) {unknown}; choose from {list(variants)}")
     return names
+
+
+def variant_parser(name: str, doc: str, variants: dict, recording: str) -> argparse.ArgumentParser:
+    """``python -m bench.NAME``'s options shared by the benchmarks that train variants of one scene:
+    where the report and the cache go, which variants, their steps, another recording, a JSON copy."""
+    p = argparse.ArgumentParser(prog=f"python -m bench.{name}", description=doc.split("\n\n")[0])
+    p.add_argument("--out", type=Path, default=Path("reports"), help=f"where {name}.md/json/png go")
+    p.add_argument("--cache", type=Path, default=Path(f"reports/cache/{name}"),
+                   help="recordings and checkpoints")
+    p.add_argument("--variants", default=",".join(variants), help=f"comma-separated, of {list(variants)}")
+    p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
+    p.add_argument("--recording", type=Path, default=None, help=recording)
+    p.add_argument("--json", type=Path, default=None, help="also write the results here")
+    return p
 
 
 def numeric(results: dict):

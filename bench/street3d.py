@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.results import meets, pick_variants, table, write_json
+from bench.results import meets, pick_variants, table, variant_parser, write_json
 from bench.traffic import _edmcgs, measured_run, train
 
 PRESET = "moving"
@@ -298,17 +298,9 @@ def markdown(r: dict, command: str) -> str:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m bench.street3d", description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", type=Path, default=Path("reports"), help="where street3d.md/json/png go")
-    p.add_argument("--cache", type=Path, default=Path("reports/cache/street3d"),
-                   help="recordings and checkpoints")
+    p = variant_parser("street3d", __doc__, VARIANTS, "a street3d recording instead of building one")
     p.add_argument("--size", choices=("full", "small"), default="full", help="the street's size")
     p.add_argument("--seconds", type=float, default=4.0, help="the street's length in time")
-    p.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {list(VARIANTS)}")
-    p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
-    p.add_argument("--recording", type=Path, default=None,
-                   help="a street3d recording instead of building one")
-    p.add_argument("--json", type=Path, default=None, help="also write the results here")
     return p
 
 

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.results import meets, pick_variants, table, write_json
+from bench.results import meets, pick_variants, table, variant_parser, write_json
 
 SCENE_ARGS = ["--fps", "5", "--seconds", "3", "--seed", "0"]
 VARIANTS = {"full": [], "markov=false": ["markov=false"], "events=false": ["events=false"],
@@ -247,15 +247,7 @@ def markdown(r: dict, command: str) -> str:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m bench.traffic", description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", type=Path, default=Path("reports"), help="where traffic.md/json/png go")
-    p.add_argument("--cache", type=Path, default=Path("reports/cache/traffic"),
-                   help="recordings and checkpoints")
-    p.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {list(VARIANTS)}")
-    p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
-    p.add_argument("--recording", type=Path, default=None, help="another recording instead of the street")
-    p.add_argument("--json", type=Path, default=None, help="also write the results here")
-    return p
+    return variant_parser("traffic", __doc__, VARIANTS, "another recording instead of the street")
 
 
 def main(argv: list[str] | None = None) -> int:

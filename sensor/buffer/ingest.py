@@ -14,15 +14,17 @@ from edmcgs.sensor.sources.base import EventSource, SensorBatch
 
 
 class Ingest:
-    """Pump ``source`` into ``ring`` (events) and ``anchors`` (frames) until the stream ends or stop().
+    """Pump ``source`` into ``ring`` (events; None: none kept) and ``anchors`` (frames) until the stream
+    ends or stop().
 
     ``reconnect``: on DeviceDisconnected, call the source's ``reconnect()`` (exponential backoff) and
     go on; without it, or when reconnecting fails, the thread ends with ``error`` set.
     ``on_batch``: called with every batch after it is stored (e.g. metrics, recording).
     """
 
-    def __init__(self, source: EventSource, ring: EventRingBuffer, anchors: AnchorStore | None = None, *,
-                 reconnect: bool = True, on_batch: Callable[[SensorBatch], None] | None = None) -> None:
+    def __init__(self, source: EventSource, ring: EventRingBuffer | None,
+                 anchors: AnchorStore | None = None, *, reconnect: bool = True,
+                 on_batch: Callable[[SensorBatch], None] | None = None) -> None:
         self.source, self.ring, self.anchors = source, ring, anchors
         self.reconnect = reconnect
         self.on_batch = on_batch
@@ -77,7 +79,8 @@ class Ingest:
             if batch is None:
                 self.finished = True
                 return
-            self.ring.push(batch.events, complete_until_us=batch.t_end_us)
+            if self.ring is not None:
+                self.ring.push(batch.events, complete_until_us=batch.t_end_us)
             if self.anchors is not None and batch.frames is not None:
                 self.anchors.add_frames(batch.frames)
             self.batches += 1

@@ -200,16 +200,14 @@ class Learner:
 
         from edmcgs.geometry import Similarity, Trajectory
         from edmcgs.pipeline import estimated_poses
-        from edmcgs.sensor.frames import Frames
 
-        held = rec.held_out
         try:
             out = estimated_poses(replace(rec, held_out=None))
         except EdmcgsError as exc:
             print(f"learner: no poses from {len(rec.anchors)} anchor frames ({exc}); this round takes a "
                   "still camera", flush=True)
             return rec
-        out = replace(out, held_out=held if held is None else Frames(held.t_us, held.images))
+        out = replace(out, held_out=rec.held_out)  # the stream's frames: no poses of their own
         if previous is None or previous.points_xyz is None or out.points_xyz is None:
             return out
         shared = np.intersect1d(previous.anchors.t_us, out.anchors.t_us)

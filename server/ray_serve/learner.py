@@ -21,7 +21,6 @@ import threading
 import time
 from pathlib import Path
 
-from edmcgs.errors import DeviceDisconnected, EdmcgsError
 from edmcgs.server.live.learning import LearnerView
 
 log = logging.getLogger("edmcgs.server.ray")
@@ -36,6 +35,7 @@ class SceneLearner:
     """Serve deployment class of a cold-start scene's learner (one replica)."""
 
     async def __init__(self, name: str, settings: dict, ingest):
+        from edmcgs.sensor.buffer.ingest import Ingest
         from edmcgs.server.live.learning import Learning
         from edmcgs.server.ray_serve.shared_source import RemoteSource
         from edmcgs.server.service import learn_config
@@ -46,29 +46,9 @@ class SceneLearner:
         info = self.source.info
         config = learn_config(Settings(**settings), info, self.source.extras)
         self.learning = Learning(config, info.width, info.height).start()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._feed, name=f"edmcgs-learn-{name}", daemon=True)
-        self._thread.start()
+        # the stream, as a replica's ingest reads it (reconnecting to a new ingest replica), to the learner
+        self.ingest = Ingest(self.source, None, on_batch=self.learning.feed).start()
         log.info("scene %s: learning from the shared stream into %s", name, config.workdir)
-
-    def _feed(self) -> None:
-        while not self._stop.is_set():
-            try:
-                batch = self.source.read()
-            except DeviceDisconnected as exc:  # a new ingest replica: the stream goes on from it
-                log.warning("%s", exc)
-                try:
-                    self.source.reconnect(should_stop=self._stop.is_set)
-                except EdmcgsError as failed:
-                    log.error("scene %s: the learner lost its stream: %s", self.name, failed)
-                    return
-                continue
-            except EdmcgsError as exc:
-                log.error("scene %s: the learner's stream failed: %s", self.name, exc)
-                return
-            if batch is None:  # the stream ended: the learner trains on what it has
-                return
-            self.learning.feed(batch)
 
     def latest(self, after: int) -> dict:
         """The learner's state, and the newest published model when it is newer than version ``after``
@@ -86,9 +66,9 @@ class SceneLearner:
         """Serve's probe: a learner that failed is reported on the replicas' /scene, not restarted."""
 
     def __del__(self):
-        stop = getattr(self, "_stop", None)
-        if stop is not None:
-            stop.set()
+        ingest = getattr(self, "ingest", None)
+        if ingest is not None:
+            ingest.stop()
             self.learning.close(SAVE_TIMEOUT_S)
 
 
