@@ -56,10 +56,15 @@ def profile_steps(trainer, steps: int) -> tuple[dict, dict, list[dict], float]:
     events = prof.key_averages()
     # the trainer's ranges: "part: what" or one of these (torch's ops are "aten::...", "autograd::...")
     named = ("step", "backward", "optimizer step", "density control", "next anchor")
-    ranges = {e.key: e.cpu_time_total / steps / 1e3 for e in events
-              if (": " in e.key and "::" not in e.key) or e.key in named}
-    gpu = {e.key: getattr(e, "device_time_total", 0.0) / steps / 1e3 for e in events if e.key in ranges} \
-        if cuda else {}
+    # on CUDA a range is listed twice, as its host span and as its annotation on the device's timeline
+    # (no host time): each figure is the larger of the two
+    ranges: dict[str, float] = {}
+    gpu: dict[str, float] = {}
+    for e in events:
+        if (": " in e.key and "::" not in e.key) or e.key in named:
+            ranges[e.key] = max(ranges.get(e.key, 0.0), e.cpu_time_total / steps / 1e3)
+            if cuda:
+                gpu[e.key] = max(gpu.get(e.key, 0.0), getattr(e, "device_time_total", 0.0) / steps / 1e3)
     def rank(e) -> float:
         return -getattr(e, "self_device_time_total", 0.0) if cuda else -e.self_cpu_time_total
 

@@ -23,7 +23,8 @@ def random_scene(n, width, height, *, seed=0, sh_degree=None, channels=3, px_sig
     sigma_px = np.exp(rng.uniform(*np.log(px_sigma), n))
     scales = (sigma_px * z / f)[:, None] * np.exp(rng.uniform(-0.7, 0.7, (n, 3)))
     q = rng.normal(size=(n, 4))
-    c2w = pose_from_quat(rng.normal(size=3), q[0] / np.linalg.norm(q[0]))
+    q0 = q[0] if n else rng.normal(size=4)  # the camera's turn (an empty scene still has a camera)
+    c2w = pose_from_quat(rng.normal(size=3), q0 / np.linalg.norm(q0))
     means = cam @ c2w[:3, :3].T + c2w[:3, 3]
     quats = rng.normal(size=(n, 4))
     opac = rng.uniform(*opacity, n)

@@ -15,7 +15,7 @@ PY=${PYTHON:-.venv/bin/python}
 WHEELS=${GPU_WHEELS:-.gpu/wheels}
 VERSION=${GPU_PYTHON_VERSION:-3.12}
 WANT=(fastapi starlette pydantic pydantic_core annotated-types annotated-doc typing-inspection typing_extensions
-      opentelemetry-api fastapi-offline uvicorn websockets pydantic-settings python-dotenv plyfile gsplat
+      opentelemetry-api fastapi-offline uvicorn httptools websockets pydantic-settings python-dotenv plyfile gsplat
       setuptools)
 mkdir -p "$WHEELS"
 rm -f "$WHEELS"/*.whl
