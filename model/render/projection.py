@@ -1,7 +1,9 @@
 """EWA splatting of 3D Gaussians to the screen (the 3DGS math), shared by both rasterizers.
 
-Conventions: pixel centres at integer coordinates; a Gaussian covers the 16x16 tiles its 3-sigma
-screen radius touches (3DGS ``getRect``); inside those, a pixel takes it when
+Conventions: pixel centres at integer coordinates; a Gaussian covers the 16x16 tiles that hold a pixel
+centre within its 3-sigma screen radius (3DGS's ``getRect`` drops the last tile when mean + radius lies
+in its first pixel's unit, though that row's alpha may still reach alpha_min; gsplat keeps it); inside
+those, a pixel takes it when
 alpha = min(0.99, opacity * exp(-q/2)) >= alpha_min. ``screen_rect`` returns the pixel rectangle
 where that can happen: the tile rectangle clipped to the ellipse q <= 2 ln(opacity / alpha_min)
 (a little enlarged against rounding). Clipping only drops pixels whose alpha is below alpha_min,
@@ -108,9 +110,9 @@ def screen_rect(splats: Splats, opacities: Tensor, width: int, height: int, near
         lam = 0.5 * (a + c) + torch.sqrt((0.25 * (a - c) ** 2 + b * b).clamp_min(0.1))
         radius = torch.ceil(SIGMAS * torch.sqrt(lam))
         tx0 = torch.floor((mx - radius) / TILE).clamp(0, grid_x)
-        tx1 = torch.floor((mx + radius + TILE - 1) / TILE).clamp(0, grid_x)
+        tx1 = (torch.floor((mx + radius) / TILE) + 1).clamp(0, grid_x)
         ty0 = torch.floor((my - radius) / TILE).clamp(0, grid_y)
-        ty1 = torch.floor((my + radius + TILE - 1) / TILE).clamp(0, grid_y)
+        ty1 = (torch.floor((my + radius) / TILE) + 1).clamp(0, grid_y)
         # Ellipse where opacity * exp(-q/2) >= alpha_min: q <= tau; its bounding box is
         # mean +- sqrt(tau * a), mean +- sqrt(tau * c). 0.1% + 1e-3 of slack covers float32 rounding.
         if alpha_min > 0:

@@ -99,9 +99,9 @@ def _project(mt, qt, st, opac, log_o, w2c, fx, fy, cx, cy, width, height, near, 
         lam = 0.5 * (ca + cc) + math.sqrt(max(0.1, 0.25 * (ca - cc) ** 2 + cb * cb))
         radius = np.ceil(SIGMAS * math.sqrt(lam))
         tx0 = min(max(np.floor((u - radius) / TILE), 0.0), grid_x)
-        tx1 = min(max(np.floor((u + radius + TILE - 1) / TILE), 0.0), grid_x)
+        tx1 = min(max(np.floor((u + radius) / TILE) + 1.0, 0.0), grid_x)
         ty0 = min(max(np.floor((v - radius) / TILE), 0.0), grid_y)
-        ty1 = min(max(np.floor((v + radius + TILE - 1) / TILE), 0.0), grid_y)
+        ty1 = min(max(np.floor((v + radius) / TILE) + 1.0, 0.0), grid_y)
         # the ellipse (pixel - mean)^T conic (pixel - mean) <= tau holds every pixel whose alpha can
         # reach alpha_min; 0.1% + 1e-3 of slack in tau covers float32 rounding in the blending
         lo = log_o[i]

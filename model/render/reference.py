@@ -76,8 +76,8 @@ def render(means, quats, scales, opacities, colors, w2c, fx, fy, cx, cy, width, 
         r = math.ceil(3 * math.sqrt(lam))
         rect = (min(grid_x, max(0, math.floor((u - r) / 16))),
                 min(grid_y, max(0, math.floor((v - r) / 16))),
-                min(grid_x, max(0, math.floor((u + r + 15) / 16))),
-                min(grid_y, max(0, math.floor((v + r + 15) / 16))))
+                min(grid_x, max(0, math.floor((u + r) / 16) + 1)),
+                min(grid_y, max(0, math.floor((v + r) / 16) + 1)))
         if rect[2] <= rect[0] or rect[3] <= rect[1]:
             continue
         if colors.ndim == 3:
