@@ -42,6 +42,8 @@ from edmcgs.model.render.rasterize import rasterize
 
 NEAR = 0.01
 """Control points closer than this to the event camera (or behind it) read a zero motion code."""
+DRAWN_PLANS = 4
+"""Windows whose ``drawn_plan`` a model keeps (the server's renders are mostly near the head)."""
 
 
 @dataclass
@@ -122,6 +124,7 @@ class EdMCGS(nn.Module):
         """The skinning of ``state_from_motion``: ``lbs``, or the same compiled by ``torch.compile``
         (``Trainer(compile=True)``, ``edmcgs train --compile``)."""
         self._window_plans: dict[tuple[int, bool], SkinPlan] = {}
+        self._drawn_plans: dict[tuple[int, bool], SkinPlan] = {}
         self._windows: WindowIndex | None = None
 
     # ------------------------------------------------------------------ construction
@@ -392,7 +395,9 @@ class EdMCGS(nn.Module):
         At an anchor time the window is empty: the event map is not read and the result is the anchor
         state. The time-independent work is done once per model (``skin_plan``); the result equals
         ``state_at`` to float32 rounding, and Gaussians bound only to frozen control points keep their
-        canonical pose (within ``meta.freeze_threshold``).
+        canonical pose (within ``meta.freeze_threshold``). With anchor windows it holds the Gaussians
+        drawn at ``t_us`` alone (``drawn_plan``; ``window_rows`` without a static set), in the model's
+        order.
         """
         t_us = _int_time(t_us, "t_us")
         tau = self.tau(t_us) if anchor_us is None else self._anchor(anchor_us, t_us)
@@ -445,12 +450,8 @@ class EdMCGS(nn.Module):
             if window is not None:  # the other windows' Gaussians are not drawn: their points may move
                 f = f & (self.control.birth == window)
             lean = bool((motion_bound(trans[f], rot[f], plan.reach[f]) <= self.meta.freeze_threshold).all())
-        state = skin(self.skin_plan(frozen=lean), self.control.positions, rot, trans)
-        visible = self.gaussians.visible_in(window)
-        if visible is not None:
-            state = GaussianState(state.means, state.quats, state.scales,
-                                  state.opacities * visible.to(state.opacities.device), state.colors)
-        return state
+        plan = self.skin_plan(frozen=lean) if window is None else self.drawn_plan(window, frozen=lean)
+        return skin(plan, self.control.positions, rot, trans)
 
     def _plan_key(self) -> tuple:
         g, cp = self.gaussians, self.control
@@ -501,6 +502,35 @@ class EdMCGS(nn.Module):
                                                                           key)
                 if local is not None:
                     plan.frozen, plan.reach = local, bound_reach(canonical.means, positions, rows.bind)
+        return plan
+
+    def drawn_plan(self, window: int, *, frozen: bool = True) -> SkinPlan:
+        """``skin_plan`` cut to the Gaussians drawn in anchor ``window``'s gap (``visible_in``: the static
+        set and the window's own). The others would be drawn with opacity 0: a long recording's windows
+        hold most of a model's Gaussians, so leaving them out spares a render most of its work. The plans
+        of the last ``DRAWN_PLANS`` windows queried are kept."""
+        key = (*self._plan_key(), window)
+        plan = self._drawn_plans.pop((window, frozen), None)
+        if plan is None or plan.key != key:
+            full = self.skin_plan(frozen=frozen)
+            n = len(self.gaussians)
+            rows = torch.nonzero(self.gaussians.visible_in(window) > 0)[:, 0]
+            # full.bind and full.weights hold the skinned rows alone, in full.moving's order
+            dev = rows.device
+            slot = torch.arange(n, device=dev)
+            if full.moving is not None:
+                slot = torch.full((n,), -1, dtype=torch.long, device=dev).index_copy_(
+                    0, full.moving, torch.arange(len(full.moving), device=dev))
+            slot = slot[rows]
+            moving = torch.nonzero(slot >= 0)[:, 0]
+            c = full.canonical
+            canonical = GaussianState(c.means[rows], c.quats[rows], c.scales[rows], c.opacities[rows],
+                                      c.colors[rows])
+            plan = SkinPlan(canonical, full.bind[slot[moving]], full.weights[slot[moving]],
+                            None if len(moving) == len(rows) else moving, key, full.frozen, full.reach)
+        self._drawn_plans[(window, frozen)] = plan  # newest last
+        while len(self._drawn_plans) > DRAWN_PLANS:
+            del self._drawn_plans[next(iter(self._drawn_plans))]
         return plan
 
     @torch.no_grad()

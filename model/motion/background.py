@@ -30,13 +30,6 @@ MARGIN = 2
 """Texels beyond the outermost projected pixel on each side (bilinear reads at the edge stay inside)."""
 
 
-def _rays(intr: Intrinsics, device=None) -> Tensor:
-    """[H, W, 3] camera-frame ray directions (z = 1) of the pixel centres (integers)."""
-    v, u = torch.meshgrid(torch.arange(intr.height, dtype=torch.float64, device=device),
-                          torch.arange(intr.width, dtype=torch.float64, device=device), indexing="ij")
-    return torch.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, torch.ones_like(u)], -1)
-
-
 class BackgroundLayer(nn.Module):
     """Texture [C, Ht, Wt] on the reference image plane; texel (i, j) is reference pixel (u0 + j, v0 + i).
 
@@ -91,25 +84,38 @@ class BackgroundLayer(nn.Module):
         """[C, Ht, Wt] the texture's colour in (0, 1)."""
         return torch.sigmoid(self.texture)
 
-    def texel_coords(self, c2w_rot: Tensor | np.ndarray, intr: Intrinsics) -> Tensor | None:
-        """[H, W, 2] float64 texture coordinates (column, row) of a camera's pixels, or None when the
-        camera has the reference's rotation and intrinsics (pixel (u, v) is texel (u - u0, v - v0))."""
-        ref_rot, k, _ = self._host()
+    def texel_grid(self, c2w_rot: Tensor | np.ndarray, intr: Intrinsics) -> Tensor | None:
+        """[H, W, 2] float64 ``grid_sample`` coordinates (align_corners, [-1, 1] over the texture) of a
+        camera's pixels, or None when the camera has the reference's rotation and intrinsics (pixel
+        (u, v) is texel (u - u0, v - v0)). Pixel -> reference plane -> texel is one homography, so it is
+        built as a 3x3 matrix and applied to the pixel grid's rows and columns by broadcasting."""
+        ref_rot, k, origin = self._host()
         same_k = np.allclose(k, [intr.fx, intr.fy, intr.cx, intr.cy], rtol=0, atol=1e-9)
+        dev = self.ref_rot.device
         if isinstance(c2w_rot, Tensor):
-            rot = c2w_rot.double().to(self.ref_rot.device).reshape(3, 3)
+            rot = c2w_rot.double().to(dev).reshape(3, 3)
             same = same_k and bool(torch.allclose(rot, self.ref_rot, rtol=0, atol=1e-12))
         else:  # a rotation on the host is compared on the host: no wait for a GPU
             rot_np = np.asarray(c2w_rot, dtype=np.float64).reshape(3, 3)
             same = same_k and np.allclose(rot_np, ref_rot, rtol=0, atol=1e-12)
-            rot = torch.as_tensor(rot_np, device=self.ref_rot.device)
+            rot = torch.as_tensor(rot_np, device=dev)
         if same:
             return None
-        d = _rays(intr, self.ref_rot.device) @ (self.ref_rot.T @ rot).T  # [H, W, 3] in the reference frame
-        z = d[..., 2].clamp_min(1e-6)
-        u = k[0] * d[..., 0] / z + k[2] - self.origin[0]
-        v = k[1] * d[..., 1] / z + k[3] - self.origin[1]
-        return torch.stack([u, v], -1)
+        _, ht, wt = self.texture.shape
+        sx, sy = 2.0 / max(wt - 1, 1), 2.0 / max(ht - 1, 1)
+        # the reference camera's K, the texture's origin and the grid's scale: affine, so exact before
+        # the divide
+        to_grid = [[sx * k[0], 0.0, sx * (k[2] - origin[0]) - 1.0],
+                   [0.0, sy * k[1], sy * (k[3] - origin[1]) - 1.0], [0.0, 0.0, 1.0]]
+        from_pixel = [[1.0 / intr.fx, 0.0, -intr.cx / intr.fx], [0.0, 1.0 / intr.fy, -intr.cy / intr.fy],
+                      [0.0, 0.0, 1.0]]
+        h = torch.tensor(to_grid, dtype=torch.float64, device=dev) @ (self.ref_rot.T @ rot) \
+            @ torch.tensor(from_pixel, dtype=torch.float64, device=dev)
+        u = torch.arange(intr.width, dtype=torch.float64, device=dev)[None, :]
+        v = torch.arange(intr.height, dtype=torch.float64, device=dev)[:, None]
+        x, y, z = (h[i, 0] * u + h[i, 1] * v + h[i, 2] for i in range(3))
+        z = z.clamp_min(1e-6)  # rays 90 degrees or more from the reference: the texture's edge
+        return torch.stack([x / z, y / z], -1)
 
     def _host(self) -> tuple[np.ndarray, list[float], list[float]]:
         """(ref_rot, ref_k, origin) on the host, read from the buffers once per change of them (a load
@@ -124,14 +130,12 @@ class BackgroundLayer(nn.Module):
     def image(self, c2w_rot: Tensor | np.ndarray, intr: Intrinsics) -> Tensor:
         """[H, W, C]: the layer seen by a camera with rotation ``c2w_rot`` [3, 3] and intrinsics ``intr``."""
         tex = self.colors()
-        coords = self.texel_coords(c2w_rot, intr)
-        if coords is None:
+        grid = self.texel_grid(c2w_rot, intr)
+        if grid is None:
             u0, v0 = (-round(x) for x in self._host()[2])
             return tex[:, v0:v0 + intr.height, u0:u0 + intr.width].permute(1, 2, 0)
-        _, ht, wt = tex.shape
-        grid = torch.stack([2.0 * coords[..., 0] / max(wt - 1, 1) - 1.0,
-                            2.0 * coords[..., 1] / max(ht - 1, 1) - 1.0], -1).to(tex.dtype)
-        out = F.grid_sample(tex[None], grid[None], mode="bilinear", padding_mode="border", align_corners=True)
+        out = F.grid_sample(tex[None], grid[None].to(tex.dtype), mode="bilinear", padding_mode="border",
+                            align_corners=True)
         return out[0].permute(1, 2, 0)
 
     @torch.no_grad()
