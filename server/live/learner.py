@@ -6,8 +6,8 @@ EdMCGS on the stream's frames and events as they arrive, and publishes checkpoin
               a model lifted from those anchors, its networks warm-started from the round before
               (model/train/warm.py), trained ``steps`` (``first_steps`` at ``first_scale`` of the frames'
               size, then twice the round before at full size, up to the preset's iterations), published
-              every ``publish_s`` (a new round's once it has trained as long as the model live, or half
-              its schedule) and at the round's end.
+              every ``publish_s`` (a new round's once it has trained each anchor as long as the model
+              live did) and at the round's end.
               A round that ends with no new anchor goes on with the same model on the preset's whole
               schedule (then it trains on at the schedule's end), until new anchors start a round.
     stop ──>  the model and the stream saved: ``learned.ckpt`` (with its train state beside it) and
@@ -123,6 +123,8 @@ class Learner:
         self.published_at = 0.0  # set when the first round starts
         self.live_steps = 0
         """Training steps behind the last published model."""
+        self.live_anchors = 0
+        """Anchors of the last published model."""
         self.cpu_start = time.process_time()
 
     def anchors_available(self) -> int:
@@ -153,10 +155,13 @@ class Learner:
         for _ in range(CHUNK_STEPS):
             rnd.trainer.train_step()
         step = rnd.trainer.step
-        # a new round's model goes live once it has trained as long as the one live (or half its own
-        # schedule): a swap to a model a few steps old would render worse than the one it replaces
+        # a new round's model goes live once it has trained each anchor as long as the one live did (or at
+        # its round's end): a model with more anchors and fewer steps each draws what moves worse than the
+        # one it replaces (street3d: 9 anchors at 150 steps replaced by 21 at 150, -0.22 dB on the moving
+        # pixels against the events integrated), while the new span meanwhile shows the frame moved by
+        # the events
         due = time.monotonic() - self.published_at >= self.config.publish_s and \
-            step >= min(self.live_steps, rnd.steps // 2)
+            step * self.live_anchors >= self.live_steps * rnd.anchors
         if step >= rnd.steps or due:
             self.publish()
         return True
@@ -257,7 +262,7 @@ class Learner:
                          "cpu_s": time.process_time() - self.cpu_start,
                          "frames": self.stream.frames, "events": self.stream.events})
         self.published_at = time.monotonic()
-        self.live_steps = trainer.step
+        self.live_steps, self.live_anchors = trainer.step, self.round.anchors
         # the server may still be reading the one before this one
         for old in sorted(self.config.workdir.glob("learned-*.ckpt"))[:-2]:
             old.unlink(missing_ok=True)

@@ -184,7 +184,7 @@ def test_the_learner_publishes_rounds_over_the_anchors_received_and_saves_what_r
     assert kept == ["learned-0002.ckpt", "learned-0003.ckpt"]
 
 
-def test_a_new_round_goes_live_once_it_has_trained_as_long_as_the_model_live(scene, tmp_path):
+def test_a_new_round_goes_live_once_it_has_trained_each_anchor_as_long_as_the_model_live(scene, tmp_path):
     rec, _ = scene
     t0 = int(rec.anchors.t_us[0])
     config = LearnConfig(workdir=tmp_path, intrinsics=(60.0, 60.0, 31.5, 23.5), preset="demo",
@@ -199,8 +199,12 @@ def test_a_new_round_goes_live_once_it_has_trained_as_long_as_the_model_live(sce
     _feed(stream, rec, t0 + 250_000, rec.t_range_us[1] + 1)
     while len(outbox) < 3:
         learner.step()
-    # the new round (20 steps) trained 5, then 10 before its first model went live
-    assert outbox[-1]["anchors"] == 11 and outbox[-1]["steps"] == 10
+    # the model live trained its 3 anchors 10 steps: the new round's 11 would need 37, more than its whole
+    # schedule (20 steps), so its first model went live at the round's end, not at 5, 10 or 15 steps
+    assert outbox[-1]["anchors"] == 11 and outbox[-1]["steps"] == 20
+    while len(outbox) < 4:  # the same anchors from then on: every chunk is due
+        learner.step()
+    assert outbox[-1]["anchors"] == 11 and outbox[-1]["steps"] == 25
 
 
 def test_the_learner_process_reports_and_saves_when_told_to_stop(scene, tmp_path):
