@@ -17,7 +17,8 @@ went live (from the first anchor), ``GET /render`` latency while the learner run
 rate, the learner's CPU (these three once the load below is over). For ``--load-minutes`` from the start,
 4 clients render the head and 2 live streams run: around each model swap (5 s either side), the failed
 requests, the p99 latency and every stream reset. With ``--offline CACHE``: the recording trained
-offline by ``edmcgs train --config real`` (bench.traffic's cached run, one thread), and at the end
+offline by ``edmcgs train --config real`` (``--offline-preset``; with ``--poses auto`` when the recording has
+no poses: bench.traffic's cached run, one thread), and at the end
 the learner's saved model and the offline one scored on the held-out frames by the same code
 (``bench.traffic.score``), with the learner's CPU seconds beside the offline run's; and the first model
 the learner published once it had spent the offline run's CPU seconds (copied when the service said it
@@ -278,15 +279,24 @@ def run(rec_path: Path, minutes: float, every: float, workdir: Path, env: dict, 
             "snapshot": snapped, "log": srv.log()}
 
 
-def offline_run(rec_path: Path, cache: Path) -> dict:
-    """The offline real preset's run of the recording (cached)."""
+def _has_poses(rec_path: Path) -> bool:
+    from edmcgs.pipeline import open_recording
+
+    rec = open_recording(rec_path, lazy_events=True)
+    return rec.trajectory_t_us is not None or rec.anchors.poses is not None
+
+
+def offline_run(rec_path: Path, cache: Path, preset: str) -> dict:
+    """The offline run of the recording with ``preset`` (cached): on its poses, else on those structure
+    from motion gives (``--poses auto``), as the learner's are."""
     from bench.traffic import train
 
-    return train(rec_path, "offline", [], cache)
+    return train(rec_path, "offline", [], cache, preset, poses=None if _has_poses(rec_path) else "auto")
 
 
 def offline(rec_path: Path, cache: Path, run_info: dict, learnt: dict[str, Path]) -> dict:
-    """The offline model and each ``learnt`` one scored on the held-out frames."""
+    """The offline model and each ``learnt`` one scored on the held-out frames; without poses in the
+    recording, each model renders them from its own estimated trajectory (its own world frame)."""
     from bench.traffic import score
     from edmcgs.model.checkpoint import load_checkpoint
     from edmcgs.pipeline import open_recording, training_data
@@ -294,7 +304,8 @@ def offline(rec_path: Path, cache: Path, run_info: dict, learnt: dict[str, Path]
     data = training_data(open_recording(rec_path))
     models = {"offline": load_checkpoint(cache / run_info["checkpoint"]),
               **{name: load_checkpoint(path) for name, path in learnt.items()}}
-    scores, _ = score(data, models, static_camera=True)
+    estimated = not _has_poses(rec_path)
+    scores, _ = score(data, models, static_camera=not estimated, own_poses=estimated)
     return {"offline_run": run_info, "scores": scores}
 
 
@@ -310,6 +321,8 @@ def main(argv: list[str] | None = None) -> int:
                         "the first swaps happen under load (default 3; 0: none)")
     p.add_argument("--offline", type=Path, metavar="CACHE",
                    help="also train offline (cached here) and compare")
+    p.add_argument("--offline-preset", default="real",
+                   help="the offline run's config (default real; moving for a camera that translates)")
     p.add_argument("--json", type=Path)
     p.add_argument("--csv", type=Path, help="every scored render")
     p.add_argument("--plot", type=Path, help="PSNR against wall-clock time since start (PNG)")
@@ -317,7 +330,8 @@ def main(argv: list[str] | None = None) -> int:
     env = {"EDMCGS_LEARN_PRESET": args.preset}
     with tempfile.TemporaryDirectory() as tmp:
         workdir, equal = Path(tmp) / "learnt", Path(tmp) / "equal-cpu.ckpt"
-        run_info = offline_run(args.recording, args.offline) if args.offline is not None else None
+        run_info = None if args.offline is None else \
+            offline_run(args.recording, args.offline, args.offline_preset)
         snapshot = None if run_info is None else (run_info["cpu_s"], equal)
         r = run(args.recording, args.minutes, args.every, workdir, env, args.load_minutes * 60, snapshot)
         results = {k: v for k, v in r.items() if k not in ("rows", "log")}

@@ -83,19 +83,22 @@ def build_scene(cache: Path) -> Path:
     return path
 
 
-def run_key(rec: Path, overrides: list[str], preset: str = "real") -> str:
-    """Everything that determines a run (``bench.report``'s key): the recording and the resolved config."""
+def run_key(rec: Path, overrides: list[str], preset: str = "real", poses: str | None = None) -> str:
+    """Everything that determines a run (``bench.report``'s key): the recording, the resolved config and
+    where the poses come from."""
     from bench.report.training import run_key as report_key
     from edmcgs.pipeline import build_config, open_recording
 
     cfg = build_config(preset, overrides, open_recording(rec)).to_dict()
-    return report_key(f"{rec.name}:{rec.stat().st_size}", cfg, "cpu", False)
+    source = f"{rec.name}:{rec.stat().st_size}" + (f":poses={poses}" if poses else "")
+    return report_key(source, cfg, "cpu", False)
 
 
-def train(rec: Path, name: str, overrides: list[str], cache: Path, preset: str = "real") -> dict:
+def train(rec: Path, name: str, overrides: list[str], cache: Path, preset: str = "real",
+          poses: str | None = None) -> dict:
     """Train one variant with ``preset`` in its own process (cached): {name, checkpoint, wall_s, cpu_s,
-    peak_gb, ...}."""
-    key = run_key(rec, overrides, preset)
+    peak_gb, ...}. poses: ``edmcgs train --poses`` (``auto``: structure from motion)."""
+    key = run_key(rec, overrides, preset, poses)
     ckpt, result = cache / f"{key}.ckpt", cache / f"{key}.json"
     if ckpt.exists() and result.exists():
         return json.loads(result.read_text()) | {"cached": True}
@@ -103,6 +106,7 @@ def train(rec: Path, name: str, overrides: list[str], cache: Path, preset: str =
     cache.mkdir(parents=True, exist_ok=True)
     print(f"training {name} ({' '.join(overrides) or f'the {preset} preset as it is'}) ...", file=sys.stderr)
     usage = measured_run([*_edmcgs(), "train", str(rec), "--config", preset, *sets, "--threads", "1", "-q",
+                          *(["--poses", poses] if poses else []),
                           "--history", str(cache / f"{key}.csv"), "-o", str(ckpt)], cache / f"{key}.log")
     out = {"name": name, "overrides": overrides, "checkpoint": ckpt.name, "trained_on": platform.node(),
            "trained_at": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())} | usage
@@ -116,9 +120,11 @@ def _moving_psnr(sq_err: list[float], count: int) -> float:
     return float(10 * np.log10(1.0 / max(sum(sq_err) / max(count, 1), 1e-12)))
 
 
-def score(data, models: dict, *, static_camera: bool) -> tuple[dict[str, dict], float]:
+def score(data, models: dict, *, static_camera: bool,
+          own_poses: bool = False) -> tuple[dict[str, dict], float]:
     """({name: {psnr, ssim, moving_psnr, frames}} of every model and baseline on the same held-out
-    frames, the fraction of their pixels that are moving)."""
+    frames, the fraction of their pixels that are moving). own_poses: each model renders from its own
+    trajectory (poses it estimated: ``data`` has none)."""
     from edmcgs.model.eval.baselines import BASELINES, baseline_image
     from edmcgs.model.eval.evaluation import render_held_out
     from edmcgs.model.eval.metrics import psnr, ssim_score
@@ -134,7 +140,7 @@ def score(data, models: dict, *, static_camera: bool) -> tuple[dict[str, dict], 
         images = {name: baseline_image(data, t, name)[0] for name in BASELINES}
         if static_camera:
             images[MEDIAN] = median
-        images |= {name: render_held_out(m, data, i)[0] for name, m in models.items()}
+        images |= {name: render_held_out(m, data, i, own_poses=own_poses)[0] for name, m in models.items()}
         for name, image in images.items():
             a = acc.setdefault(name, {"psnr": [], "ssim": [], "sq": []})
             a["psnr"].append(psnr(image, truth))

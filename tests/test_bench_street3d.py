@@ -57,3 +57,21 @@ def test_the_moving_psnr_counts_the_masked_pixels_alone():
     assert s["psnr"] == pytest.approx((psnr(image, truth) + psnr(truth + 0.01, truth)) / 2)
     # the squared errors of both frames' masked pixels pooled: (0.1^2 + 0.01^2) / 2
     assert s["moving_psnr"] == pytest.approx(-10 * np.log10((0.1 ** 2 + 0.01 ** 2) / 2), abs=1e-3)
+
+
+def test_a_model_with_its_own_poses_renders_held_out_frames_from_them():
+    """A model whose poses were estimated (its own world frame) is scored from its own trajectory, as
+    bench.cold_start scores a learnt model on a recording without poses."""
+    from dataclasses import replace
+
+    from edmcgs.geometry import Trajectory
+
+    model, data = build()
+    i = int(data.evaluable()[0])
+    own = render_held_out(model, data, i, own_poses=True)[0]
+    assert np.array_equal(own, render_held_out(model, data, i)[0])  # the same poses: the same render
+    traj = model.meta.trajectory
+    moved = traj.c2w.copy()
+    moved[:, 0, 3] += 0.3
+    model.meta = replace(model.meta, trajectory=Trajectory(traj.t_us, moved))
+    assert not np.array_equal(render_held_out(model, data, i, own_poses=True)[0], own)

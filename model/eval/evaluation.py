@@ -33,17 +33,20 @@ class FrameScore:
     """SSIM in the 3DGS papers' convention (zero-padded, borders included): the one to set beside theirs."""
 
 
-def render_held_out(model: EdMCGS, data: TrainingData, i: int, *,
-                    fast: bool = True) -> tuple[np.ndarray, int, int]:
+def render_held_out(model: EdMCGS, data: TrainingData, i: int, *, fast: bool = True,
+                    own_poses: bool = False) -> tuple[np.ndarray, int, int]:
     """(image [H, W, C] float32 in [0, 1], tau(t), events) of held-out frame ``i``: the state at its time
-    driven by the events since tau(t), rendered from its camera."""
+    driven by the events since tau(t), rendered from its camera. own_poses: that camera as the model's
+    trajectory has it (poses the model estimated, in its own world frame), not as ``data`` has it."""
     t = int(data.held_out_t_us[i])
     tau = model.tau(t)
     emap = None
     if data.event_map is not None and t > tau:
         emap = np.asarray(data.event_map(tau, t), dtype=np.float32)
-    state = model.deform(t, emap, data.trajectory.at(t))
-    image = model.render(state, data.held_out_pose(i), model.meta.intrinsics, fast=fast)
+    camera = model.meta.trajectory.at(t) if own_poses else None
+    state = model.deform(t, emap, data.trajectory.at(t) if camera is None else camera)
+    image = model.render(state, data.held_out_pose(i) if camera is None else camera, model.meta.intrinsics,
+                         fast=fast)
     return image, tau, 0 if emap is None else int(np.abs(emap).sum())
 
 
