@@ -528,9 +528,10 @@ class EdMCGS(nn.Module):
                                       c.colors[rows])
             plan = SkinPlan(canonical, full.bind[slot[moving]], full.weights[slot[moving]],
                             None if len(moving) == len(rows) else moving, key, full.frozen, full.reach)
-        self._drawn_plans[(window, frozen)] = plan  # newest last
-        while len(self._drawn_plans) > DRAWN_PLANS:
-            del self._drawn_plans[next(iter(self._drawn_plans))]
+        plans = self._drawn_plans
+        plans[(window, frozen)] = plan  # newest last
+        for old in list(plans)[:-DRAWN_PLANS]:  # one call each: safe beside a render in another thread
+            plans.pop(old, None)
         return plan
 
     @torch.no_grad()

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from edmcgs.errors import InvalidInputError
+from edmcgs.geometry import Trajectory
 from edmcgs.sensor.events import DEFAULT_MAX_DISORDER_US, Events
 from edmcgs.sensor.frames import Frames
 from edmcgs.sensor.sources.base import SensorBatch, SourceBase, StreamInfo
@@ -68,6 +69,7 @@ class Replay(SourceBase):
         self._pacer = Pacer(self.pacing.factor, clock=clock, sleep=sleep)
         self._batches_iter: Iterator[SensorBatch] | None = None
         self._last_t: int | None = None
+        self._trajectory: Trajectory | None = None
 
     @property
     def info(self) -> StreamInfo:
@@ -76,6 +78,19 @@ class Replay(SourceBase):
     @property
     def pacer(self) -> Pacer:
         return self._pacer
+
+    def _posed(self, frames: Frames) -> Frames:
+        """``frames`` with the poses the recording states for them (its trajectory at their times, on the
+        file's clock), so that a frame past a checkpoint's span says where the camera is. All or none of a
+        replay's frames are posed: only a trajectory over the whole recording poses them (a ground truth
+        that starts late, as a motion-capture one may, would leave some frames without)."""
+        ex, span = self.extras, self._info.t_range_us
+        if frames.poses is not None or ex.trajectory_t_us is None or len(ex.trajectory_t_us) < 2 \
+                or span is None or span[0] < ex.trajectory_t_us[0] or span[1] > ex.trajectory_t_us[-1]:
+            return frames
+        if self._trajectory is None:
+            self._trajectory = Trajectory(ex.trajectory_t_us, ex.trajectory_c2w)
+        return Frames(frames.t_us, frames.images, self._trajectory.at(frames.t_us))
 
     def _chunks(self, begin_us: int) -> Iterator[Chunk]:
         raise NotImplementedError
@@ -145,7 +160,7 @@ class Replay(SourceBase):
             got_imu = [a[a["t"] < w1] for a in imu]
             imu = [a[a["t"] >= w1] for a in imu if np.any(a["t"] >= w1)]
             got_imu = [a for a in got_imu if len(a)]
-            fr = Frames.concat(got_frames) if got_frames else None
+            fr = self._posed(Frames.concat(got_frames)) if got_frames else None
             im = np.concatenate(got_imu) if got_imu else None
             return SensorBatch(events=ev, frames=fr, imu=im, t_end_us=w1, loop=loop).shifted(shift)
 

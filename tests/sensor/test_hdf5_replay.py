@@ -37,6 +37,24 @@ def test_our_recording_replays_exactly_in_small_chunks(tmp_path):
             assert (b.frames.t_us < b.t_end_us).all() and (b.frames.t_us >= b.t_end_us - 3_000).all()
 
 
+def test_frames_carry_the_poses_the_recording_states_when_it_states_them_all_along(tmp_path):
+    """A replay's frames are posed by the recording's trajectory (a checkpoint's online anchors past its
+    span then know where the camera is); a trajectory that does not cover the recording poses none."""
+    from dataclasses import replace
+
+    rec = make_recording(n_events=20_000, n_anchors=5)
+    for name, stated, posed in (("all.h5", rec, True),
+                                ("late.h5", replace(rec, trajectory_t_us=rec.trajectory_t_us[1:],
+                                                    trajectory_c2w=rec.trajectory_c2w[1:]), False)):
+        with Hdf5Replay(write_recording(tmp_path / name, stated), Pacing(factor=0, batch_us=3_000)) as src:
+            _, _, fr = _drain(src)
+        assert np.array_equal(fr.t_us, rec.anchors.t_us)
+        if posed:
+            np.testing.assert_allclose(fr.poses, rec.trajectory_c2w, rtol=0, atol=1e-12)
+        else:
+            assert fr.poses is None
+
+
 def test_start_offset_seeks_by_binary_search(tmp_path):
     rec = make_recording(n_events=40_000)
     path = write_recording(tmp_path / "r.h5", rec)
