@@ -286,15 +286,15 @@ def _has_poses(rec_path: Path) -> bool:
     return rec.trajectory_t_us is not None or rec.anchors.poses is not None
 
 
-def offline_run(rec_path: Path, cache: Path, preset: str) -> dict:
-    """The offline run of the recording with ``preset`` (cached): on its poses, else on those structure
-    from motion gives (``--poses auto``), as the learner's are."""
+def offline_run(rec_path: Path, cache: Path, preset: str, estimated: bool) -> dict:
+    """The offline run of the recording with ``preset`` (cached): on its poses, else (``estimated``) on
+    those structure from motion gives (``--poses auto``), as the learner's are."""
     from bench.traffic import train
 
-    return train(rec_path, "offline", [], cache, preset, poses=None if _has_poses(rec_path) else "auto")
+    return train(rec_path, "offline", [], cache, preset, poses="auto" if estimated else None)
 
 
-def offline(rec_path: Path, cache: Path, run_info: dict, learnt: dict[str, Path]) -> dict:
+def offline(rec_path: Path, cache: Path, run_info: dict, learnt: dict[str, Path], estimated: bool) -> dict:
     """The offline model and each ``learnt`` one scored on the held-out frames; without poses in the
     recording, each model renders them from its own estimated trajectory (its own world frame)."""
     from bench.traffic import score
@@ -304,7 +304,6 @@ def offline(rec_path: Path, cache: Path, run_info: dict, learnt: dict[str, Path]
     data = training_data(open_recording(rec_path))
     models = {"offline": load_checkpoint(cache / run_info["checkpoint"]),
               **{name: load_checkpoint(path) for name, path in learnt.items()}}
-    estimated = not _has_poses(rec_path)
     scores, _ = score(data, models, static_camera=not estimated, own_poses=estimated)
     return {"offline_run": run_info, "scores": scores}
 
@@ -330,8 +329,9 @@ def main(argv: list[str] | None = None) -> int:
     env = {"EDMCGS_LEARN_PRESET": args.preset}
     with tempfile.TemporaryDirectory() as tmp:
         workdir, equal = Path(tmp) / "learnt", Path(tmp) / "equal-cpu.ckpt"
+        estimated = args.offline is not None and not _has_poses(args.recording)
         run_info = None if args.offline is None else \
-            offline_run(args.recording, args.offline, args.offline_preset)
+            offline_run(args.recording, args.offline, args.offline_preset, estimated)
         snapshot = None if run_info is None else (run_info["cpu_s"], equal)
         r = run(args.recording, args.minutes, args.every, workdir, env, args.load_minutes * 60, snapshot)
         results = {k: v for k, v in r.items() if k not in ("rows", "log")}
@@ -349,7 +349,7 @@ def main(argv: list[str] | None = None) -> int:
             if not saved.is_file():
                 raise SystemExit(f"the learner saved no checkpoint; its log:\n{r['log'][-4000:]}")
             learnt = {"learnt": saved} | ({"learnt at equal CPU": equal} if equal.is_file() else {})
-            results["offline"] = offline(args.recording, args.offline, run_info, learnt)
+            results["offline"] = offline(args.recording, args.offline, run_info, learnt, estimated)
             s = results["offline"]["scores"]
             results["learnt_final_minus_offline_db"] = s["learnt"]["psnr"] - s["offline"]["psnr"]
             results["learner_cpu_s"] = r["models"][-1]["cpu_s"] if r["models"] else None

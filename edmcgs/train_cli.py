@@ -381,7 +381,6 @@ def _run(args) -> int:
     return _report(trainer.model, data, out)
 
 
-
 def _held_step(path) -> int | None:
     """The training step of the checkpoint at ``path`` (None: none there, or one without its state)."""
     from edmcgs.model.checkpoint import read_checkpoint
