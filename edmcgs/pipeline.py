@@ -213,7 +213,7 @@ def with_trajectory(rec: Recording, t_us: np.ndarray, c2w: np.ndarray) -> Record
                    trajectory_c2w=np.asarray(c2w, dtype=np.float64), points_xyz=None, points_colors=None)
 
 
-def estimated_poses(rec: Recording, *, progress: bool = False) -> Recording:
+def estimated_poses(rec: Recording, *, progress: bool = False, threads: int = -1) -> Recording:
     """``rec`` with the poses structure from motion finds over all its frames (anchors and held-out
     alike), its 3D points (in the poses' frame), the camera it estimated when the recording had none,
     and how in ``metadata["poses"]``; a camera that did not move becomes a static one (one pose), said
@@ -225,7 +225,7 @@ def estimated_poses(rec: Recording, *, progress: bool = False) -> Recording:
     frames = all_frames(rec)
     given = None if rec.intrinsics is None else Intrinsics(*(float(v) for v in rec.intrinsics), rec.width,
                                                            rec.height)
-    estimate = estimate_poses(frames.t_us, frames.images, given, progress=progress)
+    estimate = estimate_poses(frames.t_us, frames.images, given, progress=progress, threads=threads)
     print(f"poses from the frames: {estimate.summary()}")
     if estimate.intrinsics is not None and given is None:
         k = estimate.intrinsics

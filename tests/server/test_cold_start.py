@@ -234,9 +234,10 @@ def test_the_learner_process_reports_and_saves_when_told_to_stop(scene, tmp_path
     assert not learning.process.is_alive() and learning.error is None
 
 
-def test_a_moving_camera_s_rounds_take_poses_from_their_anchor_frames_in_one_world_frame(tmp_path):
-    """No poses stated: each round runs structure from motion over its anchor frames, trains the moving
-    preset on them, and keeps the world frame of the round before (a held pose means the same place)."""
+def test_a_moving_camera_s_rounds_take_poses_from_their_frames_in_one_world_frame(tmp_path):
+    """No poses stated: each round runs structure from motion (the first over its anchor frames, later ones
+    over every frame received), trains the moving preset on them, and keeps the world frame of the round
+    before (a held pose means the same place)."""
     from harness.pose_scenes import rigid_sweep, trajectory_error
 
     t_us, images, truth, k = rigid_sweep(26, 12.5)  # 2 s of a camera on an arc, lego frozen in front
@@ -254,6 +255,7 @@ def test_a_moving_camera_s_rounds_take_poses_from_their_anchor_frames_in_one_wor
     one = load_checkpoint(first["path"])
     assert len(one.meta.anchors_us) == 7 and one.gaussians.static().any()  # the static set, on SfM's points
     anchors = one.meta.anchors_us
+    np.testing.assert_array_equal(one.meta.trajectory.t_us, anchors)  # the first round maps its anchors
     rmse, length = trajectory_error(anchors, one.meta.trajectory.at(anchors), truth[:14:2])
     assert rmse < 0.02 * length
     stream.add(*empty, t_us[14:], images[14:])
@@ -262,6 +264,10 @@ def test_a_moving_camera_s_rounds_take_poses_from_their_anchor_frames_in_one_wor
     second = outbox[-1]
     assert second["anchors"] == 13 and second["camera"] == "estimated: moving"
     two = load_checkpoint(second["path"])
+    # later rounds map every frame: the held-out frames have poses of their own, not the anchors' blend
+    assert np.isin(t_us[1::2], two.meta.trajectory.t_us).mean() >= 0.9
+    rmse, length = trajectory_error(t_us, two.meta.trajectory.at(t_us), truth)
+    assert rmse < 0.02 * length
     # the first round's anchors sit where they did: the new poses carried into its frame
     before, after = one.meta.trajectory.at(anchors), two.meta.trajectory.at(anchors)
     scale = np.linalg.norm(before[-1, :3, 3] - before[0, :3, 3])
