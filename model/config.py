@@ -188,7 +188,8 @@ class Schedule:
     deform_from: float = 0.0
     """Fraction of training during which the deformation is off (static warm-up of the canonical set)."""
     event_warmup: tuple[float, float] = (0.2, 0.4)
-    """Fractions of training between which g_phi's output scale ramps from 0 to 1."""
+    """Fractions of training between which the event branch's learning rate ramps from 0 to its own
+    (before them the branch is off)."""
     max_gaussians: int = 200000
     """Densification stops adding Gaussians above this count."""
     densify_from: float = 0.02

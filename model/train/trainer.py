@@ -202,7 +202,8 @@ class Trainer:
         lrs = {"means": exp_decay(cfg.lr_means * self.extent, 0.01, progress), "quats": cfg.lr_quats,
                "log_scales": cfg.lr_scales, "opacity_logits": cfg.lr_opacity, "features": cfg.lr_features,
                "radius": cfg.lr_radius, "deform": exp_decay(cfg.lr_deform, 0.02, progress),
-               "background": cfg.lr_background, "event": exp_decay(cfg.lr_event, 0.1, progress)}
+               "background": cfg.lr_background,
+               "event": exp_decay(cfg.lr_event, 0.1, progress) * ramp(progress, *cfg.event_warmup)}
         return {name: lr * self.lr_scale[name] for name, lr in lrs.items() if name in self.lr_scale}
 
     def _set_schedules(self, progress: float) -> None:
@@ -210,8 +211,13 @@ class Trainer:
         lrs = self._learning_rates(progress)
         for group in self.optimizer.param_groups:
             group["lr"] = lrs[group["name"]]
+        # The event branch warms in by its learning rate, its output unscaled: its last layer starts at
+        # zero, so it moves nothing until trained. An output scale ramped from 0 instead let Adam, whose
+        # steps do not shrink with the gradient, grow the raw output while the scale was small, and the
+        # ramp then multiplied it (30 s of traffic: control points thrown 2 scene extents, out of every
+        # view and so out of every gradient, for the rest of training).
         if self.model.transition is not None:
-            self.model.event_scale.fill_(ramp(progress, *self.cfg.event_warmup))
+            self.model.event_scale.fill_(1.0 if progress >= self.cfg.event_warmup[0] else 0.0)
 
     # ------------------------------------------------------------------ one step
     def _render(self, state: GaussianState, w2c: np.ndarray, intr=None, *,

@@ -228,6 +228,30 @@ def test_stiff_motion_trains_without_nan_or_inf():
     assert np.isfinite(img).all()
 
 
+def test_the_event_branch_warms_in_by_its_learning_rate_and_moves_nothing_before():
+    """Off before the warm-in (scale 0, no step), then unscaled while its learning rate ramps: an output
+    scale ramped under Adam let the raw output grow while the scale was small, and the ramp multiplied it."""
+    cfg = TINY.replace(iterations=20, densify_from=0.9, event_warmup=(0.25, 0.75))
+    model, data = build(cfg)
+    trainer = Trainer(model, data, progress=False)
+    before = [p.detach().clone() for p in model.transition.parameters()]
+
+    def event_lr():
+        return next(g["lr"] for g in trainer.optimizer.param_groups if g["name"] == "event")
+
+    for _ in range(5):  # progress 0 .. 0.2: off
+        trainer.train_step()
+        assert float(model.event_scale) == 0.0 and event_lr() == 0.0
+    assert all(torch.equal(a, b) for a, b in zip(before, model.transition.parameters(), strict=True))
+    lrs = []
+    for _ in range(10):  # progress 0.25 .. 0.7: the learning rate ramps, the output is not scaled
+        trainer.train_step()
+        assert float(model.event_scale) == 1.0
+        lrs.append(event_lr())
+    assert lrs[0] == 0.0 and bool(np.all(np.diff(lrs) > 0)) and lrs[-1] < cfg.lr_event
+    assert not all(torch.equal(a, b) for a, b in zip(before, model.transition.parameters(), strict=True))
+
+
 def test_resume_continues_where_it_stopped(tmp_path):
     cfg = TINY.replace(iterations=12, checkpoint_every=6, densify_from=0.9)
     model, data = build(cfg)
