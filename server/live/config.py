@@ -63,9 +63,9 @@ class LearnConfig:
     trajectory: tuple[np.ndarray, np.ndarray] | None = None
     """The camera's poses (t_us [T], c2w [T, 4, 4]) when the stream states them (else ``poses`` decides)."""
     poses: str = "auto"
-    """With no stated trajectory: ``auto``, structure from motion over each round's anchor frames
-    (``edmcgs poses``: a camera that did not move is called static, one that only turned gets rotations);
-    ``static``, the camera taken as still without looking."""
+    """With no stated trajectory: ``auto``, structure from motion over each round's frames, the first
+    round's anchor frames only (``edmcgs poses``: a camera that did not move is called static, one that
+    only turned gets rotations); ``static``, the camera taken as still without looking."""
     preset: str = "auto"
     """The configuration trained (``edmcgs train --config``); ``auto``: ``moving`` for a camera that
     translates (its poses and 3D points from structure from motion), else ``real``."""
