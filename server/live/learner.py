@@ -5,8 +5,7 @@ EdMCGS on the stream's frames and events as they arrive, and publishes checkpoin
               began (frames at ``anchor_fps``; the frames between them held out and scored):
               a model lifted from those anchors, its networks warm-started from the round before
               (model/train/warm.py), trained ``steps`` (``first_steps`` at ``first_scale`` of the frames'
-              size on a schedule as short; then twice the round before at full size, up to the preset's
-              iterations, on the preset's whole schedule, which new anchors may cut short), published
+              size, then twice the round before at full size, up to the preset's iterations), published
               every ``publish_s`` (a new round's once it has trained each anchor as long as the model
               live did) and at the round's end.
               A round that ends with no new anchor goes on with the same model on the preset's whole
@@ -238,14 +237,14 @@ class Learner:
                        points_xyz=to_previous.points(out.points_xyz).astype(out.points_xyz.dtype))
 
     def _lengthen(self) -> None:
-        """The round runs to the preset's whole schedule, the model and its optimizer kept (new anchors end
-        it at once). A later round already trains on that schedule; the first, on its own short one, goes
-        on from its step as ``edmcgs train --resume --set iterations=N`` would, the schedules (learning
-        rates, densification, the event branch's warm-in) read at the new length. Without it a stream that
+        """The round on the preset's whole schedule, the model and its optimizer kept: training goes on
+        from its step as ``edmcgs train --resume --set iterations=N`` would, the schedules (learning rates,
+        densification, the event branch's warm-in) read at the new length. Without it a stream that
         stopped growing (a replay's end, a camera held still) would train on at a short schedule's end, its
         learning rates at their floor, and never reach the preset's model. One long schedule, not a
         doubling each time: every restart of the decay cost against the offline run (traffic: 0.55 dB
-        behind at 85 % of its CPU time with doublings, 0.02 dB at 101 % without)."""
+        behind at 85 % of its CPU time with doublings, 0.02 dB at 101 % without); publishing every
+        ``publish_s`` keeps the models coming, and new anchors end the round at once."""
         rnd = self.round
         rnd.steps = rnd.full
         rnd.lengthened = True
