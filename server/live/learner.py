@@ -183,18 +183,11 @@ class Learner:
         steps = cfg.first_steps if previous is None else min(2 * previous.steps, base.iterations)
         if previous is not None and previous.steps >= base.iterations:
             steps = base.iterations
-        # the first round's schedules (learning-rate decay, the event branch's warm-in, the lift of what
-        # moves) run over its own few steps, at first_scale of the frames' size, so that a model is live
-        # soon. A later round's run over the preset's whole schedule, as the offline run's do; its steps
-        # only say when new anchors may end it. Compressed into the round's steps, a round that then went
-        # on (the stream stopped growing) restarted its decay, and the moving preset had lifted what moves
-        # from a static set trained 90 steps (street3d, 21 anchors, at 1300 steps: 29.5 dB, against 33.0
-        # on the preset's schedule and 33.1 offline)
-        first = previous is None
-        scale = min(base.train_scale, cfg.first_scale) if first else base.train_scale
-        schedule = steps if first else base.iterations  # a fixed total, not the preset's per anchor window
-        model = new_model(data, base.replace(iterations=max(schedule, 1), steps_per_window=0,
-                                             train_scale=scale))
+        # the schedules (learning-rate decay, the event branch's warm-in) run over the round's steps; the
+        # first round renders at first_scale of the frames' size, so that a model is live soon
+        scale = base.train_scale if previous is not None else min(base.train_scale, cfg.first_scale)
+        # (a fixed total per round: the round's steps, not the preset's per anchor window)
+        model = new_model(data, base.replace(iterations=max(steps, 1), steps_per_window=0, train_scale=scale))
         if self.model is not None:
             warm_start(model, self.model)
         self.model, self.data = model, data
