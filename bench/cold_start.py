@@ -20,7 +20,8 @@ requests, the p99 latency and every stream reset. With ``--offline CACHE``: the 
 offline by ``edmcgs train --config real`` (``--offline-preset``; with ``--poses auto`` when the recording has
 no poses: bench.traffic's cached run, one thread), and at the end
 the learner's saved model and the offline one scored on the held-out frames by the same code
-(``bench.traffic.score``), with the learner's CPU seconds beside the offline run's; and the first model
+(``bench.traffic.score``; without poses in the recording, from the same registered poses: see
+``offline``), with the learner's CPU seconds beside the offline run's; and the first model
 the learner published once it had spent the offline run's CPU seconds (copied when the service said it
 went live), scored the same way: the target's comparison, at equal CPU.
 """
@@ -295,8 +296,12 @@ def offline_run(rec_path: Path, cache: Path, preset: str, estimated: bool) -> di
 
 
 def offline(rec_path: Path, cache: Path, run_info: dict, learnt: dict[str, Path], estimated: bool) -> dict:
-    """The offline model and each ``learnt`` one scored on the held-out frames; without poses in the
-    recording, each model renders them from its own estimated trajectory (its own world frame)."""
+    """The offline model and each ``learnt`` one scored on the held-out frames. Without poses in the
+    recording each model lives in its own world frame, and is scored twice: ``scores``, every model from
+    the same registered poses (the offline run's structure from motion over every frame, carried into
+    each model's frame by the similarity that aligns the anchors), so that only the models differ; and
+    ``scores_own_poses``, each from its own trajectory, as the service renders it (the learner, sent the
+    anchors only, interpolates between them)."""
     from bench.traffic import score
     from edmcgs.model.checkpoint import load_checkpoint
     from edmcgs.pipeline import open_recording, training_data
@@ -304,8 +309,31 @@ def offline(rec_path: Path, cache: Path, run_info: dict, learnt: dict[str, Path]
     data = training_data(open_recording(rec_path))
     models = {"offline": load_checkpoint(cache / run_info["checkpoint"]),
               **{name: load_checkpoint(path) for name, path in learnt.items()}}
-    scores, _ = score(data, models, static_camera=not estimated, own_poses=estimated)
-    return {"offline_run": run_info, "scores": scores}
+    if not estimated:
+        return {"offline_run": run_info, "scores": score(data, models, static_camera=True)[0]}
+    own = {name: m.meta.trajectory.at for name, m in models.items()}
+    registered = registered_cameras(models["offline"].meta.trajectory, models, data.anchors_t_us)
+    return {"offline_run": run_info,
+            "scores": score(data, models, static_camera=False, cameras=registered)[0],
+            "scores_own_poses": score(data, models, static_camera=False, cameras=own)[0]}
+
+
+def registered_cameras(reference, models: dict, anchors_t_us: np.ndarray) -> dict:
+    """{name: t_us -> c2w}: the ``reference`` trajectory's pose at t carried into each model's world frame
+    by the similarity taking the reference's anchor poses onto the model's own (a camera that did not
+    move fixes no similarity: the model's own pose then)."""
+    from edmcgs.errors import InvalidInputError
+    from edmcgs.geometry import Similarity
+
+    cameras = {}
+    for name, m in models.items():
+        try:
+            to_model = Similarity.fit_poses(reference.at(anchors_t_us), m.meta.trajectory.at(anchors_t_us))
+        except InvalidInputError:
+            cameras[name] = m.meta.trajectory.at
+            continue
+        cameras[name] = lambda t, s=to_model: s.poses(reference.at(t))[0]
+    return cameras
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -322,6 +350,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="also train offline (cached here) and compare")
     p.add_argument("--offline-preset", default="real",
                    help="the offline run's config (default real; moving for a camera that translates)")
+    p.add_argument("--keep", type=Path, metavar="DIR",
+                   help="keep the learner's checkpoints here (its saved one and, with --offline, the one at "
+                        "equal CPU)")
     p.add_argument("--json", type=Path)
     p.add_argument("--csv", type=Path, help="every scored render")
     p.add_argument("--plot", type=Path, help="PSNR against wall-clock time since start (PNG)")
@@ -357,6 +388,11 @@ def main(argv: list[str] | None = None) -> int:
             if r["snapshot"] is not None:  # the target: once the learner has spent the offline run's CPU
                 results["learnt_minus_offline_db"] = s["learnt at equal CPU"]["psnr"] - s["offline"]["psnr"]
                 results["equal_cpu_model"] = r["snapshot"]
+        if args.keep is not None:
+            args.keep.mkdir(parents=True, exist_ok=True)
+            for kept in (workdir / "learned.ckpt", equal):
+                if kept.is_file():
+                    shutil.copyfile(kept, args.keep / kept.name)
     if args.csv is not None and r["rows"]:
         args.csv.parent.mkdir(parents=True, exist_ok=True)
         with open(args.csv, "w", newline="") as f:
