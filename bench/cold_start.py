@@ -17,11 +17,12 @@ went live (from the first anchor), ``GET /render`` latency while the learner run
 rate, the learner's CPU (these three once the load below is over). For ``--load-minutes`` from the start,
 4 clients render the head and 2 live streams run: around each model swap (5 s either side), the failed
 requests, the p99 latency and every stream reset. With ``--offline CACHE``: the recording trained
-offline by ``edmcgs train --config real`` (``--offline-preset``; with ``--poses auto`` when the recording has
-no poses: bench.traffic's cached run, one thread), and at the end
-the learner's saved model and the offline one scored on the held-out frames by the same code
-(``bench.traffic.score``; without poses in the recording, from the same registered poses: see
-``offline``), with the learner's CPU seconds beside the offline run's; and the first model
+offline by ``edmcgs train --config real`` (``--offline-preset``; bench.traffic's cached run, one thread) on
+what the service was sent; when the recording has no poses, with ``--poses auto`` over the anchor frames
+(``sent``: the held-out frames are never sent), and beside it the same run with structure from motion over
+every frame (what a camera sending every frame would give). At the end the learner's saved model and the
+offline ones are scored on the held-out frames by the same code (``bench.traffic.score``; without poses,
+each from its own trajectory), with the learner's CPU seconds beside the offline run's; and the first model
 the learner published once it had spent the offline run's CPU seconds (copied when the service said it
 went live), scored the same way: the target's comparison, at equal CPU.
 """
@@ -289,51 +290,52 @@ def _has_poses(rec_path: Path) -> bool:
 
 def offline_run(rec_path: Path, cache: Path, preset: str, estimated: bool) -> dict:
     """The offline run of the recording with ``preset`` (cached): on its poses, else (``estimated``) on
-    those structure from motion gives (``--poses auto``), as the learner's are."""
+    those structure from motion finds (``--poses auto``) over the frames the service was sent, as the
+    learner's are: a copy of the recording with its anchors alone (``sent``)."""
     from bench.traffic import train
 
-    return train(rec_path, "offline", [], cache, preset, poses="auto" if estimated else None)
+    if not estimated:
+        return train(rec_path, "offline", [], cache, preset)
+    return train(sent(rec_path, cache), "offline", [], cache, preset, poses="auto")
 
 
-def offline(rec_path: Path, cache: Path, run_info: dict, learnt: dict[str, Path], estimated: bool) -> dict:
-    """The offline model and each ``learnt`` one scored on the held-out frames. Without poses in the
-    recording each model lives in its own world frame, and is scored twice: ``scores``, every model from
-    the same registered poses (the offline run's structure from motion over every frame, carried into
-    each model's frame by the similarity that aligns the anchors), so that only the models differ; and
-    ``scores_own_poses``, each from its own trajectory, as the service renders it (the learner, sent the
-    anchors only, interpolates between them)."""
+def every_frame_run(rec_path: Path, cache: Path, preset: str) -> dict:
+    """The same offline run with structure from motion over every frame of the recording, held-out ones
+    included: what a camera that sent every frame would give the learner (the replay sends anchors)."""
+    from bench.traffic import train
+
+    return train(rec_path, "offline, poses from every frame", [], cache, preset, poses="auto")
+
+
+def sent(rec_path: Path, cache: Path) -> Path:
+    """A copy of the recording (in ``cache``) with what its replay sends the service: the events, the
+    anchor frames and the camera; no held-out frames, novel views or IMU."""
+    from dataclasses import replace
+
+    from edmcgs.sensor.files.recording import read_recording, write_recording
+
+    path = cache / f"{rec_path.stem}_sent.h5"
+    if not path.exists():
+        cache.mkdir(parents=True, exist_ok=True)
+        rec = read_recording(rec_path)
+        write_recording(path, replace(rec, held_out=None, novel_views=None, imu=None))
+    return path
+
+
+def offline(rec_path: Path, cache: Path, runs: dict[str, dict], learnt: dict[str, Path],
+            estimated: bool) -> dict:
+    """Each offline run in ``runs`` ({name: bench.traffic.train's result}) and each ``learnt`` model scored
+    on the held-out frames by the same code; without poses in the recording, each model renders them from
+    its own estimated trajectory (its own world frame), as the service renders it."""
     from bench.traffic import score
     from edmcgs.model.checkpoint import load_checkpoint
     from edmcgs.pipeline import open_recording, training_data
 
     data = training_data(open_recording(rec_path))
-    models = {"offline": load_checkpoint(cache / run_info["checkpoint"]),
-              **{name: load_checkpoint(path) for name, path in learnt.items()}}
-    if not estimated:
-        return {"offline_run": run_info, "scores": score(data, models, static_camera=True)[0]}
-    own = {name: m.meta.trajectory.at for name, m in models.items()}
-    registered = registered_cameras(models["offline"].meta.trajectory, models, data.anchors_t_us)
-    return {"offline_run": run_info,
-            "scores": score(data, models, static_camera=False, cameras=registered)[0],
-            "scores_own_poses": score(data, models, static_camera=False, cameras=own)[0]}
-
-
-def registered_cameras(reference, models: dict, anchors_t_us: np.ndarray) -> dict:
-    """{name: t_us -> c2w}: the ``reference`` trajectory's pose at t carried into each model's world frame
-    by the similarity taking the reference's anchor poses onto the model's own (a camera that did not
-    move fixes no similarity: the model's own pose then)."""
-    from edmcgs.errors import InvalidInputError
-    from edmcgs.geometry import Similarity
-
-    cameras = {}
-    for name, m in models.items():
-        try:
-            to_model = Similarity.fit_poses(reference.at(anchors_t_us), m.meta.trajectory.at(anchors_t_us))
-        except InvalidInputError:
-            cameras[name] = m.meta.trajectory.at
-            continue
-        cameras[name] = lambda t, s=to_model: s.poses(reference.at(t))[0]
-    return cameras
+    models = {name: load_checkpoint(cache / info["checkpoint"]) for name, info in runs.items()} | \
+        {name: load_checkpoint(path) for name, path in learnt.items()}
+    cameras = {name: m.meta.trajectory.at for name, m in models.items()} if estimated else None
+    return {"runs": runs, "scores": score(data, models, static_camera=not estimated, cameras=cameras)[0]}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -380,7 +382,9 @@ def main(argv: list[str] | None = None) -> int:
             if not saved.is_file():
                 raise SystemExit(f"the learner saved no checkpoint; its log:\n{r['log'][-4000:]}")
             learnt = {"learnt": saved} | ({"learnt at equal CPU": equal} if equal.is_file() else {})
-            results["offline"] = offline(args.recording, args.offline, run_info, learnt, estimated)
+            runs = {"offline": run_info} | ({"offline, poses from every frame": every_frame_run(
+                args.recording, args.offline, args.offline_preset)} if estimated else {})
+            results["offline"] = offline(args.recording, args.offline, runs, learnt, estimated)
             s = results["offline"]["scores"]
             results["learnt_final_minus_offline_db"] = s["learnt"]["psnr"] - s["offline"]["psnr"]
             results["learner_cpu_s"] = r["models"][-1]["cpu_s"] if r["models"] else None

@@ -168,7 +168,8 @@ class Settings(BaseSettings):
     raster_threads: int | None = Field(None, gt=0, le=1024,
         description="Threads of the numba rasterizer per render; "
                                        "none: every core (on a 2-core CPU, 2 per render beat 1 at one and at "
-                                       "four clients: bench.serve render p50 20 vs 27 ms).")
+                                       "four clients: bench.serve render p50 20 vs 27 ms), or beside a cold "
+                                       "start's learner the cores it leaves.")
 
     @field_validator("device")
     @classmethod

@@ -78,35 +78,20 @@ def test_a_model_with_its_own_poses_renders_held_out_frames_from_them():
     assert not np.array_equal(render_held_out(model, data, i, camera=model.meta.trajectory.at(t))[0], own)
 
 
-def test_registered_cameras_carry_the_reference_poses_into_each_models_frame():
-    """bench.cold_start scores each model from the same registered poses: the reference's pose at a held-out
-    time, moved by the similarity that aligns the anchors, not the model's interpolation between them."""
-    from types import SimpleNamespace
 
-    from bench.cold_start import registered_cameras
-    from edmcgs.geometry import Similarity, Trajectory
+def test_the_offline_run_of_a_recording_without_poses_gets_what_the_service_was_sent(tmp_path):
+    """bench.cold_start trains its offline comparison on the frames the replay sends (the anchors): its
+    structure from motion sees no held-out frame, as the learner's does not."""
+    from bench.cold_start import sent
+    from edmcgs.sensor.files.recording import read_recording
+    from tests.support.recordings import write_tiny_h5
 
-    t = np.arange(0, 2_000_001, 40_000, dtype=np.int64)
-    angle = 0.8 * t / 2e6
-    c2w = np.tile(np.eye(4), (len(t), 1, 1))
-    c2w[:, 0, 0], c2w[:, 0, 2], c2w[:, 2, 0], c2w[:, 2, 2] = np.cos(angle), np.sin(angle), -np.sin(angle), \
-        np.cos(angle)
-    c2w[:, :3, 3] = np.stack([np.sin(3 * angle), 0.1 * angle**2, angle], axis=1)
-    reference = Trajectory(t, c2w)
-    anchors = t[::5]
-    rot = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    to_model = Similarity(2.5, rot, np.array([1.0, -2.0, 0.5]))
-
-    def model(traj):
-        return SimpleNamespace(meta=SimpleNamespace(trajectory=traj))
-
-    learnt = Trajectory(anchors, to_model.poses(reference.at(anchors)))
-    still = Trajectory(anchors[:1], c2w[:1])
-    models = {"offline": model(reference), "learnt": model(learnt), "still": model(still)}
-    cameras = registered_cameras(reference, models, anchors)
-    held = int(t[7])  # between two anchors
-    assert np.allclose(cameras["offline"](held), reference.at(held), atol=1e-9)
-    expected = to_model.poses(reference.at(held))[0]
-    assert np.allclose(cameras["learnt"](held), expected, atol=1e-9)
-    assert not np.allclose(models["learnt"].meta.trajectory.at(held), expected, atol=1e-3)  # interpolated
-    assert np.allclose(cameras["still"](held), c2w[0])  # no similarity from a camera that did not move
+    rec_path = write_tiny_h5(tmp_path / "tiny.h5")
+    full = read_recording(rec_path)
+    copy = read_recording(sent(rec_path, tmp_path / "cache"))
+    assert full.held_out is not None and copy.held_out is None
+    assert np.array_equal(copy.anchors.t_us, full.anchors.t_us)
+    assert np.array_equal(copy.anchors.images, full.anchors.images)
+    assert len(copy.events) == len(full.events) and np.array_equal(copy.events.t, full.events.t)
+    assert np.array_equal(copy.intrinsics, full.intrinsics)
+    assert copy.contrast_threshold == full.contrast_threshold

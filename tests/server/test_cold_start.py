@@ -289,3 +289,13 @@ def test_a_round_of_three_anchors_of_a_still_camera_trains_the_real_preset_on_on
     # three small frames register too few (said on the learner's output) or show no parallax
     assert outbox[-1]["camera"] in ("still", "estimated: still") and outbox[-1]["preset"] == "real"
     assert len(np.unique(load_checkpoint(outbox[-1]["path"]).meta.trajectory.c2w, axis=0)) == 1
+
+
+def test_renders_beside_the_learner_take_the_cores_it_leaves(monkeypatch):
+    """A render's numba threads on the learner's core wait on it (street3d, 2 cores: 9.2 ms a render on two
+    threads, 5.5 on one), so a cold start rasterizes on the cores the learner leaves, at least one."""
+    from edmcgs.server import service
+
+    for cores, learner, expected in ((2, 1, 1), (16, 1, 15), (16, 4, 12), (1, 1, 1), (2, 3, 1)):
+        monkeypatch.setattr(service.os, "sched_getaffinity", lambda _pid, n=cores: set(range(n)))
+        assert service.beside_learner(learner) == expected
