@@ -43,7 +43,12 @@ from edmcgs.model.render.rasterize import rasterize
 NEAR = 0.01
 """Control points closer than this to the event camera (or behind it) read a zero motion code."""
 DRAWN_PLANS = 4
-"""Windows whose ``drawn_plan`` a model keeps (the server's renders are mostly near the head)."""
+"""Windows whose ``drawn_plan`` a model keeps at least (the server's renders are mostly near the head) ..."""
+DRAWN_PLANS_BYTES = 128 << 20
+"""... and more while their plans hold no more than this: a viewer scrubbing a recording's span rebuilds
+none (street3d: 21 windows, 15 MB; a build cost a sweep's render 0.9 ms)."""
+ANCHOR_PRIORS = 64
+"""Anchors whose prior a model keeps (``_prior_since``: a few KB each)."""
 
 
 @dataclass
@@ -125,6 +130,7 @@ class EdMCGS(nn.Module):
         (``Trainer(compile=True)``, ``edmcgs train --compile``)."""
         self._window_plans: dict[tuple[int, bool], SkinPlan] = {}
         self._drawn_plans: dict[tuple[int, bool], SkinPlan] = {}
+        self._anchor_priors: dict[tuple, tuple[Tensor, Tensor]] = {}
         self._windows: WindowIndex | None = None
 
     # ------------------------------------------------------------------ construction
@@ -303,7 +309,7 @@ class EdMCGS(nn.Module):
         x = self.normalize_points(cp)
         d_mu, d_q = self.prior(x, t)
         if since is not None:
-            d_mu0, d_q0 = self.prior(x, since)
+            d_mu0, d_q0 = self._prior_since(x, since)
             d_mu, d_q = d_mu - d_mu0, d_q - d_q0
         trans = d_mu * self.extent
         rot = quat_normalize(identity_rotations(cp.shape[0], device=cp.device) + d_q)
@@ -322,6 +328,25 @@ class EdMCGS(nn.Module):
             event_disp = self.transition(x, codes) * (self.extent * self.event_scale)
             trans = trans + event_disp
         return trans, rot, event_disp
+
+    def _prior_since(self, x: Tensor, since: float) -> tuple[Tensor, Tensor]:
+        """``prior(x, since)``: the prior at an anchor, the same for every query in its gap, so kept for the
+        last ``ANCHOR_PRIORS`` anchors where no gradient is wanted (half the prior's work of a render). ``x``
+        is the control points (all, or one window's: fixed by ``since``) normalised: keyed by what it is
+        computed from, as the plans are."""
+        if torch.is_grad_enabled():
+            return self.prior(x, since)
+        births = () if self.control.birth is None else (self.control.birth,)
+        key = (since, tuple(x.shape), *plan_key(self.control.positions, self.center, self.extent, *births,
+                                                 *self.prior.parameters()))
+        out = self._anchor_priors.pop(key, None)
+        if out is None:
+            out = self.prior(x, since)
+        priors = self._anchor_priors
+        priors[key] = out  # newest last
+        for old in list(priors)[:-ANCHOR_PRIORS]:
+            priors.pop(old, None)
+        return out
 
     def window_state(self, trans: Tensor, rot: Tensor, window: int, *,
                      motion_only: bool = False) -> GaussianState:
@@ -508,7 +533,7 @@ class EdMCGS(nn.Module):
         """``skin_plan`` cut to the Gaussians drawn in anchor ``window``'s gap (``visible_in``: the static
         set and the window's own). The others would be drawn with opacity 0: a long recording's windows
         hold most of a model's Gaussians, so leaving them out spares a render most of its work. The plans
-        of the last ``DRAWN_PLANS`` windows queried are kept."""
+        of the windows queried last are kept (``DRAWN_PLANS``, ``DRAWN_PLANS_BYTES``)."""
         key = (*self._plan_key(), window)
         plan = self._drawn_plans.pop((window, frozen), None)
         if plan is None or plan.key != key:
@@ -530,8 +555,13 @@ class EdMCGS(nn.Module):
                             None if len(moving) == len(rows) else moving, key, full.frozen, full.reach)
         plans = self._drawn_plans
         plans[(window, frozen)] = plan  # newest last
-        for old in list(plans)[:-DRAWN_PLANS]:  # one call each: safe beside a render in another thread
+        kept = list(plans.items())  # one call each: safe beside a render in another thread
+        held = sum(p.nbytes for _, p in kept)
+        for old, p in kept[:-DRAWN_PLANS]:
+            if held <= DRAWN_PLANS_BYTES:
+                break
             plans.pop(old, None)
+            held -= p.nbytes
         return plan
 
     @torch.no_grad()

@@ -53,6 +53,13 @@ class SkinPlan:
     def num_moving(self) -> int:
         return int(self.bind.shape[0])
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the tensors the plan holds of its own (not ``frozen`` and ``reach``: shared)."""
+        c = self.canonical
+        own = (c.means, c.quats, c.scales, c.opacities, c.colors, self.bind, self.weights, self.moving)
+        return sum(t.nbytes for t in own if t is not None)
+
 
 def plan_key(*tensors: Tensor) -> tuple:
     """Identity and in-place version of each tensor: a plan built from them is stale when this changes

@@ -160,6 +160,8 @@ class Trainer:
         """Whether what moves has been lifted into the anchor windows (config.static_set: at lift_at)."""
         self.lift_counts: list[int] = []
         """Gaussians lifted into each anchor's window (config.static_set), once lifted."""
+        self.grown_at: int | None = None
+        """The step that last added Gaussians (densified or lifted); until trained, they draw worse."""
 
     def reschedule(self, iterations: int) -> None:
         """The run's schedule set to ``iterations`` steps (fixed, not per window), training going on from
@@ -418,6 +420,7 @@ class Trainer:
             model.train(was_training)
         misses = np.stack(misses)
         self.lifted = True
+        self.grown_at = self.step
         self.lift_counts = [0] * len(misses)
         if not misses.any():
             return
@@ -460,6 +463,7 @@ class Trainer:
                               max_size=cfg.prune_size * extent, max_count=cfg.max_gaussians,
                               generator=self.generator)
             self.stats = GradientStats(len(model.gaussians), self.device)
+            self.grown_at = self.step
             if progress < cfg.control_resample_until and len(model.gaussians) >= model.control.num_points:
                 model.control.resample(model.gaussians.means, radius=cfg.radius_init * extent,
                                        birth=model.gaussians.birth)

@@ -7,11 +7,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from torch import Tensor
 
 from edmcgs.errors import InvalidInputError
 from edmcgs.geometry import project, world_to_camera
 from edmcgs.model.checkpoint import load_checkpoint, save_checkpoint
 from edmcgs.model.config import preset
+from edmcgs.model.dynamic import ANCHOR_PRIORS
 from edmcgs.model.motion.gaussians import STATIC
 from edmcgs.model.train.trainer import Trainer
 from edmcgs.pipeline import default_preset, new_model, training_data
@@ -163,3 +165,43 @@ def test_train_picks_the_moving_preset_for_a_translating_camera_with_points(stre
     assert default_preset(replace(street, points_xyz=None, points_colors=None))[0] == "demo"
     for said in ({"static": True}, {"rotation_only": True}):  # --poses auto found no translation
         assert default_preset(replace(street, metadata={**street.metadata, "poses": said}))[0] == "demo"
+
+
+def test_the_prior_at_an_anchor_is_kept_for_its_gap_and_dropped_when_the_prior_changes(street):
+    """A render's motion since its anchor reuses the prior at that anchor (the same for every query in the
+    gap); a change of the prior's parameters (a learner's next step, a load) is never served stale."""
+    model = new_model(training_data(street), SMALL)
+    with torch.no_grad():
+        for p in model.prior.parameters():
+            p.add_(torch.randn_like(p) * 0.3)
+
+    def motion(t: float, since: float, *, grad: bool) -> Tensor:
+        with torch.set_grad_enabled(grad):
+            return model.control_motion(t, since=since)[0].detach()
+
+    for t in (0.3, 0.4, 0.45):  # three queries in one gap: one prior at its anchor
+        torch.testing.assert_close(motion(t, 0.25, grad=False), motion(t, 0.25, grad=True), rtol=0, atol=0)
+    assert len(model._anchor_priors) == 1
+    with torch.no_grad():
+        for p in model.prior.parameters():
+            p.mul_(1.5)
+    torch.testing.assert_close(motion(0.3, 0.25, grad=False), motion(0.3, 0.25, grad=True), rtol=0, atol=0)
+    for since in np.linspace(0.0, 0.9, ANCHOR_PRIORS + 3):  # the anchors kept are bounded
+        motion(0.95, float(since), grad=False)
+    assert len(model._anchor_priors) == ANCHOR_PRIORS
+
+
+def test_drawn_plans_are_kept_within_their_byte_budget(street, monkeypatch):
+    """The plans of the windows a viewer scrubs through stay built while they fit DRAWN_PLANS_BYTES; past
+    it, the oldest go, down to DRAWN_PLANS."""
+    from edmcgs.model import dynamic
+
+    model = new_model(training_data(street), SMALL)
+    windows = range(len(model.meta.anchors_us))
+    first = [model.drawn_plan(w) for w in windows]
+    assert all(model.drawn_plan(w) is p for w, p in zip(windows, first, strict=True))  # none rebuilt
+    assert len(model._drawn_plans) == len(windows)
+    monkeypatch.setattr(dynamic, "DRAWN_PLANS_BYTES", first[0].nbytes)
+    monkeypatch.setattr(dynamic, "DRAWN_PLANS", 1)
+    model.drawn_plan(0)
+    assert list(model._drawn_plans) == [(0, True)]

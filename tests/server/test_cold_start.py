@@ -207,6 +207,32 @@ def test_a_new_round_goes_live_once_it_has_trained_each_anchor_as_long_as_the_mo
     assert outbox[-1]["anchors"] == 11 and outbox[-1]["steps"] == 25
 
 
+
+def test_a_model_goes_live_only_once_the_gaussians_a_round_added_have_trained(scene, tmp_path):
+    """Published a few steps after a densification, a model draws its new Gaussians untrained: the round
+    trains SETTLE_STEPS first (or reaches its end)."""
+    from edmcgs.server.live.learner import SETTLE_STEPS
+
+    rec, _ = scene
+    t0 = int(rec.anchors.t_us[0])
+    config = LearnConfig(workdir=tmp_path, intrinsics=(60.0, 60.0, 31.5, 23.5), preset="demo",
+                         overrides=TINY, anchor_fps=10.0, min_anchors=3, first_steps=80, publish_s=0.0,
+                         eval_frames=1, poses="static")
+    stream, outbox = Stream(W, H), _Outbox()
+    learner = Learner(config, stream, outbox)
+    _feed(stream, rec, t0, t0 + 250_000)
+    while not outbox:  # due at every chunk
+        learner.step()
+    assert outbox[0]["steps"] == 5
+    learner.round.trainer.grown_at = 10  # as a densification at step 10 would
+    while len(outbox) < 2:
+        learner.step()
+    assert outbox[1]["steps"] == 10 + SETTLE_STEPS
+    learner.round.trainer.grown_at = 75  # 5 steps before the round's end: the end publishes
+    while len(outbox) < 3:
+        learner.step()
+    assert outbox[2]["steps"] == 80
+
 def test_the_learner_process_reports_and_saves_when_told_to_stop(scene, tmp_path):
     """The process itself (spawned as the service spawns it): fed, it publishes; told to stop, it saves."""
     from edmcgs.sensor.sources.base import SensorBatch
