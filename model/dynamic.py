@@ -284,8 +284,8 @@ class EdMCGS(nn.Module):
 
     def control_motion(self, t: float, event_map: Tensor | None = None, ev_w2c: Tensor | None = None, *,
                        static: bool = False, since: float | None = None,
-                       nonzero: bool | None = None,
-                       window: int | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
+                       nonzero: bool | None = None, window: int | None = None,
+                       points: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
         """Control-point transforms at normalised time ``t``.
 
         event_map: Tensor  # [He, We] float32 signed polarity sum over [tau(t), t), or None (empty)
@@ -297,19 +297,23 @@ class EdMCGS(nn.Module):
                  grid does); None: looked at here, which on a GPU waits for the device
         window: with anchor windows, only that window's control points (``window_rows(window).control``,
                in that order), moved since its anchor (unless ``since`` says otherwise)
+        points: only these control points (int64 indices, in that order): the ones a render moves
         returns (translations [M, 3], rotations [M, 4] unit, event displacement [M, 3] or None)
         """
-        cp = self.control.positions
+        rows = points
         if window is not None and self.windowed:
-            cp = cp[self.window_rows(window).control]
+            rows = self.window_rows(window).control
             if since is None:
                 since = self.meta.normalized_time(int(self.meta.anchors_us[window]))
+        cp = self.control.positions if rows is None else self.control.positions[rows]
         if static:
             return torch.zeros_like(cp), identity_rotations(cp.shape[0], device=cp.device), None
         x = self.normalize_points(cp)
         d_mu, d_q = self.prior(x, t)
         if since is not None:
-            d_mu0, d_q0 = self._prior_since(x, since)
+            d_mu0, d_q0 = self.prior(x, since) if torch.is_grad_enabled() else self._prior_since(since)
+            if rows is not None and not torch.is_grad_enabled():
+                d_mu0, d_q0 = d_mu0[rows], d_q0[rows]
             d_mu, d_q = d_mu - d_mu0, d_q - d_q0
         trans = d_mu * self.extent
         rot = quat_normalize(identity_rotations(cp.shape[0], device=cp.device) + d_q)
@@ -329,19 +333,14 @@ class EdMCGS(nn.Module):
             trans = trans + event_disp
         return trans, rot, event_disp
 
-    def _prior_since(self, x: Tensor, since: float) -> tuple[Tensor, Tensor]:
-        """``prior(x, since)``: the prior at an anchor, the same for every query in its gap, so kept for the
-        last ``ANCHOR_PRIORS`` anchors where no gradient is wanted (half the prior's work of a render). ``x``
-        is the control points (all, or one window's: fixed by ``since``) normalised: keyed by what it is
-        computed from, as the plans are."""
-        if torch.is_grad_enabled():
-            return self.prior(x, since)
-        births = () if self.control.birth is None else (self.control.birth,)
-        key = (since, tuple(x.shape), *plan_key(self.control.positions, self.center, self.extent, *births,
-                                                 *self.prior.parameters()))
+    def _prior_since(self, since: float) -> tuple[Tensor, Tensor]:
+        """The prior of every control point at an anchor (normalised time ``since``): the same for every query
+        in its gap, so kept for the last ``ANCHOR_PRIORS`` anchors (inference: half the prior's work of a
+        render), keyed by what it is computed from, as the plans are."""
+        key = (since, *plan_key(self.control.positions, self.center, self.extent, *self.prior.parameters()))
         out = self._anchor_priors.pop(key, None)
         if out is None:
-            out = self.prior(x, since)
+            out = self.prior(self.normalize_points(self.control.positions), since)
         priors = self._anchor_priors
         priors[key] = out  # newest last
         for old in list(priors)[:-ANCHOR_PRIORS]:
@@ -464,7 +463,19 @@ class EdMCGS(nn.Module):
             plan = self.window_plan(window, frozen=lean)
             return skin(plan, self.control.positions[self.window_rows(window).control], rot, trans)
         since = None if window is None else self.meta.normalized_time(tau)
-        trans, rot, _ = self.control_motion(t, emap, w2c, since=since)
+        if window is None:
+            trans, rot, _ = self.control_motion(t, emap, w2c, since=since)
+        else:  # the control points the drawn Gaussians bind alone (and the window's frozen ones, below)
+            points = self.drawn_plan(window, frozen=False).points
+            if self.meta.frozen is not None:
+                own = torch.nonzero(self._frozen_mask() & (self.control.birth == window))[:, 0]
+                points = torch.unique(torch.cat([points, own]))
+            m, dev = self.control.num_points, self.control.positions.device
+            trans, rot = torch.zeros(m, 3, device=dev), identity_rotations(m, device=dev)
+            if len(points):  # (a window drawing the static set alone moves nothing)
+                moved, turned, _ = self.control_motion(t, emap, w2c, since=since, points=points)
+                trans.index_copy_(0, points, moved)
+                rot.index_copy_(0, points, turned)
         # Frozen Gaussians keep their canonical pose only while every frozen point's motion at this very
         # query (prior and events) stays within the threshold: the stated bound then holds at any time,
         # not only at the times the freeze decision sampled.
@@ -551,8 +562,10 @@ class EdMCGS(nn.Module):
             c = full.canonical
             canonical = GaussianState(c.means[rows], c.quats[rows], c.scales[rows], c.opacities[rows],
                                       c.colors[rows])
-            plan = SkinPlan(canonical, full.bind[slot[moving]], full.weights[slot[moving]],
-                            None if len(moving) == len(rows) else moving, key, full.frozen, full.reach)
+            bind = full.bind[slot[moving]]
+            plan = SkinPlan(canonical, bind, full.weights[slot[moving]],
+                            None if len(moving) == len(rows) else moving, key, full.frozen, full.reach,
+                            torch.unique(bind))
         plans = self._drawn_plans
         plans[(window, frozen)] = plan  # newest last
         kept = list(plans.items())  # one call each: safe beside a render in another thread

@@ -39,6 +39,8 @@ class SkinPlan:
     key: tuple                # identity and version of every tensor the plan was derived from
     frozen: Tensor | None     # [M] bool the frozen control points (a plan that leaves them still)
     reach: Tensor | None      # [M] float32 each point's farthest Gaussian (``leanness.control_reach``)
+    points: Tensor | None     # [P] int64 the control points ``bind`` holds, sorted (drawn plans: a
+                              # render moves these alone)
     """
 
     canonical: GaussianState
@@ -48,6 +50,7 @@ class SkinPlan:
     key: tuple
     frozen: Tensor | None = None
     reach: Tensor | None = None
+    points: Tensor | None = None
 
     @property
     def num_moving(self) -> int:
@@ -57,7 +60,8 @@ class SkinPlan:
     def nbytes(self) -> int:
         """Bytes of the tensors the plan holds of its own (not ``frozen`` and ``reach``: shared)."""
         c = self.canonical
-        own = (c.means, c.quats, c.scales, c.opacities, c.colors, self.bind, self.weights, self.moving)
+        own = (c.means, c.quats, c.scales, c.opacities, c.colors, self.bind, self.weights, self.moving,
+               self.points)
         return sum(t.nbytes for t in own if t is not None)
 
 

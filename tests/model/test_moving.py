@@ -22,7 +22,7 @@ from edmcgs.synth.street3d import StreetScene
 from edmcgs.synth.street3d_build import Street3dConfig, build_street3d
 from harness.server import randomize_event_branch
 from tests.support import tiny_scene
-from tests.support.models import TINY, one_torch_thread  # noqa: F401
+from tests.support.models import TINY, one_torch_thread, perturb_prior  # noqa: F401
 
 SMALL = preset("moving").replace(
     num_control_points=32, deform_width=32, deform_depth=2, substeps=4, max_pair_steps=4, eval_every=0,
@@ -125,6 +125,21 @@ def test_the_lift_puts_what_the_static_set_misses_into_its_window():
         state = model.deform(int(data.anchors_t_us[window]))
         assert len(state.means) == rows and state.opacities.min() > 0
     np.testing.assert_array_equal(state.means.numpy(), g.means.detach()[g.birth == STATIC].numpy())
+    # mid-gap, a render moves the control points its drawn Gaussians bind alone: the same Gaussians as the
+    # differentiable path (every point, with gradients) to float32 rounding
+    randomize_event_branch(model)
+    perturb_prior(model)
+    t = int(data.anchors_t_us[1]) + 40_000
+    emap = data.event_map(int(data.anchors_t_us[1]), t)
+    assert np.any(emap != 0)
+    fast = model.deform(t, emap)
+    w2c = torch.as_tensor(world_to_camera(model.meta.trajectory.at(t)), dtype=torch.float32)
+    ref = model.state_at(model.meta.normalized_time(t), torch.as_tensor(emap), w2c, window=1)
+    drawn = g.visible_in(1) > 0
+    assert (fast.means - ref.means.detach()[drawn]).abs().max() < 1e-5 * float(model.extent)
+    assert (fast.quats - ref.quats.detach()[drawn]).abs().max() < 1e-5
+    lifted = g.birth[drawn] == 1
+    assert (fast.means[lifted] - g.means.detach()[g.birth == 1]).abs().max() > 1e-3  # the square moved
 
 
 def test_the_moving_preset_trains_on_a_street_and_round_trips(street, tmp_path):
