@@ -92,3 +92,34 @@ def test_a_cold_start_serves_at_once_learns_swaps_in_its_model_and_saves_it(tmp_
     assert "the learner saved" in srv.log()
     assert train_main([str(learnt / "learned.h5"), "-o", str(learnt / "learned.ckpt"), "--resume",
                        "--steps", "2", "--quiet"]) == 0
+
+
+def test_a_cold_start_on_an_aedat4_file_with_no_other_argument(tmp_path):
+    """``edmcgs-serve --replay REC.aedat4`` with nothing else (the camera's file as dv-processing writes
+    it: every frame, no poses, no calibration): the camera's view at once, then a learnt model."""
+    from edmcgs.pipeline import all_frames
+    from edmcgs.sensor.files.recording import read_recording
+    from tests.support.recordings import write_aedat
+
+    h5, _ = build_scene(tmp_path / "scene", width=64, height=48, duration_s=2.0, anchor_every_s=0.1,
+                        frames_per_anchor=2, event_rate=20_000, init_points=300, control_points=16)
+    rec = read_recording(h5)
+    aedat = write_aedat(tmp_path / "street.aedat4", rec.events, all_frames(rec), rec.width, rec.height)
+    srv = ServerProcess(["--replay", str(aedat), "--learn-dir", str(tmp_path / "learnt")], env=LEARN)
+    try:
+        srv.wait_ready()
+        first = httpx.get(srv.url + "/render", timeout=30)
+        assert first.status_code == 200, first.text
+        assert first.headers[protocol.HEADER_ANCHOR] == "frame"
+        deadline = time.monotonic() + MODEL_S
+        while (learning := httpx.get(srv.url + "/scene", timeout=30).json()["learning"])["version"] is None:
+            assert time.monotonic() < deadline, f"no model after {MODEL_S} s:\n{srv.log()}"
+            assert learning["error"] is None, learning["error"]
+            time.sleep(0.5)
+        assert learning["model"]["anchors"] >= 3 and learning["fed"]["frames"] > 0
+        lo, hi = learning["model"]["span_us"]
+        inside = httpx.get(srv.url + "/render", params={"t_us": (lo + hi) // 2}, timeout=30)
+        assert inside.status_code == 200 and inside.headers[protocol.HEADER_ANCHOR] == "checkpoint"
+        assert int(inside.headers[protocol.HEADER_MODEL]) >= learning["version"]
+    finally:
+        srv.stop(signal.SIGINT, timeout=120)
