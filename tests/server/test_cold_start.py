@@ -184,15 +184,21 @@ def test_the_learner_publishes_rounds_over_the_anchors_received_and_saves_what_r
     assert kept == ["learned-0002.ckpt", "learned-0003.ckpt"]
 
 
+def _publishing_every_chunk(rec, workdir, first_steps: int) -> tuple[Learner, Stream, _Outbox]:
+    """A learner due to publish at every chunk of steps (publish_s 0), fed the first 250 ms of ``rec``."""
+    config = LearnConfig(workdir=workdir, intrinsics=(60.0, 60.0, 31.5, 23.5), preset="demo",
+                         overrides=TINY, anchor_fps=10.0, min_anchors=3, first_steps=first_steps,
+                         publish_s=0.0, eval_frames=1, poses="static")
+    stream, outbox = Stream(W, H), _Outbox()
+    t0 = int(rec.anchors.t_us[0])
+    _feed(stream, rec, t0, t0 + 250_000)
+    return Learner(config, stream, outbox), stream, outbox
+
+
 def test_a_new_round_goes_live_once_it_has_trained_each_anchor_as_long_as_the_model_live(scene, tmp_path):
     rec, _ = scene
     t0 = int(rec.anchors.t_us[0])
-    config = LearnConfig(workdir=tmp_path, intrinsics=(60.0, 60.0, 31.5, 23.5), preset="demo",
-                         overrides=TINY, anchor_fps=10.0, min_anchors=3, first_steps=10, publish_s=0.0,
-                         eval_frames=1, poses="static")
-    stream, outbox = Stream(W, H), _Outbox()
-    learner = Learner(config, stream, outbox)
-    _feed(stream, rec, t0, t0 + 250_000)
+    learner, stream, outbox = _publishing_every_chunk(rec, tmp_path, first_steps=10)
     while len(outbox) < 2:  # due at every chunk: published at 5 and 10 steps
         learner.step()
     assert [m["steps"] for m in outbox] == [5, 10]
@@ -207,20 +213,12 @@ def test_a_new_round_goes_live_once_it_has_trained_each_anchor_as_long_as_the_mo
     assert outbox[-1]["anchors"] == 11 and outbox[-1]["steps"] == 25
 
 
-
 def test_a_model_goes_live_only_once_the_gaussians_a_round_added_have_trained(scene, tmp_path):
     """Published a few steps after a densification, a model draws its new Gaussians untrained: the round
     trains SETTLE_STEPS first (or reaches its end)."""
     from edmcgs.server.live.learner import SETTLE_STEPS
 
-    rec, _ = scene
-    t0 = int(rec.anchors.t_us[0])
-    config = LearnConfig(workdir=tmp_path, intrinsics=(60.0, 60.0, 31.5, 23.5), preset="demo",
-                         overrides=TINY, anchor_fps=10.0, min_anchors=3, first_steps=80, publish_s=0.0,
-                         eval_frames=1, poses="static")
-    stream, outbox = Stream(W, H), _Outbox()
-    learner = Learner(config, stream, outbox)
-    _feed(stream, rec, t0, t0 + 250_000)
+    learner, _, outbox = _publishing_every_chunk(scene[0], tmp_path, first_steps=80)
     while not outbox:  # due at every chunk
         learner.step()
     assert outbox[0]["steps"] == 5
