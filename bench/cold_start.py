@@ -334,8 +334,7 @@ def offline(rec_path: Path, cache: Path, runs: dict[str, dict], learnt: dict[str
     data = training_data(open_recording(rec_path))
     models = {name: load_checkpoint(cache / info["checkpoint"]) for name, info in runs.items()} | \
         {name: load_checkpoint(path) for name, path in learnt.items()}
-    cameras = {name: m.meta.trajectory.at for name, m in models.items()} if estimated else None
-    return {"runs": runs, "scores": score(data, models, static_camera=not estimated, cameras=cameras)[0]}
+    return {"runs": runs, "scores": score(data, models, static_camera=not estimated, own_poses=estimated)[0]}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -121,11 +121,10 @@ def _moving_psnr(sq_err: list[float], count: int) -> float:
 
 
 def score(data, models: dict, *, static_camera: bool,
-          cameras: dict | None = None) -> tuple[dict[str, dict], float]:
+          own_poses: bool = False) -> tuple[dict[str, dict], float]:
     """({name: {psnr, ssim, moving_psnr, frames}} of every model and baseline on the same held-out
-    frames, the fraction of their pixels that are moving). cameras: {name: t_us -> c2w} for the models
-    that render from poses in their own world frame (poses they estimated), not from ``data``'s."""
-    cameras = cameras or {}
+    frames, the fraction of their pixels that are moving). own_poses: each model renders from its own
+    trajectory (poses it estimated: ``data`` has none)."""
     from edmcgs.model.eval.baselines import BASELINES, baseline_image
     from edmcgs.model.eval.evaluation import render_held_out
     from edmcgs.model.eval.metrics import psnr, ssim_score
@@ -141,8 +140,7 @@ def score(data, models: dict, *, static_camera: bool,
         images = {name: baseline_image(data, t, name)[0] for name in BASELINES}
         if static_camera:
             images[MEDIAN] = median
-        images |= {name: render_held_out(m, data, i, camera=cameras[name](t) if name in cameras else None)[0]
-                   for name, m in models.items()}
+        images |= {name: render_held_out(m, data, i, own_poses=own_poses)[0] for name, m in models.items()}
         for name, image in images.items():
             a = acc.setdefault(name, {"psnr": [], "ssim": [], "sq": []})
             a["psnr"].append(psnr(image, truth))

@@ -46,9 +46,9 @@ DRAWN_PLANS = 4
 """Windows whose ``drawn_plan`` a model keeps at least (the server's renders are mostly near the head) ..."""
 DRAWN_PLANS_BYTES = 128 << 20
 """... and more while their plans hold no more than this: a viewer scrubbing a recording's span rebuilds
-none (street3d: 21 windows, 15 MB; a build cost a sweep's render 0.9 ms)."""
+none (street3d: 21 windows, 13 MB; a build cost a sweep's render 0.9 ms)."""
 ANCHOR_PRIORS = 64
-"""Anchors whose prior a model keeps (``_prior_since``: a few KB each)."""
+"""(Anchor, control points) whose prior a model keeps (``_prior_since``: a few KB each)."""
 
 
 @dataclass
@@ -311,9 +311,10 @@ class EdMCGS(nn.Module):
         x = self.normalize_points(cp)
         d_mu, d_q = self.prior(x, t)
         if since is not None:
-            d_mu0, d_q0 = self.prior(x, since) if torch.is_grad_enabled() else self._prior_since(since)
-            if rows is not None and not torch.is_grad_enabled():
-                d_mu0, d_q0 = d_mu0[rows], d_q0[rows]
+            if torch.is_grad_enabled():
+                d_mu0, d_q0 = self.prior(x, since)
+            else:
+                d_mu0, d_q0 = self._prior_since(x, since, rows)
             d_mu, d_q = d_mu - d_mu0, d_q - d_q0
         trans = d_mu * self.extent
         rot = quat_normalize(identity_rotations(cp.shape[0], device=cp.device) + d_q)
@@ -333,14 +334,16 @@ class EdMCGS(nn.Module):
             trans = trans + event_disp
         return trans, rot, event_disp
 
-    def _prior_since(self, since: float) -> tuple[Tensor, Tensor]:
-        """The prior of every control point at an anchor (normalised time ``since``): the same for every query
-        in its gap, so kept for the last ``ANCHOR_PRIORS`` anchors (inference: half the prior's work of a
-        render), keyed by what it is computed from, as the plans are."""
-        key = (since, *plan_key(self.control.positions, self.center, self.extent, *self.prior.parameters()))
+    def _prior_since(self, x: Tensor, since: float, rows: Tensor | None) -> tuple[Tensor, Tensor]:
+        """``prior(x, since)``, ``x`` the control points ``rows`` (None: all) normalised: the prior at an
+        anchor, the same for every query in its gap, so kept for the last ``ANCHOR_PRIORS`` (anchor, rows)
+        where no gradient is wanted (half the prior's work of a render); keyed by the rows' values (a few
+        dozen indices) and by what the prior is computed from, as the plans are."""
+        key = (since, None if rows is None else rows.cpu().numpy().tobytes(),
+               *plan_key(self.control.positions, self.center, self.extent, *self.prior.parameters()))
         out = self._anchor_priors.pop(key, None)
         if out is None:
-            out = self.prior(self.normalize_points(self.control.positions), since)
+            out = self.prior(x, since)
         priors = self._anchor_priors
         priors[key] = out  # newest last
         for old in list(priors)[:-ANCHOR_PRIORS]:

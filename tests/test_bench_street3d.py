@@ -68,15 +68,13 @@ def test_a_model_with_its_own_poses_renders_held_out_frames_from_them():
 
     model, data = build()
     i = int(data.evaluable()[0])
-    t = int(data.held_out_t_us[i])
-    own = render_held_out(model, data, i, camera=model.meta.trajectory.at(t))[0]
+    own = render_held_out(model, data, i, own_poses=True)[0]
     assert np.array_equal(own, render_held_out(model, data, i)[0])  # the same poses: the same render
     traj = model.meta.trajectory
     moved = traj.c2w.copy()
     moved[:, 0, 3] += 0.3
     model.meta = replace(model.meta, trajectory=Trajectory(traj.t_us, moved))
-    assert not np.array_equal(render_held_out(model, data, i, camera=model.meta.trajectory.at(t))[0], own)
-
+    assert not np.array_equal(render_held_out(model, data, i, own_poses=True)[0], own)
 
 
 def test_the_offline_run_of_a_recording_without_poses_gets_what_the_service_was_sent(tmp_path):

@@ -34,15 +34,16 @@ class FrameScore:
 
 
 def render_held_out(model: EdMCGS, data: TrainingData, i: int, *, fast: bool = True,
-                    camera: np.ndarray | None = None) -> tuple[np.ndarray, int, int]:
+                    own_poses: bool = False) -> tuple[np.ndarray, int, int]:
     """(image [H, W, C] float32 in [0, 1], tau(t), events) of held-out frame ``i``: the state at its time
-    driven by the events since tau(t), rendered from its camera. camera: that camera's c2w [4, 4] in the
-    model's world frame, when ``data``'s poses are not in it (poses the model estimated itself)."""
+    driven by the events since tau(t), rendered from its camera. own_poses: that camera as the model's
+    trajectory has it (poses the model estimated, in its own world frame), not as ``data`` has it."""
     t = int(data.held_out_t_us[i])
     tau = model.tau(t)
     emap = None
     if data.event_map is not None and t > tau:
         emap = np.asarray(data.event_map(tau, t), dtype=np.float32)
+    camera = model.meta.trajectory.at(t) if own_poses else None
     state = model.deform(t, emap, data.trajectory.at(t) if camera is None else camera)
     image = model.render(state, data.held_out_pose(i) if camera is None else camera, model.meta.intrinsics,
                          fast=fast)

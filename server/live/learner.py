@@ -40,11 +40,11 @@ LEARNED_REC = "learned.h5"
 IDLE_WAIT_S = 0.2
 """How long the learner waits for the stream when it has nothing to train yet."""
 CHUNK_STEPS = 5
+"""Training steps between two looks at the inbox."""
 SETTLE_STEPS = 50
 """Steps a round trains after adding Gaussians before a model of it goes live (street3d: published 10 steps
 after a densification that added 53,000, a model drew the first second's moving pixels 0.08 dB below the
 events integrated; 50 steps on, as at the next cadence, not)."""
-"""Training steps between two looks at the inbox."""
 REFILL_S = 0.01
 """How long an emptied inbox is waited on for more (``_drain``)."""
 
@@ -208,9 +208,8 @@ class Learner:
         later rounds map every frame received, because a hand-held camera's shake between anchors is not
         in their interpolation (street3d: the offline model scored 33.09 dB at its own poses of the
         held-out frames, 27.81 at poses interpolated between its anchors, the events integrated onto the
-        last anchor 28.32). When it fails (too few frames
-        registered, as the first anchors may), the round takes a still camera, said on the learner's
-        output."""
+        last anchor 28.32). When it fails (too few frames registered, as the first anchors may), the round
+        takes a still camera, said on the learner's output."""
         from dataclasses import replace
 
         from edmcgs.geometry import Similarity, Trajectory

@@ -186,9 +186,7 @@ def test_the_prior_at_an_anchor_is_kept_for_its_gap_and_dropped_when_the_prior_c
     """A render's motion since its anchor reuses the prior at that anchor (the same for every query in the
     gap); a change of the prior's parameters (a learner's next step, a load) is never served stale."""
     model = new_model(training_data(street), SMALL)
-    with torch.no_grad():
-        for p in model.prior.parameters():
-            p.add_(torch.randn_like(p) * 0.3)
+    perturb_prior(model)
 
     def motion(t: float, since: float, *, grad: bool) -> Tensor:
         with torch.set_grad_enabled(grad):

@@ -231,6 +231,7 @@ def test_a_model_goes_live_only_once_the_gaussians_a_round_added_have_trained(sc
         learner.step()
     assert outbox[2]["steps"] == 80
 
+
 def test_the_learner_process_reports_and_saves_when_told_to_stop(scene, tmp_path):
     """The process itself (spawned as the service spawns it): fed, it publishes; told to stop, it saves."""
     from edmcgs.sensor.sources.base import SensorBatch
