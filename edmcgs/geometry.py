@@ -178,6 +178,37 @@ def rotmat_to_quat(R) -> np.ndarray:
 
 # --------------------------------------------------------------------------------------------- poses
 
+def rotation_exp(w: np.ndarray) -> np.ndarray:
+    """Rotation matrices [..., 3, 3] of rotation vectors [..., 3] (Rodrigues), float64."""
+    w = np.asarray(w, dtype=np.float64)
+    theta = np.linalg.norm(w, axis=-1)[..., None, None]
+    k = np.zeros((*w.shape[:-1], 3, 3))
+    k[..., 0, 1], k[..., 0, 2], k[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    k[..., 1, 0], k[..., 2, 0], k[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    small = theta < 1e-8
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta**2 / 6, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - theta**2 / 24, (1 - np.cos(safe)) / safe**2)
+    return np.eye(3) + a * k + b * (k @ k)
+
+
+def rotation_log(m: np.ndarray) -> np.ndarray:
+    """Rotation vectors [..., 3] of rotation matrices [..., 3, 3] (angles below pi)."""
+    m = np.asarray(m, dtype=np.float64)
+    w = 0.5 * np.stack([m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0],
+                        m[..., 1, 0] - m[..., 0, 1]], axis=-1)
+    s = np.linalg.norm(w, axis=-1)
+    angle = np.arctan2(s, 0.5 * (np.trace(m, axis1=-2, axis2=-1) - 1.0))
+    scale = np.where(s > 1e-12, angle / np.where(s > 1e-12, s, 1.0), 1.0)
+    return w * scale[..., None]
+
+
+def nearest_rotation(m: np.ndarray) -> np.ndarray:
+    """The rotation closest to the 3x3 matrix ``m`` in the Frobenius norm (its polar factor)."""
+    u, _, vt = np.linalg.svd(m)
+    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+
+
 def validate_pose(c2w, *, name: str = "pose", atol: float = ROTATION_ATOL) -> np.ndarray:
     """Check a 4x4 rigid transform and return it as float64 with its rotation made exactly orthonormal.
 

@@ -225,7 +225,8 @@ def estimated_poses(rec: Recording, *, progress: bool = False, threads: int = -1
     frames = all_frames(rec)
     given = None if rec.intrinsics is None else Intrinsics(*(float(v) for v in rec.intrinsics), rec.width,
                                                            rec.height)
-    estimate = estimate_poses(frames.t_us, frames.images, given, progress=progress, threads=threads)
+    estimate = estimate_poses(frames.t_us, frames.images, given, imu=rec.imu, progress=progress,
+                              threads=threads)
     print(f"poses from the frames: {estimate.summary()}")
     if estimate.intrinsics is not None and given is None:
         k = estimate.intrinsics
@@ -234,7 +235,7 @@ def estimated_poses(rec: Recording, *, progress: bool = False, threads: int = -1
         "source": "structure from motion", "frames": estimate.frames, "registered": estimate.registered,
         "static": estimate.static, "rotation_only": estimate.rotation_only,
         "estimated_intrinsics": estimate.estimated_intrinsics,
-        "distortion": estimate.distortion, "seconds": round(estimate.seconds, 3)}}
+        "distortion": estimate.distortion, "seconds": round(estimate.seconds, 3), "imu": estimate.imu}}
     former = _former_poses(rec, frames, estimate.t_us)
     out = replace(with_trajectory(rec, estimate.t_us, estimate.c2w), metadata=metadata,
                   points_xyz=estimate.point_xyz, points_colors=estimate.point_colors)

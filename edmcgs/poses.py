@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from edmcgs.errors import InvalidInputError, PoseEstimationError
-from edmcgs.geometry import Intrinsics
+from edmcgs.geometry import Intrinsics, nearest_rotation
 
 MIN_REGISTERED = 0.8
 """Fewest frames, as a fraction of all, that must register in one model."""
@@ -98,6 +98,9 @@ class PoseEstimate:
     turning camera)."""
     point_colors: np.ndarray | None = None
     """uint8 [points, C] (C: the frames' channels): each point's mean colour over the pixels that saw it."""
+    imu: str | None = None
+    """What the IMU did: how the fused poses fit (``edmcgs.inertial``), or why it was left out; None
+    when the recording had none, or the camera was static or only turned."""
 
     def summary(self) -> str:
         """One line: what registered, the camera, the time."""
@@ -114,19 +117,51 @@ class PoseEstimate:
             return (f"a camera that turns about its centre (no parallax): {self.registered} of {self.frames} "
                     f"frames rotated by their homographies, {camera}, {self.seconds:.1f} s")
         models = "" if self.models == 1 else f" (the largest of {self.models} models)"
+        imu = "" if self.imu is None else f"; {self.imu}"
         return (f"{self.registered} of {self.frames} frames registered{models}, {self.points} points, "
-                f"{camera}, {self.seconds:.1f} s")
+                f"{camera}, {self.seconds:.1f} s{imu}")
 
 
-def estimate_poses(t_us, images, intrinsics: Intrinsics | None = None, *,
+def estimate_poses(t_us, images, intrinsics: Intrinsics | None = None, *, imu: np.ndarray | None = None,
                    min_registered: float = MIN_REGISTERED, progress: bool = True, threads: int = -1,
                    seed: int = 0) -> PoseEstimate:
     """Poses of the frames ``images`` (uint8 [F, H, W, C], C 1 or 3) taken at ``t_us`` (int64 [F],
-    strictly increasing), by structure from motion.
+    strictly increasing), by structure from motion, refined by ``imu`` (``IMU_DTYPE`` samples on the
+    frames' clock) when given and usable (``with_imu``).
 
     ``intrinsics``: the camera (held fixed), or None to estimate it. Raises ``PoseEstimationError`` when
     fewer than ``min_registered`` of the frames register in one model, or no two frames match.
     """
+    estimate = _frames_only(t_us, images, intrinsics, min_registered=min_registered, progress=progress,
+                            threads=threads, seed=seed)
+    return estimate if imu is None else with_imu(estimate, imu)
+
+
+def with_imu(estimate: PoseEstimate, imu: np.ndarray) -> PoseEstimate:
+    """``estimate``'s poses refined by the IMU (``edmcgs.inertial.fuse_imu``), the world moved to the
+    first frame's refined camera (its points with it); unchanged, with the reason in ``imu``, when the
+    IMU cannot refine them. A static or turning camera is left as it is."""
+    from dataclasses import replace
+
+    from edmcgs.inertial import ImuUnusable, fuse_imu
+
+    if estimate.static or estimate.rotation_only:
+        return estimate
+    start = time.perf_counter()
+    try:
+        fit = fuse_imu(estimate.t_us, estimate.c2w, imu)
+    except ImuUnusable as exc:
+        return replace(estimate, imu=f"IMU left out: {exc}")
+    to_first = np.linalg.inv(fit.c2w[0])
+    xyz = estimate.point_xyz
+    if xyz is not None:
+        xyz = xyz @ to_first[:3, :3].T + to_first[:3, 3]
+    return replace(estimate, c2w=to_first @ fit.c2w, point_xyz=xyz, imu=fit.summary(),
+                   seconds=estimate.seconds + time.perf_counter() - start)
+
+
+def _frames_only(t_us, images, intrinsics: Intrinsics | None, *, min_registered: float, progress: bool,
+                 threads: int, seed: int) -> PoseEstimate:
     t_us, images = _checked(t_us, images, intrinsics)
     if not 0 < min_registered <= 1:
         raise InvalidInputError(f"min_registered must be in (0, 1], got {min_registered}")
@@ -342,7 +377,7 @@ def _rotations(pairs: list[_Pair], n: int, intrinsics: Intrinsics | None, width:
         earlier = [p for p in pairs if p.b == b and p.a in rotation]
         if earlier:
             p = min(earlier, key=lambda p: p.a)  # the longest baseline: the fewest links to frame 0
-            rotation[b] = _nearest_rotation(_conjugated(p.H, K)) @ rotation[p.a]
+            rotation[b] = nearest_rotation(_conjugated(p.H, K)) @ rotation[p.a]
     index = np.array(sorted(rotation), dtype=np.int64)
     c2w = np.tile(np.eye(4), (len(index), 1, 1))
     c2w[:, :3, :3] = [rotation[i].T for i in index]
@@ -363,11 +398,6 @@ def _conjugated(H: np.ndarray, K: np.ndarray) -> np.ndarray | None:
     m = np.linalg.solve(K, H @ K)
     det = np.linalg.det(m)
     return None if not np.isfinite(det) or abs(det) < 1e-12 else m / np.cbrt(det)
-
-
-def _nearest_rotation(m: np.ndarray) -> np.ndarray:
-    u, _, vt = np.linalg.svd(m)
-    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
 
 
 def _non_rotation(pairs: list[_Pair], K: np.ndarray) -> np.ndarray:

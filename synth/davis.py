@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from edmcgs.errors import InvalidInputError
+from edmcgs.geometry import rotation_log
 from edmcgs.sensor.imu import IMU_DTYPE
 from edmcgs.synth.esim import AdaptiveSampling, SimulatorConfig
 
@@ -177,28 +178,22 @@ class ImuConfig:
         return asdict(self)
 
 
-def _rotation_log(m: np.ndarray) -> np.ndarray:
-    """Rotation vectors [K, 3] of rotation matrices [K, 3, 3] (angles below pi)."""
-    w = 0.5 * np.stack([m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], axis=-1)
-    s = np.linalg.norm(w, axis=-1)
-    angle = np.arctan2(s, 0.5 * (np.trace(m, axis1=1, axis2=2) - 1.0))
-    scale = np.where(s > 1e-12, angle / np.where(s > 1e-12, s, 1.0), 1.0)
-    return w * scale[:, None]
-
-
 def imu_truth(pose_at: Callable[[np.ndarray], np.ndarray], t_s: np.ndarray,
               gravity=(0.0, 0.0, -STANDARD_GRAVITY)) -> tuple[np.ndarray, np.ndarray]:
     """(angular velocity rad/s, specific force m/s^2), float64 [K, 3] each, in the camera frame at t_s.
 
     pose_at(t [K]) -> camera-to-world [K, 4, 4], a smooth path in metres (twice differentiable);
-    gravity: the world's gravity vector (z up: (0, 0, -g)). Central differences: the body rate from
-    R(t - h)^T R(t + h) (h = 0.1 ms), the acceleration from the positions (h = 0.2 ms); both are exact to
-    O(h^2), far below any IMU's noise for a hand's motion.
+    gravity: the world's gravity vector (z up: (0, 0, -g)). Each sample is the mean over its period (the
+    spacing of t_s; an IMU's low-pass), by differences over it: the body rate from R(t - h/2)^T R(t + h/2),
+    the acceleration from the positions at t - h, t, t + h (a triangle window of the acceleration). A
+    path with a kink (a sweep that turns back) gives its velocity step in full, as a real IMU does; a
+    smooth one is within O(h^2) of the instantaneous values.
     """
     t_s = np.asarray(t_s, np.float64)
-    hr, hp = 1e-4, 2e-4
+    period = float(np.median(np.diff(t_s))) if len(t_s) > 1 else 1e-3
+    hr, hp = 0.5 * period, period
     before, after = pose_at(t_s - hr), pose_at(t_s + hr)
-    gyro = _rotation_log(np.einsum("kji,kjl->kil", before[:, :3, :3], after[:, :3, :3])) / (2 * hr)
+    gyro = rotation_log(np.einsum("kji,kjl->kil", before[:, :3, :3], after[:, :3, :3])) / (2 * hr)
     now = pose_at(t_s)
     p = [pose_at(t_s + d)[:, :3, 3] for d in (-hp, hp)]
     accel_world = (p[0] - 2.0 * now[:, :3, 3] + p[1]) / (hp * hp)

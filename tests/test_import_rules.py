@@ -232,9 +232,11 @@ def _top_level_imports(path: Path) -> set[str]:
 
 
 def test_structure_from_motion_imports_only_the_base_and_alone_imports_pycolmap():
-    """``edmcgs.poses`` works on plain arrays (the pipeline hands it a recording's frames), and pycolmap is
-    imported inside its functions only, so no command's ``--help`` waits for it."""
-    assert _violations("edmcgs.poses", BASE) == []
+    """``edmcgs.poses`` (and ``edmcgs.inertial``, the IMU's refinement of its poses) work on plain arrays
+    (the pipeline hands them a recording's frames and IMU samples), and pycolmap is imported inside its
+    functions only, so no command's ``--help`` waits for it."""
+    assert _violations("edmcgs.poses", (*BASE, "edmcgs.inertial")) == []
+    assert _violations("edmcgs.inertial", BASE) == []
     bad = [name for name, path in MODULES.items()
            if _within(name, "edmcgs") and name != "edmcgs.poses" and "pycolmap" in _top_level_imports(path)]
     assert bad == []

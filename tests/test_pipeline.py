@@ -251,7 +251,7 @@ def test_estimated_poses_bring_their_points_and_carry_the_novel_views_into_their
     to_estimate = Similarity(0.4, truth[5, :3, :3], np.array([0.3, -1.0, 2.0]))
     points = np.array([[0.0, 0.0, 3.0], [0.5, -0.2, 4.0], [-0.4, 0.3, 5.0], [0.2, 0.2, 2.0]])
 
-    def estimate(t_us, images, intrinsics, progress, threads):
+    def estimate(t_us, images, intrinsics, imu, progress, threads):
         return poses.PoseEstimate(
             frames=len(t_us), registered=len(t_us), t_us=t_us, c2w=to_estimate.poses(truth), intrinsics=None,
             estimated_intrinsics=False, distortion=0.0, static=False, models=1, points=4, motion_px=5.0,

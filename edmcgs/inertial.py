@@ -1,0 +1,463 @@
+"""Camera poses from the frames and the IMU together: structure from motion's poses refined by the
+camera's gyroscope and accelerometer (``edmcgs poses`` and ``--poses auto`` on a recording with IMU
+samples, e.g. a DAVIS346's).
+
+Structure from motion follows what it matched: where the scene itself moves (a figure that fills the
+frame), its poses take on that motion. The IMU measures the camera's own motion, but drifts: a gyro's
+bias turns an integrated rotation by degrees over seconds, an accelerometer's bias moves an integrated
+position by metres. Both are combined in a batch least squares over every registered frame, in two steps:
+
+1. rotations: the gyro's rotation between successive frames (preintegrated, its bias estimated) against
+   each frame's rotation from structure from motion;
+2. positions: the accelerometer's velocity and position increments between successive frames
+   (preintegrated in the rotations of step 1), with the gravity vector, the accelerometer's bias and the
+   metric scale of structure from motion's units estimated, against each frame's position.
+
+Each step weighs the frames by their own scatter about the fit, re-estimated from the residuals (with a
+Huber loss): where structure from motion follows the camera to a millimetre (a still street) the frames
+decide; where it follows a moving figure, the IMU decides within seconds and the frames beyond. The IMU's
+axes are taken to be the camera's rotated by ``imu_to_camera`` when a calibration gives it, else by the
+rotation that best maps the gyro's rates onto the frames' (when the camera turned about two axes or
+more; else the camera's own axes). An IMU that cannot help raises ``ImuUnusable`` naming why (it misses
+part of the frames' span, its rates disagree with the frames', the camera hardly accelerated); the
+caller keeps the frames' poses and says so.
+
+Noise model: white noise at the densities of a DAVIS346's IMU class (MPU-6500: gyro 0.01 deg/s/sqrt(Hz),
+accelerometer 300 ug/sqrt(Hz)) and a constant bias per axis over the recording (no random walk: a bias
+that wanders over minutes is absorbed by the frames' weight).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from edmcgs.errors import InvalidInputError, PoseEstimationError
+from edmcgs.geometry import nearest_rotation, rotation_exp, rotation_log
+
+STANDARD_GRAVITY = 9.80665
+"""m/s^2 per g (the IMU's accelerometer unit)."""
+GYRO_DENSITY = np.radians(0.01)
+"""Gyro white noise, rad/s/sqrt(Hz)."""
+ACCEL_DENSITY = 300e-6 * STANDARD_GRAVITY
+"""Accelerometer white noise, m/s^2/sqrt(Hz)."""
+ACCEL_BIAS = 0.05 * STANDARD_GRAVITY
+"""Prior standard deviation of the accelerometer's bias per axis, m/s^2 (an MPU-6500-class part's turn-on
+offset is up to 60 mg): without it a bias along an axis the camera never turned is indistinguishable
+from gravity and the frames' own error."""
+MOUNT_SPAN_S = 0.5
+"""Span over which the gyro's rotations and the frames' are compared to estimate the IMU's mounting."""
+MAX_GAP_S = 0.05
+"""Longest gap between IMU samples inside the frames' span."""
+MAX_SCATTER = 0.8
+"""Largest RMS angle between the frames' rotations and the fused ones, as a fraction of how much the frames
+turn (RMS about their mean, once that is ``MIN_TURN_DEG`` or more): more, and the gyro is not this
+camera's, or its axes are not as assumed. Structure from motion that follows a moving figure scatters by
+a quarter to two thirds of the turning on jumpingjack (the IMU is there to remove that), so only a gross
+mismatch is caught here."""
+MIN_TURN_DEG = 5.0
+"""Turning (RMS angle of the frames' rotations about their mean) below which ``MAX_SCATTER`` is not
+checked: a camera that hardly turns says little of its gyro."""
+HUBER = 2.0
+"""Residuals beyond this many standard deviations weigh linearly (a kink, a frame that slipped)."""
+ROUNDS = 30
+"""Most times a step re-estimates the frames' scatter (and the position step gravity's direction) and
+solves again; it stops once the scale moves by less than ``CONVERGED``."""
+CONVERGED = 1e-4
+
+
+class ImuUnusable(PoseEstimationError):
+    """The IMU samples cannot refine these poses (the message says why)."""
+
+
+@dataclass(frozen=True)
+class InertialFit:
+    """Poses refined by the IMU, and what the fit estimated."""
+
+    c2w: np.ndarray
+    """float64 [F, 4, 4]: the frames' camera-to-world poses, in structure from motion's world and units."""
+    gyro_bias_dps: np.ndarray
+    """float64 [3]: the gyro's bias, degrees/s, in the IMU's axes."""
+    accel_bias_g: np.ndarray
+    """float64 [3]: the accelerometer's bias, g, in the IMU's axes."""
+    gravity: np.ndarray
+    """float64 [3]: the unit vector of gravity (down) in the world."""
+    metres_per_unit: float
+    """The metric size of one unit of the poses."""
+    imu_to_camera: np.ndarray
+    """float64 [3, 3]: rotation taking IMU axes to the camera's."""
+    rotation_scatter_deg: float
+    """RMS angle between the frames' rotations from structure from motion and the fit."""
+    position_scatter: float
+    """RMS distance between the frames' positions from structure from motion and the fit (units)."""
+
+    def summary(self) -> str:
+        return (f"IMU fused (the frames' poses scatter {self.rotation_scatter_deg:.2f} deg and "
+                f"{self.position_scatter:.4f} units about it; 1 unit = {self.metres_per_unit:.3f} m; gyro "
+                f"bias {np.linalg.norm(self.gyro_bias_dps):.2f} deg/s)")
+
+
+def fuse_imu(t_us, c2w, imu, *, imu_to_camera: np.ndarray | None = None) -> InertialFit:
+    """``c2w`` (float64 [F, 4, 4], camera-to-world from structure from motion at ``t_us``, int64 [F]
+    strictly increasing) refined by ``imu`` (``IMU_DTYPE`` samples: g, degrees/s, on the frames' clock).
+    ``imu_to_camera``: the IMU's mounting (rotation [3, 3]), estimated from the rates when None.
+    Raises ``ImuUnusable`` when the IMU cannot refine them."""
+    t_us, c2w = _checked(t_us, c2w)
+    t_s = (t_us - t_us[0]) * 1e-6
+    gyro, force, sample_s = _samples(imu, t_us)
+    vision_R, vision_p = c2w[:, :3, :3], c2w[:, :3, 3]
+    seg = _segments(sample_s, t_s)
+    if imu_to_camera is None:
+        imu_to_camera = _mounting(seg, gyro, vision_R)
+    mount = np.asarray(imu_to_camera, np.float64)
+    if mount.shape != (3, 3) or not np.allclose(mount.T @ mount, np.eye(3), atol=1e-4):
+        raise InvalidInputError("imu_to_camera must be a 3x3 rotation")
+    gyro_c, force_c = gyro @ mount.T, force @ mount.T
+    R, gyro_bias, rot_scatter = _rotations(seg, gyro_c, vision_R)
+    spread = _spread(vision_R)
+    if spread > np.radians(MIN_TURN_DEG) and rot_scatter > MAX_SCATTER * spread:
+        raise ImuUnusable(f"the gyro's rotations differ from the frames' by {np.degrees(rot_scatter):.1f} "
+                          f"deg RMS, against {np.degrees(spread):.1f} deg of turning (another camera's IMU, "
+                          "or axes other than assumed)")
+    pre = _preintegrate(seg, gyro_c - gyro_bias, force_c)
+    P, s, g, accel_bias, pos_scatter = _positions(pre, R, vision_p, t_s)
+    c2w_out = np.tile(np.eye(4), (len(t_us), 1, 1))
+    c2w_out[:, :3, :3] = R
+    c2w_out[:, :3, 3] = P
+    if not np.all(np.isfinite(c2w_out)):
+        raise ImuUnusable("the fit did not converge to finite poses")
+    return InertialFit(
+        c2w=c2w_out, gyro_bias_dps=np.degrees(mount.T @ gyro_bias), accel_bias_g=mount.T @ accel_bias /
+        STANDARD_GRAVITY, gravity=g / np.linalg.norm(g), metres_per_unit=float(s), imu_to_camera=mount,
+        rotation_scatter_deg=float(np.degrees(rot_scatter)), position_scatter=float(pos_scatter))
+
+
+def _checked(t_us, c2w) -> tuple[np.ndarray, np.ndarray]:
+    t_us, c2w = np.asarray(t_us), np.asarray(c2w, dtype=np.float64)
+    if t_us.ndim != 1 or t_us.dtype.kind not in "iu":
+        raise InvalidInputError(f"t_us must be 1-D integer microseconds, got {t_us.dtype} {t_us.shape}")
+    if c2w.shape != (len(t_us), 4, 4) or not np.all(np.isfinite(c2w)):
+        raise InvalidInputError(f"c2w must be finite [{len(t_us)}, 4, 4], got {c2w.shape}")
+    if len(t_us) < 3:
+        raise ImuUnusable(f"{len(t_us)} registered frames: the IMU needs at least 3")
+    if np.any(np.diff(t_us) <= 0):
+        raise InvalidInputError("frame times must be strictly increasing")
+    return t_us.astype(np.int64), c2w
+
+
+def _samples(imu, t_us: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(gyro rad/s [K, 3], specific force m/s^2 [K, 3], sample times s [K]) of the samples covering the
+    frames' span, relative to the first frame."""
+    fields = getattr(getattr(imu, "dtype", None), "fields", None) or {}
+    if not isinstance(imu, np.ndarray) or imu.ndim != 1 or not {"t", "gyro", "accel"} <= set(fields):
+        raise InvalidInputError(f"imu must be a 1-D array of IMU samples (fields t, gyro, accel: the sensor "
+                                f"layer's IMU_DTYPE), got {getattr(imu, 'dtype', type(imu))}")
+    ok = np.isfinite(imu["gyro"]).all(1) & np.isfinite(imu["accel"]).all(1)
+    imu = imu[ok]
+    span = (t_us[-1] - t_us[0]) * 1e-6
+    if len(imu) < 2:
+        raise ImuUnusable(f"{len(imu)} IMU samples over the frames' {span:.1f} s")
+    t = imu["t"]
+    keep = (t >= t_us[0] - MAX_GAP_S * 1e6) & (t <= t_us[-1] + MAX_GAP_S * 1e6)
+    imu, t = imu[keep], t[keep]
+    covered = 0.0 if len(t) < 2 else min(t[-1], t_us[-1]) - max(t[0], t_us[0])
+    gaps = np.diff(t) * 1e-6 if len(t) > 1 else np.array([np.inf])
+    if len(t) < 2 or t[0] > t_us[0] + MAX_GAP_S * 1e6 or t[-1] < t_us[-1] - MAX_GAP_S * 1e6:
+        raise ImuUnusable(f"the IMU covers {max(covered, 0) * 1e-6:.1f} of the {span:.1f} s the frames span")
+    if gaps.max() > MAX_GAP_S:
+        raise ImuUnusable(f"the IMU has a gap of {gaps.max():.2f} s within the frames' span")
+    order = np.argsort(t, kind="stable")
+    imu = imu[order]
+    return (np.radians(imu["gyro"].astype(np.float64)),
+            imu["accel"].astype(np.float64) * STANDARD_GRAVITY, (imu["t"] - t_us[0]) * 1e-6)
+
+
+@dataclass(frozen=True)
+class _Segments:
+    """The frames' span cut at every frame and at the midpoints between IMU samples: each piece lies in
+    one frame interval and is covered by one sample (a sample is the mean over its period)."""
+
+    interval: np.ndarray
+    """int64 [S]: the frame interval (i: from frame i to i + 1) of each piece."""
+    sample: np.ndarray
+    """int64 [S]: the sample that covers it."""
+    dt: np.ndarray
+    """float64 [S]: its length, s."""
+    frame_dt: np.ndarray
+    """float64 [F - 1]: the intervals' lengths."""
+
+
+def _segments(sample_s: np.ndarray, t_s: np.ndarray) -> _Segments:
+    cuts = np.unique(np.concatenate([t_s, 0.5 * (sample_s[1:] + sample_s[:-1])]))
+    cuts = cuts[(cuts >= t_s[0]) & (cuts <= t_s[-1])]
+    start, stop = cuts[:-1], cuts[1:]
+    keep = stop > start
+    start, stop = start[keep], stop[keep]
+    mid = 0.5 * (start + stop)
+    nearest = np.clip(np.searchsorted(sample_s, mid), 1, len(sample_s) - 1)
+    nearest -= (mid - sample_s[nearest - 1]) < (sample_s[nearest] - mid)
+    interval = np.clip(np.searchsorted(t_s, mid) - 1, 0, len(t_s) - 2)
+    return _Segments(interval, nearest, stop - start, np.diff(t_s))
+
+
+@dataclass(frozen=True)
+class _Preintegrated:
+    """Per frame interval, in the camera's axes at its first frame: the rotation to its last (dR), the
+    velocity and position increments of the specific force (dv, dp), their derivatives with respect to the
+    accelerometer's bias (jv, jp: [F - 1, 3, 3]) and to the gyro's bias (jr, of dR's rotation vector)."""
+
+    dR: np.ndarray
+    dv: np.ndarray
+    dp: np.ndarray
+    jv: np.ndarray
+    jp: np.ndarray
+    jr: np.ndarray
+    dt: np.ndarray
+
+
+def _preintegrate(seg: _Segments, gyro: np.ndarray, force: np.ndarray) -> _Preintegrated:
+    """Every interval at once: its pieces are applied in turn, the k-th piece of all intervals together."""
+    n = len(seg.frame_dt)
+    rank = np.arange(len(seg.interval)) - np.searchsorted(seg.interval, seg.interval)
+    dR, dv, dp = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3)), np.zeros((n, 3))
+    jv, jp, jr = np.zeros((n, 3, 3)), np.zeros((n, 3, 3)), np.zeros((n, 3, 3))
+    for k in range(int(rank.max()) + 1 if len(rank) else 0):
+        pick = rank == k
+        i, s, dt = seg.interval[pick], seg.sample[pick], seg.dt[pick]
+        R = dR[i]
+        step = rotation_exp(gyro[s] * dt[:, None])
+        a = np.einsum("nij,nj->ni", R, force[s])
+        dp[i] += dv[i] * dt[:, None] + 0.5 * a * dt[:, None] ** 2
+        dv[i] += a * dt[:, None]
+        jp[i] += jv[i] * dt[:, None, None] - 0.5 * R * dt[:, None, None] ** 2
+        jv[i] -= R * dt[:, None, None]
+        # d(rotation vector of dR)/d(gyro bias), to first order: each piece's rotation carried to the end
+        jr[i] = np.swapaxes(step, 1, 2) @ jr[i] - dt[:, None, None] * np.eye(3)
+        dR[i] = R @ step
+    return _Preintegrated(dR, dv, dp, jv, jp, jr, seg.frame_dt)
+
+
+def _mounting(seg: _Segments, gyro: np.ndarray, vision_R: np.ndarray) -> np.ndarray:
+    """The rotation from IMU to camera axes that best maps the gyro's rotations onto the frames' own over
+    spans of ``MOUNT_SPAN_S`` (long enough that the turning outweighs the frames' jitter; Kabsch, the
+    gyro's bias estimated alongside). The camera's own axes (the identity) unless the frames turn about
+    two axes or more and the estimate explains them at least twice as well."""
+    n = len(vision_R)
+    span = int(np.clip(round(MOUNT_SPAN_S / np.median(seg.frame_dt)), 1, max(1, n - 2)))
+    frames = rotation_log(np.swapaxes(vision_R[:-span], 1, 2) @ vision_R[span:])
+    seconds = np.convolve(seg.frame_dt, np.ones(span), "valid")
+
+    def spans(bias):
+        dR = _preintegrate(seg, gyro - bias, np.zeros_like(gyro)).dR
+        chained = dR[:n - span].copy()
+        for k in range(1, span):
+            chained = chained @ dR[k:n - span + k]
+        return rotation_log(chained)
+
+    mount, bias = np.eye(3), np.zeros(3)
+    for _ in range(4):
+        imu = spans(bias)
+        u, sv, vt = np.linalg.svd(frames.T @ imu)
+        if sv[1] < 0.1 * sv[0]:
+            return np.eye(3)
+        mount = nearest_rotation(u @ vt)
+        bias = bias + ((imu - frames @ mount) * seconds[:, None]).sum(0) / (seconds**2).sum()
+    misfit = np.linalg.norm(frames - imu @ mount.T, axis=1).sum()
+    as_is = np.linalg.norm(frames - imu, axis=1).sum()
+    return mount if misfit < 0.5 * as_is else np.eye(3)
+
+
+def _spread(vision_R: np.ndarray) -> float:
+    """RMS angle of the rotations [F, 3, 3] from their chordal mean, rad."""
+    mean = nearest_rotation(vision_R.sum(0))
+    return float(np.sqrt(np.mean(np.sum(rotation_log(mean.T @ vision_R) ** 2, axis=1))))
+
+
+def _robust_rms(r: np.ndarray) -> float:
+    """RMS of the 3-vectors r [N, 3], from their median norm (a few outliers do not inflate it)."""
+    return float(np.median(np.linalg.norm(r, axis=1))) / 1.538 if len(r) else 0.0  # chi(3)'s median
+
+
+def _solve(rows: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]],
+           unknowns: int) -> np.ndarray:
+    """The x minimising the sum over residual blocks (3 rows each, whitened) of |J x + c|^2, or of
+    huber(|J x + c|) for the kinds marked robust: iteratively reweighted least squares. ``rows``: per
+    kind of residual, (row, column, value) of J's entries, c, robust; rows counted within the kind."""
+    from scipy.sparse import coo_matrix, diags
+    from scipy.sparse.linalg import spsolve
+
+    offset, r_all, c_all, v_all, const, robust = 0, [], [], [], [], []
+    for r, c, v, k, huber in rows:
+        r_all.append(r + offset)
+        c_all.append(c)
+        v_all.append(v)
+        const.append(k)
+        robust.append(np.full(len(k), huber))
+        offset += len(k)
+    J = coo_matrix((np.concatenate(v_all), (np.concatenate(r_all), np.concatenate(c_all))),
+                   shape=(offset, unknowns)).tocsr()
+    c, robust = np.concatenate(const), np.concatenate(robust)
+    weights = np.ones(offset)
+    x = np.zeros(unknowns)
+    for _ in range(20):
+        x = spsolve((J.T @ diags(weights) @ J).tocsc(), -(J.T @ (weights * c)))
+        norms = np.repeat(np.linalg.norm((J @ x + c).reshape(-1, 3), axis=1), 3)
+        new = np.where(robust & (norms > HUBER), HUBER / np.maximum(norms, 1e-12), 1.0)
+        if np.allclose(new, weights, atol=1e-3):
+            break
+        weights = new
+    return x
+
+
+def _blocks(first: np.ndarray, column: np.ndarray, matrices: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(row, column, value) of 3xC blocks ``matrices`` [N, 3, C] at block rows ``first``, columns from
+    ``column`` [N]."""
+    i, j = np.meshgrid(np.arange(3), np.arange(matrices.shape[2]), indexing="ij")
+    return (3 * first[:, None, None] + i).ravel(), (column[:, None, None] + j).ravel(), matrices.ravel()
+
+
+def _block_rows(first: np.ndarray, column: np.ndarray, matrices: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(row, column, value) of 3x3 blocks ``matrices`` [N, 3, 3] at block rows ``first`` and columns
+    starting at ``column`` [N]."""
+    i, j = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
+    rows = 3 * first[:, None, None] + i
+    cols = column[:, None, None] + j
+    return rows.ravel(), cols.ravel(), matrices.ravel()
+
+
+def _rotations(seg: _Segments, gyro: np.ndarray,
+               vision_R: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """(fused c2w rotations [F, 3, 3], gyro bias rad/s [3] in camera axes, RMS angle of the frames' rotations
+    from them, rad). Gauss-Newton on a small rotation per frame (R <- R Exp(e)) and the bias."""
+    n = len(vision_R)
+    R, bias = vision_R.copy(), np.zeros(3)
+    sigma_vision = np.radians(0.5)
+    eye = np.tile(np.eye(3), (n, 1, 1))
+    k = np.arange(n - 1)
+    for _ in range(3):
+        pre = _preintegrate(seg, gyro - bias, np.zeros_like(gyro))
+        sigma = (GYRO_DENSITY * np.sqrt(pre.dt) + 1e-6)[:, None, None]
+        step_bias = np.zeros(3)
+        for _ in range(5):
+            expected = pre.dR @ rotation_exp(np.einsum("nij,j->ni", pre.jr, step_bias))
+            between = rotation_log(np.swapaxes(expected, 1, 2) @ np.swapaxes(R[:-1], 1, 2) @ R[1:])
+            off = rotation_log(np.swapaxes(vision_R, 1, 2) @ R)
+            gyro_rows = [_block_rows(k, 3 * k, -(np.swapaxes(R[1:], 1, 2) @ R[:-1]) / sigma),
+                         _block_rows(k, 3 * k + 3, eye[1:] / sigma),
+                         _block_rows(k, np.full(n - 1, 3 * n), -pre.jr / sigma)]
+            gyro_part = tuple(np.concatenate(parts) for parts in zip(*gyro_rows, strict=True))
+            vision_part = _block_rows(np.arange(n), 3 * np.arange(n), eye / sigma_vision)
+            x = _solve([(*gyro_part, (between / sigma[:, :, 0]).ravel(), False),
+                        (*vision_part, (off / sigma_vision).ravel(), True)], 3 * n + 3)
+            R = R @ rotation_exp(x[:3 * n].reshape(n, 3))
+            step_bias = step_bias + x[3 * n:]
+            if np.abs(x).max() < 1e-9:
+                break
+        bias = bias + step_bias
+        sigma_vision = max(_robust_rms(rotation_log(np.swapaxes(vision_R, 1, 2) @ R)), np.radians(0.01))
+    off = rotation_log(np.swapaxes(vision_R, 1, 2) @ R)
+    return R, bias, float(np.sqrt(np.mean(np.sum(off**2, axis=1))))
+
+
+def _positions(pre: _Preintegrated, R: np.ndarray, vision_p: np.ndarray,
+               t_s: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, float]:
+    """(positions [F, 3] in the frames' units, metres per unit, gravity m/s^2 [3] in the world,
+    accelerometer bias m/s^2 [3] in camera axes, RMS distance of the frames' positions from the fit).
+
+    Linear least squares in the units of structure from motion (the scale cannot collapse): each frame's
+    position and velocity, and gravity, the bias and metres-to-units (lambda) times it (gravity * lambda,
+    bias * lambda), so that the increments read lambda * (R dp + ...) stay linear. The IMU's rows are
+    whitened by its noise in units (lambda of the previous solve); gravity's norm is held by a row along
+    its previous direction."""
+    n = len(t_s)
+    k = np.arange(n - 1)
+    dt = pre.dt[:, None, None]
+    eye = np.tile(np.eye(3), (n - 1, 1, 1))
+    world_dv = np.einsum("nij,nj->ni", R[:-1], pre.dv)
+    down = -world_dv.sum(0)  # the mean specific force balances gravity
+    down /= max(np.linalg.norm(down), 1e-12)
+    lam = 1.0 / _initial_scale(pre, R, vision_p, t_s, STANDARD_GRAVITY * down)
+    sigma_vision = 0.01
+    Q, U, G, B, L = 0, 3 * n, 6 * n, 6 * n + 2, 6 * n + 5
+    col = np.zeros(n - 1, np.int64)
+    f = np.arange(n)
+    lam_rows = (3 * k[:, None] + np.arange(3)).ravel()
+
+    def joined(parts):
+        return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
+
+    for _ in range(ROUNDS):
+        previous = lam
+        # gravity * lambda = lambda * g * down + T t, t the tilt (units/s^2) across the current direction
+        T = np.linalg.svd(down[None])[2][1:].T  # [3, 2], orthonormal, across down
+        sv = lam * (ACCEL_DENSITY * np.sqrt(dt) + 1e-5)
+        sp = lam * (ACCEL_DENSITY * dt**1.5 / np.sqrt(3) + 1e-6)
+        tilt = np.tile(T, (n - 1, 1, 1))
+        position = joined([
+            _block_rows(k, Q + 3 * k + 3, eye / sp), _block_rows(k, Q + 3 * k, -eye / sp),
+            _block_rows(k, U + 3 * k, -eye * dt / sp), _blocks(k, col + G, -0.5 * tilt * dt**2 / sp),
+            _block_rows(k, col + B, -(R[:-1] @ pre.jp) / sp),
+            (lam_rows, np.full(len(lam_rows), L), -((np.einsum("nij,nj->ni", R[:-1], pre.dp)
+                                                    + 0.5 * STANDARD_GRAVITY * down * dt[:, :, 0]**2)
+                                                   / sp[:, :, 0]).ravel())])
+        velocity = joined([
+            _block_rows(k, U + 3 * k + 3, eye / sv), _block_rows(k, U + 3 * k, -eye / sv),
+            _blocks(k, col + G, -tilt * dt / sv), _block_rows(k, col + B, -(R[:-1] @ pre.jv) / sv),
+            (lam_rows, np.full(len(lam_rows), L), -((world_dv + STANDARD_GRAVITY * down * dt[:, :, 0])
+                                                   / sv[:, :, 0]).ravel())])
+        vision = _block_rows(f, Q + 3 * f, np.tile(np.eye(3), (n, 1, 1)) / sigma_vision)
+        prior = _block_rows(np.zeros(1, np.int64), np.array([B]), np.eye(3)[None] / (lam * ACCEL_BIAS))
+        x = _solve([(*position, np.zeros(3 * (n - 1)), False), (*velocity, np.zeros(3 * (n - 1)), False),
+                    (*vision, (-vision_p / sigma_vision).ravel(), True), (*prior, np.zeros(3), False)],
+                   6 * n + 6)
+        positions, lam = x[:3 * n].reshape(n, 3), float(x[L])
+        if not lam > 0:
+            raise ImuUnusable("the IMU's motion does not fit the frames' at any positive scale")
+        g = STANDARD_GRAVITY * down + T @ x[G:G + 2] / lam
+        down = g / np.linalg.norm(g)
+        sigma_vision = max(_robust_rms(positions - vision_p), 1e-5)
+        if abs(lam / previous - 1) < CONVERGED:
+            break
+    gravity, bias = STANDARD_GRAVITY * down, x[B:B + 3] / lam
+    scatter = float(np.sqrt(np.mean(np.sum((positions - vision_p) ** 2, axis=1))))
+    return positions, 1.0 / lam, gravity, bias, scatter
+
+
+def _initial_scale(pre: _Preintegrated, R: np.ndarray, vision_p: np.ndarray, t_s: np.ndarray,
+                   gravity: np.ndarray) -> float:
+    """Metres per unit: the median, over windows of about a second, of the least-squares fit of the
+    dead-reckoned positions (each window's start position and velocity free) to the frames'."""
+    world_dp = np.einsum("nij,nj->ni", R[:-1], pre.dp) + 0.5 * gravity * pre.dt[:, None] ** 2
+    world_dv = np.einsum("nij,nj->ni", R[:-1], pre.dv) + gravity * pre.dt[:, None]
+    n = len(t_s)
+    window = max(3, int(np.searchsorted(t_s, t_s[0] + 1.0)))
+    scales, accel = [], []
+    for start in range(0, n - 2, max(1, window // 2)):
+        stop = min(n, start + window)
+        if stop - start < 3:
+            continue
+        # dead reckoning with zero start velocity; the velocity enters as a free term v0 * (t - t0)
+        v = np.vstack([np.zeros(3), np.cumsum(world_dv[start:stop - 1], axis=0)])
+        steps = world_dp[start:stop - 1] + v[:-1] * pre.dt[start:stop - 1, None]
+        q = np.vstack([np.zeros(3), np.cumsum(steps, axis=0)])
+        tau = t_s[start:stop] - t_s[start]
+        # unknowns: s, p0 (3), v0 (3): s * vision = p0 + v0 tau + q
+        k = stop - start
+        A = np.zeros((3 * k, 7))
+        A[:, 0] = vision_p[start:stop].ravel()
+        for axis in range(3):
+            A[axis::3, 1 + axis] = -1.0
+            A[axis::3, 4 + axis] = -tau
+        solution, *_ = np.linalg.lstsq(A, q.ravel(), rcond=None)
+        curvature = q - np.polyval(np.polyfit(tau, q, 1), tau[:, None]) if k > 2 else q
+        scales.append(solution[0])
+        accel.append(float(np.sqrt(np.mean(curvature**2))))
+    scales, accel = np.asarray(scales), np.asarray(accel)
+    good = (scales > 0) & (accel > 0)
+    if not good.any():
+        raise ImuUnusable("the camera hardly accelerated: the IMU cannot tell the scale of its motion")
+    weights = accel[good]
+    order = np.argsort(scales[good])
+    cumulative = np.cumsum(weights[order])
+    return float(scales[good][order][np.searchsorted(cumulative, 0.5 * cumulative[-1])])

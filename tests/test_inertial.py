@@ -1,0 +1,155 @@
+"""The IMU's refinement of structure from motion's poses (``edmcgs.inertial``, ``edmcgs.poses.with_imu``):
+a handheld path, its IMU as a DAVIS346 reads it, and "frames" poses that follow the camera badly (as
+structure from motion does when the scene itself moves)."""
+
+import numpy as np
+import pytest
+
+from edmcgs.errors import InvalidInputError
+from edmcgs.geometry import Similarity, rotation_exp, rotation_log
+from edmcgs.inertial import ImuUnusable, fuse_imu
+from edmcgs.poses import PoseEstimate, with_imu
+from edmcgs.sensor.imu import IMU_DTYPE
+from edmcgs.synth.davis import ImuConfig, imu_samples, imu_truth
+from edmcgs.synth.street3d import HandheldPath
+from harness.pose_scenes import trajectory_error
+
+SECONDS = 4.0
+
+
+def _imu(c2w, seed: int = 0, start_s: float = 0.0, stop_s: float = SECONDS) -> np.ndarray:
+    """What the IMU reads along the path ``c2w(t_s [K]) -> [K, 4, 4]``, at 1 kHz, noise and biases drawn."""
+    t_us = np.arange(round(start_s * 1e6), round(stop_s * 1e6) + 1, 1000, dtype=np.int64)
+    gyro, force = imu_truth(c2w, t_us * 1e-6)
+    return imu_samples(t_us, gyro, force, ImuConfig(), np.random.default_rng(seed))[0]
+
+
+def _angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle of each frame's rotation relative to the first, a against b."""
+    rel = [np.swapaxes(c[:1, :3, :3], 1, 2) @ c[:, :3, :3] for c in (a, b)]
+    return np.degrees(np.linalg.norm(rotation_log(np.swapaxes(rel[0], 1, 2) @ rel[1]), axis=1))
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """(t_us, true c2w, frames' c2w, IMU): 25 Hz frames over 4 s of a handheld walk; the frames' poses in
+    another world and scale (0.3 units per metre), each rotation off by 2 deg at random, each position
+    off by 2 cm at random plus a 4 cm bob at 3.6 Hz (a figure's jumps). (A drift of the frames' rotation
+    that grows steadily is no error the IMU can see: it reads as the gyro's bias.)"""
+    path = HandheldPath(1)
+    t_us = np.arange(0, round(SECONDS * 1e6) + 1, 40_000, dtype=np.int64)
+    truth = path.c2w(t_us * 1e-6)
+    rng = np.random.default_rng(3)
+    t = t_us * 1e-6
+    frames = truth.copy()
+    jitter = rng.normal(0, np.radians(2.0) / np.sqrt(3), (len(t), 3))
+    frames[:, :3, :3] = truth[:, :3, :3] @ rotation_exp(jitter)
+    frames[:, :3, 3] += rng.normal(0, 0.02 / np.sqrt(3), (len(t), 3))
+    frames[:, 2, 3] += 0.04 * np.sin(2 * np.pi * 3.6 * t)
+    world = np.eye(4)
+    world[:3, :3] = rotation_exp(np.array([0.3, -1.0, 0.2]))
+    world[:3, 3] = [1.0, 2.0, -0.5]
+    frames = Similarity(0.3, world[:3, :3], world[:3, 3]).poses(frames)
+    return t_us, truth, frames, _imu(path.c2w)
+
+
+def test_the_imu_removes_what_the_frames_got_wrong(scene):
+    t_us, truth, frames, imu = scene
+    fit = fuse_imu(t_us, frames, imu)
+    before, length = trajectory_error(t_us, frames, truth)
+    after, _ = trajectory_error(t_us, fit.c2w, truth)
+    assert after < 0.25 * before and after / length < 0.005, (before, after, length)
+    assert _angles_deg(frames, truth).max() > 3.0
+    assert _angles_deg(fit.c2w, truth).max() < 0.5
+    assert fit.metres_per_unit == pytest.approx(1 / 0.3, rel=0.05)
+    assert np.isfinite(fit.c2w).all() and fit.rotation_scatter_deg > 1.0
+    assert "IMU fused" in fit.summary()
+
+
+def test_exact_frames_stay_exact(scene):
+    t_us, truth, _, imu = scene
+    fit = fuse_imu(t_us, truth, imu)
+    error, length = trajectory_error(t_us, fit.c2w, truth)
+    assert error / length < 1e-3
+    assert _angles_deg(fit.c2w, truth).max() < 0.05
+    assert fit.metres_per_unit == pytest.approx(1.0, rel=0.01)
+    np.testing.assert_allclose(fit.gravity, [0, 0, -1], atol=0.01)  # the world of HandheldPath: z up
+
+
+def _turning(rate: float):
+    """A path that turns about every axis (by up to 17 deg) while it moves: its IMU's mounting is
+    observable."""
+    def c2w(t_s):
+        t = np.atleast_1d(np.asarray(t_s, np.float64))
+        w = np.stack([0.3 * np.sin(1.3 * rate * t), 0.25 * np.sin(0.9 * rate * t + 1),
+                      0.2 * np.sin(1.7 * rate * t + 2)], -1)
+        out = np.tile(np.eye(4), (len(t), 1, 1))
+        out[:, :3, :3] = rotation_exp(w)
+        out[:, :3, 3] = np.stack([np.sin(t), 0.5 * np.sin(1.5 * t), 0.3 * t], -1)
+        return out
+    return c2w
+
+
+def test_the_imus_mounting_is_estimated_and_another_cameras_imu_left_out():
+    t_us = np.arange(0, round(SECONDS * 1e6) + 1, 40_000, dtype=np.int64)
+    truth = _turning(1.0)(t_us * 1e-6)
+    frames = truth.copy()
+    jitter = np.random.default_rng(3).normal(0, np.radians(2.0) / np.sqrt(3), (len(t_us), 3))
+    frames[:, :3, :3] = truth[:, :3, :3] @ rotation_exp(jitter)
+    swapped = _imu(_turning(1.0))  # this camera's IMU, its axes in another order
+    swapped["gyro"], swapped["accel"] = swapped["gyro"][:, [2, 0, 1]], swapped["accel"][:, [2, 0, 1]]
+    fit = fuse_imu(t_us, frames, swapped)
+    np.testing.assert_allclose(fit.imu_to_camera, np.eye(3)[[1, 2, 0]], atol=0.1)  # camera x = IMU y ...
+    assert _angles_deg(fit.c2w, truth).max() < 0.3 * _angles_deg(frames, truth).max()
+    with pytest.raises(ImuUnusable, match="gyro's rotations differ from the frames' by"):
+        fuse_imu(t_us, frames, _imu(_turning(1.6), seed=1))  # another camera's motion
+
+
+def test_an_imu_that_misses_the_span_or_has_a_gap_is_left_out(scene):
+    t_us, _, frames, _ = scene
+    with pytest.raises(ImuUnusable, match=r"covers 2\.0 of the 4\.0 s"):
+        fuse_imu(t_us, frames, _imu(HandheldPath(1).c2w, stop_s=2.0))
+    imu = _imu(HandheldPath(1).c2w)
+    gap = (imu["t"] > 1_000_000) & (imu["t"] < 1_200_000)
+    with pytest.raises(ImuUnusable, match=r"gap of 0\.20 s"):
+        fuse_imu(t_us, frames, imu[~gap])
+    with pytest.raises(ImuUnusable, match="0 IMU samples"):
+        fuse_imu(t_us, frames, np.zeros(0, IMU_DTYPE))
+
+
+def test_non_finite_samples_are_dropped_and_bad_input_named(scene):
+    t_us, truth, _, imu = scene
+    broken = imu.copy()
+    broken["gyro"][500] = np.nan
+    broken["accel"][800] = np.inf
+    fit = fuse_imu(t_us, truth, broken)
+    assert np.isfinite(fit.c2w).all()
+    with pytest.raises(InvalidInputError, match="IMU samples"):
+        fuse_imu(t_us, truth, np.zeros((10, 7)))
+    with pytest.raises(InvalidInputError, match="strictly increasing"):
+        fuse_imu(t_us[::-1], truth, imu)
+    with pytest.raises(InvalidInputError, match="finite"):
+        fuse_imu(t_us, truth * np.nan, imu)
+    with pytest.raises(ImuUnusable, match="at least 3"):
+        fuse_imu(t_us[:2], truth[:2], imu)
+
+
+def test_with_imu_moves_the_world_to_the_first_refined_camera(scene):
+    t_us, _, frames, imu = scene
+    base = np.linalg.inv(frames[0])
+    frames = base @ frames  # structure from motion's convention: the first frame's camera is the world
+    points = np.random.default_rng(0).normal(0, 1, (50, 3)) + np.array([0.0, 0.0, 3.0])
+    estimate = PoseEstimate(frames=len(t_us), registered=len(t_us), t_us=t_us, c2w=frames, intrinsics=None,
+                            estimated_intrinsics=False, distortion=0.0, static=False, models=1, points=50,
+                            motion_px=5.0, seconds=1.0, point_xyz=points)
+    refined = with_imu(estimate, imu)
+    np.testing.assert_allclose(refined.c2w[0], np.eye(4), atol=1e-9)
+    assert refined.imu.startswith("IMU fused") and "IMU fused" in refined.summary()
+    # the points moved with the poses: each seen from each camera as in the fit's own world
+    fit = fuse_imu(t_us, frames, imu)
+    camera = np.linalg.inv(fit.c2w[10]) @ np.c_[points, np.ones(50)].T
+    moved = np.linalg.inv(refined.c2w[10]) @ np.c_[refined.point_xyz, np.ones(50)].T
+    np.testing.assert_allclose(moved, camera, atol=1e-9)
+    left_out = with_imu(estimate, imu[imu["t"] < 1_000_000])
+    assert left_out.imu.startswith("IMU left out: the IMU covers")
+    np.testing.assert_array_equal(left_out.c2w, frames)
