@@ -95,9 +95,9 @@ def scene_frames(name: str, quick: bool):
     if name.startswith("jumpingjack-"):
         return synth_frames("jumpingjack", name.split("-")[1], 2.0 if quick else 4.0)
     if name == "rigid-small":
-        return rigid_sweep(26, 12.5)
+        return (*rigid_sweep(26, 12.5), None)
     if name == "rigid-60":
-        return rigid_sweep(30 if quick else 60, 25.0, size="full")
+        return (*rigid_sweep(30 if quick else 60, 25.0, size="full"), None)
     if name == "traffic-pan":
         from edmcgs.synth.traffic import TrafficScene
 

@@ -378,7 +378,8 @@ def _positions(pre: _Preintegrated, R: np.ndarray, vision_p: np.ndarray,
     down = -world_dv.sum(0)  # the mean specific force balances gravity
     down /= max(np.linalg.norm(down), 1e-12)
     lam = 1.0 / _initial_scale(pre, R, vision_p, t_s, STANDARD_GRAVITY * down)
-    sigma_vision = 0.01
+    # the frames' jitter, from their second differences (a smooth path has next to none at video rates)
+    sigma_vision = max(_robust_rms(vision_p[2:] - 2 * vision_p[1:-1] + vision_p[:-2]) / np.sqrt(6), 1e-5)
     Q, U, G, B, L = 0, 3 * n, 6 * n, 6 * n + 2, 6 * n + 5
     col = np.zeros(n - 1, np.int64)
     f = np.arange(n)
