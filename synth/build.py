@@ -6,7 +6,9 @@ Timeline (scene time t in [0, duration], stored as int64 µs from 0):
 - anchors: sparse RGB frames at ``fps`` (t = k / fps), optionally motion-blurred with a 0.5 shutter;
 - held-out: ``held_out_per_interval`` ground-truth frames evenly spaced inside each anchor interval
   (sharp; for evaluation);
-- poses of every frame, and a dense camera trajectory (every ``TRAJECTORY_STEP_US``).
+- poses of every frame, and a dense camera trajectory (every ``TRAJECTORY_STEP_US``);
+- the IMU a DAVIS346 on that camera would read (``synth.davis.simulated_imu``: 1 kHz, its noise and a
+  bias per axis drawn from ``seed``; the scenes' worlds are z up).
 
 The shutter of the blur is relative to the dense frame sequence that anchors and held-out frames
 sample (fps * (held_out_per_interval + 1) frames per second), as when sparse frames are kept from a
@@ -31,6 +33,7 @@ from edmcgs.errors import EdmcgsError, InvalidInputError
 from edmcgs.luminance import LUMA
 from edmcgs.sensor.files.recording import Recording, write_recording
 from edmcgs.sensor.frames import Frames
+from edmcgs.synth.davis import ImuConfig, simulated_imu
 from edmcgs.synth.esim import AdaptiveSampling, SimulatorConfig, simulate_render
 from edmcgs.synth.scene import CAMERAS, SCENES, SIZES, Scene, make_scene, render
 
@@ -68,6 +71,8 @@ class BuildConfig:
     camera: str = "orbit"
     """Past the scene's own duration its camera circles on ("orbit") or sweeps back over the same arc
     ("sweep"); ``synth.scene.CAMERAS``. Within it both are the same."""
+    imu: ImuConfig = field(default_factory=ImuConfig)
+    """The IMU on the camera."""
 
     def __post_init__(self) -> None:
         if self.scene not in SCENES:
@@ -146,6 +151,8 @@ def build_recording(config: BuildConfig, *, progress: bool = True) -> Recording:
 
     traj_t = np.arange(0, duration_us + 1, TRAJECTORY_STEP_US, dtype=np.int64)
     traj_c2w = np.stack([scene.camera_at(t * 1e-6) for t in traj_t])
+    imu, imu_metadata = simulated_imu(lambda ts: np.stack([scene.camera_at(float(t)) for t in ts]),
+                                      duration_us, config.imu, config.seed)
     n_gaussians = len(scene.gaussians_at(0.0))
     metadata = {
         "generator": GENERATOR,
@@ -166,13 +173,14 @@ def build_recording(config: BuildConfig, *, progress: bool = True) -> Recording:
         "sampling": asdict(config.sampling) | {"samples": len(samples),
                                                "mean_step_us": float(np.diff(samples).mean())},
         "frames": "linear RGB of the render, uint8, no gamma",
+        "imu": imu_metadata,
         "build_seconds": round(time.perf_counter() - started, 3),
     }
     return Recording(
         width=intr.width, height=intr.height, events=events, anchors=anchors, held_out=held_out,
         intrinsics=np.array([intr.fx, intr.fy, intr.cx, intr.cy]), trajectory_t_us=traj_t,
         trajectory_c2w=traj_c2w, contrast_threshold=sim_config.contrast_threshold, sensor="simulated",
-        metadata=metadata)
+        metadata=metadata, imu=imu)
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -214,3 +214,18 @@ def imu_samples(t_us: np.ndarray, gyro_rad_s: np.ndarray, force_m_s2: np.ndarray
     out["accel"] = force_m_s2 / STANDARD_GRAVITY + accel_bias + rng.normal(0.0, config.accel_noise_g, (k, 3))
     out["temperature"] = config.temperature_c
     return out, {"gyro_dps": gyro_bias.tolist(), "accel_g": accel_bias.tolist()}
+
+
+def simulated_imu(pose_at: Callable[[np.ndarray], np.ndarray], duration_us: int, config: ImuConfig,
+                  seed: int) -> tuple[np.ndarray, dict]:
+    """What the IMU reads over [0, duration_us] on the camera path ``pose_at`` (c2w of a z-up world in
+    metres; see ``imu_truth``): IMU_DTYPE samples at ``config.rate_hz``, and the recording metadata's
+    "imu" entry (the config, the biases drawn, units and axes). ``seed``: the recording's."""
+    t_us = np.arange(0, duration_us + 1, round(1e6 / config.rate_hz), dtype=np.int64)
+    gyro, force = imu_truth(pose_at, t_us * 1e-6)
+    imu, biases = imu_samples(t_us, gyro, force, config,
+                              np.random.default_rng(np.random.SeedSequence([int(seed), 6])))
+    return imu, config.to_metadata() | {
+        "biases": biases, "units": "accel g, gyro degrees per second",
+        "frame": "the camera's axes (OpenCV: x right, y down, z forward)",
+        "gravity": "included: a level camera at rest reads accel (0, -1, 0)"}

@@ -44,10 +44,9 @@ from edmcgs.synth.davis import (
     aps_frame,
     check_aps,
     held_out_per_interval,
-    imu_samples,
-    imu_truth,
     read_out,
     sensor_from_flags,
+    simulated_imu,
 )
 from edmcgs.synth.esim import AdaptiveSampling, SimulatorConfig, simulate_render
 from edmcgs.synth.street3d import KEYFRAME_US, RIG, EventRender, StreetScene
@@ -136,10 +135,7 @@ def build_street3d(config: Street3dConfig, *, progress: bool = True) -> Recordin
         events, samples = simulate_render(render, 0, duration_us, sim_config, config.sampling,
                                           progress=lambda dt: bar.update(dt / 1000))
 
-    imu_t = np.arange(0, duration_us + 1, round(1e6 / config.imu.rate_hz), dtype=np.int64)
-    gyro, force = imu_truth(scene.path.c2w, imu_t * 1e-6)
-    imu, biases = imu_samples(imu_t, gyro, force, config.imu,
-                              np.random.default_rng(np.random.SeedSequence([int(config.seed), 6])))
+    imu, imu_metadata = simulated_imu(scene.path.c2w, duration_us, config.imu, config.seed)
     traj_t = np.arange(0, duration_us + 1, TRAJECTORY_STEP_US, dtype=np.int64)
     intr = scene.intrinsics
     metadata = {
@@ -162,10 +158,7 @@ def build_street3d(config: Street3dConfig, *, progress: bool = True) -> Recordin
         "novel_views": {"rig": RIG.tolist(), "pose": "c2w(t) @ rig (the event camera's pose times the rig)",
                         "times": "the held-out frames' times", "intrinsics": "the recording's",
                         "aps": "the same exposure, read noise drawn on its own"},
-        "imu": config.imu.to_metadata() | {
-            "biases": biases, "units": "accel g, gyro degrees per second",
-            "frame": "the camera's axes (OpenCV: x right, y down, z forward)",
-            "gravity": "included: a level camera at rest reads accel (0, -1, 0)"},
+        "imu": imu_metadata,
         "aps": {"exposure_us": config.exposure_us, "subframes": config.subframes,
                 "read_noise_dn": config.read_noise_dn, "timestamp": "centre of the exposure"},
         "simulator": sim_config.to_metadata() | {"log": "L = log(luminance + eps) of the sharp float "

@@ -56,6 +56,14 @@ def test_recording_holds_what_the_scene_says(recording):
     assert meta["scene"] == "jumpingjack" and meta["fps"] == 10.0 and meta["seed"] == 0
     assert meta["simulator"]["contrast_threshold"] == 0.2 and meta["simulator"]["eps"] == 1e-3
     assert meta["sampling"]["samples"] == 31 and meta["gaussians"] == len(scene.gaussians_at(0.0))
+    # the IMU on the camera: 1 kHz over the span, gravity (1 g) and the camera's turning, in dv's units
+    imu = rec.imu
+    assert len(imu) == 301 and np.all(np.diff(imu["t"]) == 1000)
+    assert 0.9 < np.median(np.linalg.norm(imu["accel"], axis=1)) < 1.1
+    turned = np.radians(np.mean(imu["gyro"], axis=0)) * 0.3  # rad over the 0.3 s
+    first, last = (scene.camera_at(t)[:3, :3] for t in (0.0, 0.3))
+    assert np.linalg.norm(turned) == pytest.approx(np.arccos((np.trace(first.T @ last) - 1) / 2), abs=0.01)
+    assert set(meta["imu"]["biases"]) == {"gyro_dps", "accel_g"}
 
 
 def test_events_match_the_anchor_frames_by_the_event_generation_model(recording):
@@ -82,6 +90,7 @@ def test_round_trip_through_the_file(recording, tmp_path):
     np.testing.assert_array_equal(back.anchors.images, recording.anchors.images)
     np.testing.assert_array_equal(back.held_out.t_us, recording.held_out.t_us)
     np.testing.assert_array_equal(back.trajectory_c2w, recording.trajectory_c2w)
+    np.testing.assert_array_equal(back.imu, recording.imu)
     assert back.metadata == recording.metadata and back.contrast_threshold == 0.2
     Intrinsics(*back.intrinsics, back.width, back.height)  # usable as the model's camera
 
