@@ -154,7 +154,7 @@ def _samples(imu, t_us: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
         raise InvalidInputError(f"imu must be a 1-D array of IMU samples (fields t, gyro, accel: the sensor "
                                 f"layer's IMU_DTYPE), got {getattr(imu, 'dtype', type(imu))}")
     ok = np.isfinite(imu["gyro"]).all(1) & np.isfinite(imu["accel"]).all(1)
-    imu = imu[ok]
+    imu = imu[ok][np.argsort(imu["t"][ok], kind="stable")]
     span = (t_us[-1] - t_us[0]) * 1e-6
     if len(imu) < 2:
         raise ImuUnusable(f"{len(imu)} IMU samples over the frames' {span:.1f} s")
@@ -167,8 +167,6 @@ def _samples(imu, t_us: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
         raise ImuUnusable(f"the IMU covers {max(covered, 0) * 1e-6:.1f} of the {span:.1f} s the frames span")
     if gaps.max() > MAX_GAP_S:
         raise ImuUnusable(f"the IMU has a gap of {gaps.max():.2f} s within the frames' span")
-    order = np.argsort(t, kind="stable")
-    imu = imu[order]
     return (np.radians(imu["gyro"].astype(np.float64)),
             imu["accel"].astype(np.float64) * STANDARD_GRAVITY, (imu["t"] - t_us[0]) * 1e-6)
 
