@@ -308,20 +308,16 @@ def _solve(rows: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool
     return x
 
 
+def _joined(parts: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]:
+    """(row, column, value) triples of several blocks' entries, concatenated into one."""
+    return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
+
+
 def _blocks(first: np.ndarray, column: np.ndarray, matrices: np.ndarray) -> tuple[np.ndarray, ...]:
-    """(row, column, value) of 3xC blocks ``matrices`` [N, 3, C] at block rows ``first``, columns from
-    ``column`` [N]."""
+    """(row, column, value) of the 3xC blocks ``matrices`` [N, 3, C] of a sparse matrix: block ``k`` in
+    rows 3 first[k] .. 3 first[k] + 2, columns column[k] .. column[k] + C - 1."""
     i, j = np.meshgrid(np.arange(3), np.arange(matrices.shape[2]), indexing="ij")
     return (3 * first[:, None, None] + i).ravel(), (column[:, None, None] + j).ravel(), matrices.ravel()
-
-
-def _block_rows(first: np.ndarray, column: np.ndarray, matrices: np.ndarray) -> tuple[np.ndarray, ...]:
-    """(row, column, value) of 3x3 blocks ``matrices`` [N, 3, 3] at block rows ``first`` and columns
-    starting at ``column`` [N]."""
-    i, j = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
-    rows = 3 * first[:, None, None] + i
-    cols = column[:, None, None] + j
-    return rows.ravel(), cols.ravel(), matrices.ravel()
 
 
 def _rotations(seg: _Segments, gyro: np.ndarray,
@@ -341,11 +337,11 @@ def _rotations(seg: _Segments, gyro: np.ndarray,
             expected = pre.dR @ rotation_exp(np.einsum("nij,j->ni", pre.jr, step_bias))
             between = rotation_log(np.swapaxes(expected, 1, 2) @ np.swapaxes(R[:-1], 1, 2) @ R[1:])
             off = rotation_log(np.swapaxes(vision_R, 1, 2) @ R)
-            gyro_rows = [_block_rows(k, 3 * k, -(np.swapaxes(R[1:], 1, 2) @ R[:-1]) / sigma),
-                         _block_rows(k, 3 * k + 3, eye[1:] / sigma),
-                         _block_rows(k, np.full(n - 1, 3 * n), -pre.jr / sigma)]
-            gyro_part = tuple(np.concatenate(parts) for parts in zip(*gyro_rows, strict=True))
-            vision_part = _block_rows(np.arange(n), 3 * np.arange(n), eye / sigma_vision)
+            gyro_rows = [_blocks(k, 3 * k, -(np.swapaxes(R[1:], 1, 2) @ R[:-1]) / sigma),
+                         _blocks(k, 3 * k + 3, eye[1:] / sigma),
+                         _blocks(k, np.full(n - 1, 3 * n), -pre.jr / sigma)]
+            gyro_part = _joined(gyro_rows)
+            vision_part = _blocks(np.arange(n), 3 * np.arange(n), eye / sigma_vision)
             x = _solve([(*gyro_part, (between / sigma[:, :, 0]).ravel(), False),
                         (*vision_part, (off / sigma_vision).ravel(), True)], 3 * n + 3)
             R = R @ rotation_exp(x[:3 * n].reshape(n, 3))
@@ -383,9 +379,6 @@ def _positions(pre: _Preintegrated, R: np.ndarray, vision_p: np.ndarray,
     f = np.arange(n)
     lam_rows = (3 * k[:, None] + np.arange(3)).ravel()
 
-    def joined(parts):
-        return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
-
     for _ in range(ROUNDS):
         previous = lam
         # gravity * lambda = lambda * g * down + T t, t the tilt (units/s^2) across the current direction
@@ -393,20 +386,20 @@ def _positions(pre: _Preintegrated, R: np.ndarray, vision_p: np.ndarray,
         sv = lam * (ACCEL_DENSITY * np.sqrt(dt) + 1e-5)
         sp = lam * (ACCEL_DENSITY * dt**1.5 / np.sqrt(3) + 1e-6)
         tilt = np.tile(T, (n - 1, 1, 1))
-        position = joined([
-            _block_rows(k, Q + 3 * k + 3, eye / sp), _block_rows(k, Q + 3 * k, -eye / sp),
-            _block_rows(k, U + 3 * k, -eye * dt / sp), _blocks(k, col + G, -0.5 * tilt * dt**2 / sp),
-            _block_rows(k, col + B, -(R[:-1] @ pre.jp) / sp),
+        position = _joined([
+            _blocks(k, Q + 3 * k + 3, eye / sp), _blocks(k, Q + 3 * k, -eye / sp),
+            _blocks(k, U + 3 * k, -eye * dt / sp), _blocks(k, col + G, -0.5 * tilt * dt**2 / sp),
+            _blocks(k, col + B, -(R[:-1] @ pre.jp) / sp),
             (lam_rows, np.full(len(lam_rows), L), -((np.einsum("nij,nj->ni", R[:-1], pre.dp)
                                                     + 0.5 * STANDARD_GRAVITY * down * dt[:, :, 0]**2)
                                                    / sp[:, :, 0]).ravel())])
-        velocity = joined([
-            _block_rows(k, U + 3 * k + 3, eye / sv), _block_rows(k, U + 3 * k, -eye / sv),
-            _blocks(k, col + G, -tilt * dt / sv), _block_rows(k, col + B, -(R[:-1] @ pre.jv) / sv),
+        velocity = _joined([
+            _blocks(k, U + 3 * k + 3, eye / sv), _blocks(k, U + 3 * k, -eye / sv),
+            _blocks(k, col + G, -tilt * dt / sv), _blocks(k, col + B, -(R[:-1] @ pre.jv) / sv),
             (lam_rows, np.full(len(lam_rows), L), -((world_dv + STANDARD_GRAVITY * down * dt[:, :, 0])
                                                    / sv[:, :, 0]).ravel())])
-        vision = _block_rows(f, Q + 3 * f, np.tile(np.eye(3), (n, 1, 1)) / sigma_vision)
-        prior = _block_rows(np.zeros(1, np.int64), np.array([B]), np.eye(3)[None] / (lam * ACCEL_BIAS))
+        vision = _blocks(f, Q + 3 * f, np.tile(np.eye(3), (n, 1, 1)) / sigma_vision)
+        prior = _blocks(np.zeros(1, np.int64), np.array([B]), np.eye(3)[None] / (lam * ACCEL_BIAS))
         x = _solve([(*position, np.zeros(3 * (n - 1)), False), (*velocity, np.zeros(3 * (n - 1)), False),
                     (*vision, (-vision_p / sigma_vision).ravel(), True), (*prior, np.zeros(3), False)],
                    6 * n + 6)
