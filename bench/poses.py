@@ -8,8 +8,9 @@ Scenes (``--scenes``, default all):
 - ``jumpingjack-sweep``, ``jumpingjack-orbit``: the frames of ``edmcgs synth jumpingjack --camera
   sweep|orbit --duration 4`` (small, 173x130, 25 frames per second: the anchors and held-out frames
   together; rendered here, sharp, without the event simulation the frames do not need), the camera
-  given; a figure that never stops moving in front of a plain background, and the IMU a DAVIS346 on that
-  camera path reads (``scene_imu``: 1 kHz, ``ImuConfig``'s noise and a bias drawn per axis, seed 0).
+  given; a figure that never stops moving in front of a plain background, and the IMU the recording of
+  ``edmcgs synth jumpingjack --seed 0`` holds (``synth.build.scene_imu``: 1 kHz, ``ImuConfig``'s noise and
+  a bias drawn per axis).
   Nothing in view is static: the frames alone can at best follow the figure's torso, which bobs by up to
   0.17 m with each jump (0.87 % of the 4 s path after the alignment); the IMU measures the camera.
 - ``rigid-small``: ``lego`` frozen at one instant along its arc (``harness.pose_scenes``; the
@@ -45,6 +46,8 @@ from bench.results import table, write_json
 from edmcgs.errors import EdmcgsError
 from edmcgs.geometry import Intrinsics
 from edmcgs.poses import estimate_poses, with_imu
+from edmcgs.synth.build import scene_imu
+from edmcgs.synth.davis import ImuConfig
 from edmcgs.synth.scene import make_scene, render
 from harness.pose_scenes import rigid_sweep, trajectory_error
 
@@ -60,18 +63,8 @@ def synth_frames(name: str, camera: str, seconds: float, rate_hz: float = 25.0):
     t_us = np.rint(np.arange(round(seconds * rate_hz) + 1) * 1e6 / rate_hz).astype(np.int64)
     c2w = np.stack([scene.camera_at(t * 1e-6) for t in t_us])
     images = np.stack([np.rint(render(scene, t * 1e-6) * 255).astype(np.uint8) for t in t_us])
-    return t_us, images, c2w, scene.intrinsics, scene_imu(scene, t_us)
-
-
-def scene_imu(scene, t_us: np.ndarray) -> np.ndarray:
-    """What a DAVIS346's IMU (``ImuConfig``'s noise and biases, seed 0) reads on the scene's camera path
-    over the frames' span, at 1 kHz."""
-    from edmcgs.synth.davis import ImuConfig, imu_samples, imu_truth
-
-    config = ImuConfig()
-    imu_t = np.arange(t_us[0], t_us[-1] + 1, round(1e6 / config.rate_hz), dtype=np.int64)
-    gyro, force = imu_truth(lambda ts: np.stack([scene.camera_at(float(t)) for t in ts]), imu_t * 1e-6)
-    return imu_samples(imu_t, gyro, force, config, np.random.default_rng(0))[0]
+    imu, _ = scene_imu(scene, int(t_us[-1]), ImuConfig(), seed=0)
+    return t_us, images, c2w, scene.intrinsics, imu
 
 
 def recording_frames(path: str):

@@ -418,8 +418,9 @@ def _positions(pre: _Preintegrated, R: np.ndarray, vision_p: np.ndarray,
 
 def _initial_scale(pre: _Preintegrated, R: np.ndarray, vision_p: np.ndarray, t_s: np.ndarray,
                    gravity: np.ndarray) -> float:
-    """Metres per unit: the median, over windows of about a second, of the least-squares fit of the
-    dead-reckoned positions (each window's start position and velocity free) to the frames'."""
+    """Metres per unit: over windows of about a second, the least-squares scale that fits the dead-reckoned
+    positions (each window's start position and velocity free) to the frames'; their median, each window
+    weighted by how far its dead reckoning bends from a straight line (how much it says of the scale)."""
     world_dp = np.einsum("nij,nj->ni", R[:-1], pre.dp) + 0.5 * gravity * pre.dt[:, None] ** 2
     world_dv = np.einsum("nij,nj->ni", R[:-1], pre.dv) + gravity * pre.dt[:, None]
     n = len(t_s)

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -141,8 +141,6 @@ def with_imu(estimate: PoseEstimate, imu: np.ndarray) -> PoseEstimate:
     """``estimate``'s poses refined by the IMU (``edmcgs.inertial.fuse_imu``), the world moved to the
     first frame's refined camera (its points with it); unchanged, with the reason in ``imu``, when the
     IMU cannot refine them. A static or turning camera is left as it is."""
-    from dataclasses import replace
-
     from edmcgs.inertial import ImuUnusable, fuse_imu
 
     if estimate.static or estimate.rotation_only:

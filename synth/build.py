@@ -151,8 +151,7 @@ def build_recording(config: BuildConfig, *, progress: bool = True) -> Recording:
 
     traj_t = np.arange(0, duration_us + 1, TRAJECTORY_STEP_US, dtype=np.int64)
     traj_c2w = np.stack([scene.camera_at(t * 1e-6) for t in traj_t])
-    imu, imu_metadata = simulated_imu(lambda ts: np.stack([scene.camera_at(float(t)) for t in ts]),
-                                      duration_us, config.imu, config.seed)
+    imu, imu_metadata = scene_imu(scene, duration_us, config.imu, config.seed)
     n_gaussians = len(scene.gaussians_at(0.0))
     metadata = {
         "generator": GENERATOR,
@@ -181,6 +180,12 @@ def build_recording(config: BuildConfig, *, progress: bool = True) -> Recording:
         intrinsics=np.array([intr.fx, intr.fy, intr.cx, intr.cy]), trajectory_t_us=traj_t,
         trajectory_c2w=traj_c2w, contrast_threshold=sim_config.contrast_threshold, sensor="simulated",
         metadata=metadata, imu=imu)
+
+
+def scene_imu(scene: Scene, duration_us: int, config: ImuConfig, seed: int) -> tuple[np.ndarray, dict]:
+    """``synth.davis.simulated_imu`` along the scene's camera (samples, metadata entry)."""
+    return simulated_imu(lambda ts: np.stack([scene.camera_at(float(t)) for t in ts]), duration_us, config,
+                         seed)
 
 
 def _parser() -> argparse.ArgumentParser:

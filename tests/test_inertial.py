@@ -10,18 +10,16 @@ from edmcgs.geometry import Similarity, rotation_exp, rotation_log
 from edmcgs.inertial import ImuUnusable, fuse_imu
 from edmcgs.poses import PoseEstimate, with_imu
 from edmcgs.sensor.imu import IMU_DTYPE
-from edmcgs.synth.davis import ImuConfig, imu_samples, imu_truth
+from edmcgs.synth.davis import ImuConfig, simulated_imu
 from edmcgs.synth.street3d import HandheldPath
 from harness.pose_scenes import trajectory_error
 
 SECONDS = 4.0
 
 
-def _imu(c2w, seed: int = 0, start_s: float = 0.0, stop_s: float = SECONDS) -> np.ndarray:
-    """What the IMU reads along the path ``c2w(t_s [K]) -> [K, 4, 4]``, at 1 kHz, noise and biases drawn."""
-    t_us = np.arange(round(start_s * 1e6), round(stop_s * 1e6) + 1, 1000, dtype=np.int64)
-    gyro, force = imu_truth(c2w, t_us * 1e-6)
-    return imu_samples(t_us, gyro, force, ImuConfig(), np.random.default_rng(seed))[0]
+def _imu(c2w, seed: int = 0, stop_s: float = SECONDS) -> np.ndarray:
+    """What the IMU reads along the path ``c2w(t_s [K]) -> [K, 4, 4]`` from 0 to ``stop_s``."""
+    return simulated_imu(c2w, round(stop_s * 1e6), ImuConfig(), seed)[0]
 
 
 def _angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
