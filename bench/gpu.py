@@ -7,18 +7,20 @@ this order, each a subprocess with its own time limit, cut to what is left of ``
 
     tests       the CUDA tests (tests/raster and test_train_device.py, -k "cuda or gsplat")
     render      bench.render at 346x260 with 8k Gaussians: each CUDA path, forward and forward + backward
-    train_real  the ``real`` preset trained from scratch on ``--real`` (a 346x260 street, default
+    train_real_compile  the ``real`` preset trained from scratch on ``--real`` (a 346x260 street, default
                 ``edmcgs synth traffic --fps 5 --seconds 3 --seed 0``) for 1500 steps, or as many as its
-                budget allows: steps/s, training seconds, wall seconds, held-out PSNR / SSIM of all frames
-    train_demo  the ``demo`` preset on the bundled demo recording, the same
+                budget allows, with ``--compile`` (the step's fused kernels; their compile included):
+                steps/s, training seconds, wall seconds, held-out PSNR / SSIM of all frames
+    train_real  the same without ``--compile``
     serve       bench.serve on the demo: GET /render p50 (one client) and four clients' renders/s
+    train_demo_compile, train_demo  the ``demo`` preset on the bundled demo recording, with and without
+    train_step  bench.train_step with the ``real`` preset on ``--real``, compiled: per stage, host reads,
+                syncs
     eval        edmcgs eval --demo on the device (the bundled checkpoint against its held-out frames)
-    train_step  bench.train_step with the ``real`` preset on ``--real``: per stage, host reads, syncs
-    train_real_compile  train_real with the skinning compiled (``edmcgs train --compile``)
 
 A part cut by its limit is recorded with what it got (a training run stops at its budget and reports the
 steps it made). DIR gets ``gpu.json`` (every part: command, return code, seconds, results) and
-``gpu.log`` (their output). ``--tiny``: CPU-sized settings (a few steps, short measurements, the bundled
+``gpu.log`` (their output); gpu.json's ``summary`` holds the figures the docs quote. ``--tiny``: CPU-sized settings (a few steps, short measurements, the bundled
 demo in place of ``--real``) to check this driver without a GPU.
 """
 
@@ -41,11 +43,11 @@ ROOT = Path(__file__).resolve().parents[1]
 STEPS = 1500
 CUDA_TESTS = ["tests/raster", "tests/model/test_train_device.py"]
 """Where the CUDA cases are; ``-k "cuda or gsplat"`` picks them (and test_rasterize_gsplat.py's CPU ones)."""
-BUDGETS = {"tests": 150, "render": 90, "train_real": 100, "train_demo": 60, "serve": 120, "eval": 60,
-           "train_step": 120, "train_real_compile": 100}
+BUDGETS = {"tests": 150, "render": 60, "train_real_compile": 90, "train_real": 60, "serve": 60,
+           "train_demo_compile": 60, "train_step": 75, "train_demo": 40, "eval": 45}
 """Seconds each part may take on the GPU; a training run's are its training alone (its setup and the final
 scoring get another ``TRAIN_EXTRA``)."""
-TRAIN_EXTRA = 75
+TRAIN_EXTRA = 45
 TAIL_LINES = 12
 """Last output lines of each part kept in gpu.json (all of it is in gpu.log)."""
 PARTS = tuple(BUDGETS)
@@ -113,30 +115,28 @@ def _parts(args) -> list[tuple[str, list[str], float]]:
     budgets = {k: v / 3 if tiny else v for k, v in BUDGETS.items()}
     real = ["--real", str(args.real)]
     out = args.out
-    parts = [
-        ("tests", [*py, "-m", "pytest", *CUDA_TESTS, "-k", "cuda or gsplat", "-q", "-p", "no:cacheprovider",
-                   "-x" if tiny else "-ra"], budgets["tests"]),
-        ("render", [*py, "-m", "bench.render", *dev, "--sizes", "346x260", "--counts", "8000",
-                    "--runs", "10" if tiny else "50", "--json", str(out / "render.json")]
-         + (["--paths", "torch", "--threads", "1"] if tiny else []), budgets["render"]),
-    ]
     steps = "20" if tiny else str(STEPS)
     small = ["--set", "init_points=2000"] if tiny else []
-    train = {}
-    for name, preset, rec in (("train_real", "real", real), ("train_demo", "demo", []),
-                              ("train_real_compile", "real", [*real, "--compile"])):
-        train[name] = (name, [*py, "-m", "bench.gpu", "--train", preset, *rec, *dev, "--steps", steps,
-                              "--budget", str(budgets[name]), *small, "--json", str(out / f"{name}.json")],
-                       budgets[name] + TRAIN_EXTRA)
-    parts += [train["train_real"], train["train_demo"]]
-    parts.append(("serve", [*py, "-m", "bench.serve", *dev, "--seconds", "1" if tiny else "4",
-                            "--json", str(out / "serve.json")], budgets["serve"]))
-    parts.append(("eval", [*py, "-m", "edmcgs.cli", "eval", "--demo", "-q", *dev], budgets["eval"]))
-    parts.append(("train_step", [*py, "-m", "bench.train_step", *dev, "--recording", str(args.real),
-                                 "--config", "real", "--steps", "3" if tiny else "20", *small,
-                                 "--json", str(out / "train_step.json")], budgets["train_step"]))
-    parts.append(train["train_real_compile"])
-    return [part for part in parts if part[0] in args.parts]
+    parts = {
+        "tests": [*py, "-m", "pytest", *CUDA_TESTS, "-k", "cuda or gsplat", "-q", "-p", "no:cacheprovider",
+                  "-x" if tiny else "-ra"],
+        "render": [*py, "-m", "bench.render", *dev, "--sizes", "346x260", "--counts", "8000",
+                   "--runs", "10" if tiny else "50", "--json", str(out / "render.json")]
+        + (["--paths", "torch", "--threads", "1"] if tiny else []),
+        "serve": [*py, "-m", "bench.serve", *dev, "--seconds", "1" if tiny else "4",
+                  "--json", str(out / "serve.json")],
+        "eval": [*py, "-m", "edmcgs.cli", "eval", "--demo", "-q", *dev],
+        "train_step": [*py, "-m", "bench.train_step", *dev, "--recording", str(args.real), "--config", "real",
+                       "--compile", "--steps", "3" if tiny else "20", *small,
+                       "--json", str(out / "train_step.json")],
+    }
+    for name in ("train_real", "train_real_compile", "train_demo", "train_demo_compile"):
+        preset = name.split("_")[1]
+        parts[name] = [*py, "-m", "bench.gpu", "--train", preset, *(real if preset == "real" else []), *dev,
+                       *(["--compile"] if name.endswith("_compile") else []), "--steps", steps,
+                       "--budget", str(budgets[name]), *small, "--json", str(out / f"{name}.json")]
+    extra = {name: TRAIN_EXTRA if name.startswith("train_") and name != "train_step" else 0 for name in parts}
+    return [(name, parts[name], budgets[name] + extra[name]) for name in PARTS if name in args.parts]
 
 
 def _run_part(name: str, cmd: list[str], limit: float, log) -> dict:
@@ -161,6 +161,38 @@ def _run_part(name: str, cmd: list[str], limit: float, log) -> dict:
     return {"command": cmd, "returncode": code, "seconds": round(seconds, 1), "output_tail": tail}
 
 
+def summarize(parts: dict) -> dict:
+    """The figures the docs quote, from the parts' results (those that ran)."""
+    out: dict = {}
+    for row in parts.get("render", {}).get("results", {}).get("rows", []):
+        out[f"{row['path']}_{row['pass']}_ms"] = row["median_ms"]
+    for name, part in parts.items():
+        res = part.get("results", {})
+        if not name.startswith("train_") or name == "train_step" or not res.get("steps_done"):
+            continue
+        key = name.removeprefix("train_")
+        out |= {f"{key}_steps": res["steps_done"], f"{key}_train_s": res["train_seconds"],
+                f"{key}_steps_per_s": res["steps_per_second"],
+                f"{key}_seconds_for_{res['steps_asked']}": res["train_seconds"] if res["completed"]
+                else res["projected_seconds_for_asked_steps"]}
+        marks = [h for h in res.get("history", []) if h.get("seconds")]
+        if len(marks) >= 2:  # between the last two evaluations: past any compile and warm-up
+            a, b = marks[-2], marks[-1]
+            out[f"{key}_steady_steps_per_s"] = (b["step"] - a["step"]) / (b["seconds"] - a["seconds"])
+        if "heldout_psnr" in res:
+            out[f"{key}_psnr"], out[f"{key}_ssim"] = res["heldout_psnr"], res["heldout_ssim"]
+    serve = parts.get("serve", {}).get("results", {})
+    for k in ("render_p50_ms", "render_rps_4_clients", "render_p50_ms_4_clients"):
+        if k in serve:
+            out[f"serve_{k}"] = serve[k]
+    step = parts.get("train_step", {}).get("results", {})
+    if step:
+        out["train_step_ms"] = step["step_ms_median"]
+        out["train_step_gpu_ms"] = step.get("step_gpu_ms")
+        out["train_step_syncs"] = (step.get("cuda_syncs") or {}).get("per_step")
+    return out
+
+
 def drive(args) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     deadline = time.perf_counter() + args.deadline
@@ -177,6 +209,7 @@ def drive(args) -> int:
                 part["results"] = json.loads(produced.read_text())
                 produced.unlink()  # folded into gpu.json: few files come back from a device
             report["parts"][name] = part
+            report["summary"] = summarize(report["parts"])
             write_json(args.out / "gpu.json", report)
     failed = [n for n, p in report["parts"].items() if p.get("returncode") != 0]
     print(f"bench.gpu: {len(report['parts']) - len(failed)} of {len(report['parts'])} parts ran cleanly"

@@ -128,6 +128,8 @@ class EdMCGS(nn.Module):
         self.skinning = lbs
         """The skinning of ``state_from_motion``: ``lbs``, or the same compiled by ``torch.compile``
         (``Trainer(compile=True)``, ``edmcgs train --compile``)."""
+        self.compiled_event_motion = None
+        """torch.compile's ``event_motion``, which training calls in its place (``Trainer(compile=True)``)."""
         self._window_plans: dict[tuple[int, bool], SkinPlan] = {}
         self._drawn_plans: dict[tuple[int, bool], SkinPlan] = {}
         self._anchor_priors: dict[tuple, tuple[Tensor, Tensor]] = {}
@@ -321,18 +323,26 @@ class EdMCGS(nn.Module):
         event_disp = None
         if self.transition is not None and event_map is not None and (
                 bool(torch.any(event_map != 0)) if nonzero is None else nonzero):
-            feats = self.encoder(self.config.contrast_threshold * event_map[None, None])[0]
-            if self.config.local_sampling:
-                if ev_w2c is None:
-                    raise InvalidInputError("ev_w2c is needed to project control points on the event camera")
-                intr = self.meta.event_intrinsics
-                uv, depth = project((cp + trans).detach(), ev_w2c, intr)
-                codes = sample_local(feats, uv, depth > NEAR, intr.width, intr.height)
-            else:
-                codes = sample_global(feats, cp.shape[0])
-            event_disp = self.transition(x, codes) * (self.extent * self.event_scale)
+            if self.config.local_sampling and ev_w2c is None:
+                raise InvalidInputError("ev_w2c is needed to project control points on the event camera")
+            compiled = self.compiled_event_motion if torch.is_grad_enabled() else None
+            event_disp = (compiled or self.event_motion)(event_map, x, (cp + trans).detach(), ev_w2c)
             trans = trans + event_disp
         return trans, rot, event_disp
+
+    def event_motion(self, event_map: Tensor, x: Tensor, moved: Tensor, ev_w2c: Tensor | None) -> Tensor:
+        """g_phi's displacement [M, 3] (world units) of the control points ``x`` (normalised) from
+        ``event_map`` [He, We], each point's motion code read where the prior has moved it (``moved``
+        [M, 3], world; ``ev_w2c`` the event camera) unless config.local_sampling is off. One pure function
+        of tensors: training calls ``compiled_event_motion``, torch.compile's, where it is set."""
+        feats = self.encoder(self.config.contrast_threshold * event_map[None, None])[0]
+        if self.config.local_sampling:
+            intr = self.meta.event_intrinsics
+            uv, depth = project(moved, ev_w2c, intr)
+            codes = sample_local(feats, uv, depth > NEAR, intr.width, intr.height)
+        else:
+            codes = sample_global(feats, x.shape[0])
+        return self.transition(x, codes) * (self.extent * self.event_scale)
 
     def _prior_since(self, x: Tensor, since: float, rows: Tensor | None) -> tuple[Tensor, Tensor]:
         """``prior(x, since)``, ``x`` the control points ``rows`` (None: all) normalised: the prior at an

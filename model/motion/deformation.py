@@ -1,10 +1,13 @@
 """The RGB prior f_theta(gamma(sg(mu_j)), gamma(t)): a deformation MLP evaluated at the control points."""
 
+from collections.abc import Callable
+
 import torch
 from torch import Tensor, nn
 
 from edmcgs.model.motion.encoding import encoded_size, positional_encoding
 from edmcgs.model.motion.point_terms import PointTerms
+from edmcgs.model.render.io import to_device
 
 
 class DeformationField(nn.Module):
@@ -30,6 +33,8 @@ class DeformationField(nn.Module):
             nn.init.zeros_(head.weight)
             nn.init.zeros_(head.bias)
         self._points = PointTerms()
+        self.compiled_field: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]] | None = None
+        """torch.compile's ``field``, which training calls in its place (``Trainer(compile=True)``)."""
 
     def forward(self, x: Tensor, t: float | Tensor) -> tuple[Tensor, Tensor]:
         """x: Tensor  # [M, 3] control points in normalised scene coordinates (about [-1, 1]), no grad
@@ -37,9 +42,17 @@ class DeformationField(nn.Module):
         returns (translation [M, 3] in scene extents, rotation delta [M, 4] to add to the identity)
         """
         t_enc = self.encode_time(t, x)                                                  # [1, Dt]
+        if torch.is_grad_enabled():
+            return (self.compiled_field or self.field)(x, t_enc)
         # The layers that read the input [gamma(x), gamma(t)] split it by columns: the gamma(x) part (with
         # the bias) is time-independent and kept between inference calls, the gamma(t) part is one row.
-        x_terms = self._points.get(self, x, self._x_terms)
+        return self._trunk(self._points.get(self, x, self._x_terms), t_enc)
+
+    def field(self, x: Tensor, t_enc: Tensor) -> tuple[Tensor, Tensor]:
+        """``forward`` of the encoded time ``t_enc`` [1, Dt], nothing kept: one pure function of tensors."""
+        return self._trunk(self._x_terms(x), t_enc)
+
+    def _trunk(self, x_terms: dict[int, Tensor], t_enc: Tensor) -> tuple[Tensor, Tensor]:
         dt = t_enc.shape[1]
         h = None
         for i, layer in enumerate(self.layers):
@@ -54,9 +67,10 @@ class DeformationField(nn.Module):
 
     def encode_time(self, t: float | Tensor, like: Tensor) -> Tensor:
         """gamma(t) [1, Dt] in ``like``'s dtype and device, computed in float64 and then cast: sin(2^k pi t)
-        of a float32 t would lose microseconds of a long span."""
-        t64 = torch.as_tensor(t, dtype=torch.float64, device=like.device).reshape(1, 1)
-        return positional_encoding(t64, self.time_freqs).to(like.dtype)
+        of a float32 t would lose microseconds of a long span. A number is encoded on the host and sent
+        as one row (on a GPU a dozen launches fewer, and no wait for the device)."""
+        t64 = torch.as_tensor(t, dtype=torch.float64).reshape(1, 1)
+        return to_device(positional_encoding(t64, self.time_freqs).to(like.dtype), like.device)
 
     def _x_terms(self, x: Tensor) -> dict[int, Tensor]:
         """gamma(x) times the gamma(x) columns of each layer that reads the input, plus its bias, by

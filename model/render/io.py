@@ -146,7 +146,7 @@ def check_inputs(means, quats, scales, opacities, colors, w2c, intrinsics, backg
                 f"background must be a number or {channels} numbers, got {tuple(background.shape)}") from exc
         if not device_flags[-1]:
             raise InvalidInputError("background contains NaN or Inf")
-        w2c_out = torch.as_tensor(w2c64, dtype=means.dtype, device=means.device)
+        w2c_out = to_device(torch.as_tensor(w2c64, dtype=means.dtype), means.device)
         return Checked(means, quats, scales, opacities, colors, w2c_out, bg_out, channels)
     if background is None:
         bg = np.zeros(channels)
@@ -161,8 +161,19 @@ def check_inputs(means, quats, scales, opacities, colors, w2c, intrinsics, backg
         if not np.isfinite(bg).all():
             raise InvalidInputError("background contains NaN or Inf")
     if is_torch:
-        w2c_out = torch.as_tensor(w2c64, dtype=means.dtype, device=means.device)
-        bg_out = torch.as_tensor(bg, dtype=means.dtype, device=means.device)
+        w2c_out = to_device(torch.as_tensor(w2c64, dtype=means.dtype), means.device)
+        bg_out = to_device(torch.as_tensor(bg, dtype=means.dtype), means.device)
     else:
         w2c_out, bg_out = w2c64, bg.astype(np.float32)
     return Checked(means, quats, scales, opacities, colors, w2c_out, bg_out, channels)
+
+
+def to_device(host, device):
+    """A host tensor (or array) on ``device`` without waiting for that device: on a GPU it is pinned and
+    copied non_blocking (torch's pinned-block cache keeps it until the copy has run), where a plain copy
+    would wait for every queued kernel first. Unchanged on the CPU."""
+    host = torch.as_tensor(host)
+    device = torch.device(device)
+    if device.type != "cuda":
+        return host.to(device)
+    return host.pin_memory().to(device, non_blocking=True)

@@ -35,6 +35,7 @@ from torch import Tensor
 
 from edmcgs.errors import RenderError
 from edmcgs.geometry import Intrinsics
+from edmcgs.model.render.io import to_device
 from edmcgs.model.render.projection import LOWPASS, TILE
 
 PACKAGE = "gsplat"
@@ -80,9 +81,9 @@ def _warn_once(error: str) -> None:
 
 def camera(w2c: Tensor, intrinsics: Intrinsics) -> tuple[Tensor, Tensor]:
     """(viewmats [1, 4, 4], Ks [1, 3, 3]) of our camera in gsplat's conventions, on w2c's device and dtype."""
-    k = torch.tensor([[intrinsics.fx, 0.0, intrinsics.cx + 0.5],
-                      [0.0, intrinsics.fy, intrinsics.cy + 0.5],
-                      [0.0, 0.0, 1.0]], dtype=w2c.dtype, device=w2c.device)
+    k = to_device(torch.tensor([[intrinsics.fx, 0.0, intrinsics.cx + 0.5],
+                                [0.0, intrinsics.fy, intrinsics.cy + 0.5],
+                                [0.0, 0.0, 1.0]], dtype=w2c.dtype), w2c.device)
     return w2c[None].contiguous(), k[None]
 
 

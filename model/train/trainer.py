@@ -107,8 +107,17 @@ class Trainer:
             raise InvalidInputError(f"the data has {data.channels} channels, the model {model.meta.channels}")
         self.device = torch.device(device)
         self.model = model.to(self.device).train()
+        self.photometric_loss, self.pyramid_l1, self.event_loss = photometric_loss, pyramid_l1, event_loss
         if compile:
-            self.model.skinning = torch.compile(lbs)
+            # The step's pure tensor functions as fused kernels, forward and backward: a few each instead of
+            # hundreds of small ops, which is what a GPU step waits on (each op is a kernel launch). The
+            # point counts change with the windows (dynamic), the image sizes do not (one graph each).
+            self.model.skinning = torch.compile(lbs, dynamic=True)
+            self.model.prior.compiled_field = torch.compile(self.model.prior.field, dynamic=True)
+            if self.model.transition is not None:
+                self.model.compiled_event_motion = torch.compile(self.model.event_motion, dynamic=True)
+            self.photometric_loss, self.pyramid_l1, self.event_loss = (
+                torch.compile(f, dynamic=False) for f in (photometric_loss, pyramid_l1, event_loss))
         self.extent = float(model.extent)
         """The scene's extent (a constant buffer), read once: the schedules need it every step."""
         self.data = data
@@ -291,7 +300,7 @@ class Trainer:
         with stage("anchor: render"):
             image = self._render(anchor_state, self.anchor_w2c_host[n])
         with stage("anchor: photometric loss"):
-            terms["photo"] = photometric_loss(image, self.anchor_images[n], cfg.lambda_dssim)
+            terms["photo"] = self.photometric_loss(image, self.anchor_images[n], cfg.lambda_dssim)
         loss = terms["photo"]
 
         if not static and self.grid is not None:
@@ -317,7 +326,7 @@ class Trainer:
                 events = cum[b] - cum[a]
                 ei = self.event_intr
                 events = _resize(events[None, :, :, None], ei.height, ei.width)[0, :, :, 0]
-                terms["event"] = event_loss(renders[0], renders[1], events, cfg.contrast_threshold,
+                terms["event"] = self.event_loss(renders[0], renders[1], events, cfg.contrast_threshold,
                                             cfg.log_eps, levels=cfg.event_loss_levels)
             loss = loss + cfg.lambda_event * terms["event"]
             cp, graph = self._graph(gap if rowwise else None)
@@ -334,8 +343,8 @@ class Trainer:
                         model.state_from_motion(trans_e, rot_e, gap, motion_only=True, weights=weights)
                     image_next = self._render(st, self.anchor_w2c_host[gap + 1])
                     target = self.anchor_images[gap + 1]
-                    terms["next"] = photometric_loss(image_next, target, cfg.lambda_dssim) \
-                        + pyramid_l1(image_next, target, cfg.next_levels)
+                    terms["next"] = self.photometric_loss(image_next, target, cfg.lambda_dssim) \
+                        + self.pyramid_l1(image_next, target, cfg.next_levels)
                 loss = loss + cfg.lambda_next * terms["next"]
             disps = [d for d in (disp_a, disp_b) if d is not None]
             if disps:

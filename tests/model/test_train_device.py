@@ -13,6 +13,7 @@ SMALL = ["init_points=600", "num_control_points=48", "deform_from=0.0"]
 PRESETS = {"demo": [*SMALL, "iterations=20", "densify_from=0.0", "densify_every=10"],
            "real": [*SMALL, "iterations=20"]}
 """The demo preset densifying, and the real one (background layer, anchor windows, the next anchor)."""
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +48,7 @@ def test_a_step_reads_the_device_once_outside_the_rasterizer(recording, preset, 
     assert all(site.startswith("model/train/trainer.py:") for site in outside), outside
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@CUDA
 @pytest.mark.parametrize("backend", ["auto", "torch"])
 @pytest.mark.parametrize("preset", sorted(PRESETS))
 def test_cuda_steps(recording, preset, backend, monkeypatch):
@@ -60,12 +61,18 @@ def test_cuda_steps(recording, preset, backend, monkeypatch):
     assert all(torch.isfinite(p).all() for p in trainer.model.parameters())
 
 
-def test_compiled_skinning_trains_as_the_default(recording):
-    """torch.compile's skinning: the same steps (same draws), losses and gradients equal to float32
-    rounding (gradients within 1e-3 of each parameter's largest, where that is above 1e-6: the radii's are
-    rounding-sized; parameters are not compared: Adam's first steps amplify such rounding)."""
-    plain, compiled = _trainer(recording, "demo"), _trainer(recording, "demo", compile=True)
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=CUDA)])
+@pytest.mark.parametrize("preset", sorted(PRESETS))
+def test_compiled_step_trains_as_the_default(recording, preset, device):
+    """torch.compile's skinning, prior network and losses: the same steps (same draws), losses and
+    gradients equal to float32 rounding (gradients within 1e-3 of each parameter's largest, where that is
+    above 1e-6: the radii's are rounding-sized; parameters are not compared: Adam's first steps amplify
+    such rounding)."""
+    plain, compiled = _trainer(recording, preset, device), _trainer(recording, preset, device, compile=True)
     assert compiled.model.skinning is not plain.model.skinning
+    assert compiled.model.prior.compiled_field is not None and plain.model.prior.compiled_field is None
+    assert (compiled.model.compiled_event_motion is None) == (compiled.model.transition is None)
+    assert compiled.photometric_loss is not plain.photometric_loss
     for step in range(3):
         a, b = plain.train_step(), compiled.train_step()
         assert a.keys() == b.keys()
