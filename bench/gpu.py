@@ -5,13 +5,13 @@
 ``scripts/gpu_check.sh`` runs it on a fresh GPU machine (after installing what that lacks). Parts, in
 this order, each a subprocess with its own time limit, cut to what is left of ``--deadline`` seconds:
 
-    tests       the CUDA tests (tests/raster and test_train_device.py, -k "cuda or gsplat")
     render      bench.render at 346x260 with 8k Gaussians: each CUDA path, forward and forward + backward
     train_real_compile  the ``real`` preset trained from scratch on ``--real`` (a 346x260 street, default
                 ``edmcgs synth traffic --fps 5 --seconds 3 --seed 0``) for 1500 steps, or as many as its
                 budget allows, with ``--compile`` (the step's fused kernels; their compile included):
                 steps/s, training seconds, wall seconds, held-out PSNR / SSIM of all frames
     train_real  the same without ``--compile``
+    tests       the CUDA tests (tests/raster and test_train_device.py, -k "cuda or gsplat")
     serve       bench.serve on the demo: GET /render p50 (one client) and four clients' renders/s
     train_demo_compile, train_demo  the ``demo`` preset on the bundled demo recording, with and without
     train_step  bench.train_step with the ``real`` preset on ``--real``, compiled: per stage, host reads,
@@ -43,7 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 STEPS = 1500
 CUDA_TESTS = ["tests/raster", "tests/model/test_train_device.py"]
 """Where the CUDA cases are; ``-k "cuda or gsplat"`` picks them (and test_rasterize_gsplat.py's CPU ones)."""
-BUDGETS = {"tests": 150, "render": 60, "train_real_compile": 90, "train_real": 60, "serve": 60,
+BUDGETS = {"render": 60, "train_real_compile": 90, "train_real": 45, "tests": 150, "serve": 60,
            "train_demo_compile": 60, "train_step": 75, "train_demo": 40, "eval": 45}
 """Seconds each part may take on the GPU; a training run's are its training alone (its setup and the final
 scoring get another ``TRAIN_EXTRA``)."""
