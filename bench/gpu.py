@@ -6,22 +6,20 @@
 this order, each a subprocess with its own time limit, cut to what is left of ``--deadline`` seconds:
 
     render      bench.render at 346x260 with 8k Gaussians: each CUDA path, forward and forward + backward
-    train_real_compile  the ``real`` preset trained from scratch on ``--real`` (a 346x260 street, default
+    train_real  the ``real`` preset trained from scratch on ``--real`` (a 346x260 street, default
                 ``edmcgs synth traffic --fps 5 --seconds 3 --seed 0``) for 1500 steps, or as many as its
-                budget allows, with ``--compile`` (the step's fused kernels; their compile included):
-                steps/s, training seconds, wall seconds, held-out PSNR / SSIM of all frames
-    train_real  the same without ``--compile``
+                budget allows: steps/s, training seconds, wall seconds, held-out PSNR / SSIM of all frames
     tests       the CUDA tests (tests/raster and test_train_device.py, -k "cuda or gsplat")
     serve       bench.serve on the demo: GET /render p50 (one client) and four clients' renders/s
-    train_demo_compile, train_demo  the ``demo`` preset on the bundled demo recording, with and without
-    train_step  bench.train_step with the ``real`` preset on ``--real``, compiled: per stage, host reads,
-                syncs
+    train_step  bench.train_step with the ``real`` preset on ``--real``: per stage, ops, launches, syncs
+    train_demo  the ``demo`` preset on the bundled demo recording, as train_real
+    train_real_compile, train_demo_compile  the same with ``--compile`` (their compile included)
     eval        edmcgs eval --demo on the device (the bundled checkpoint against its held-out frames)
 
 A part cut by its limit is recorded with what it got (a training run stops at its budget and reports the
-steps it made). DIR gets ``gpu.json`` (every part: command, return code, seconds, results) and
-``gpu.log`` (their output); gpu.json's ``summary`` holds the figures the docs quote. ``--tiny``: CPU-sized settings (a few steps, short measurements, the bundled
-demo in place of ``--real``) to check this driver without a GPU.
+steps it made). DIR gets ``gpu.json`` (every part: command, return code, seconds, results; its ``summary``
+holds the figures the docs quote) and ``gpu.log`` (their output). ``--tiny``: CPU-sized settings (a few
+steps, short measurements, the bundled demo in place of ``--real``) to check this driver without a GPU.
 """
 
 from __future__ import annotations
@@ -43,8 +41,8 @@ ROOT = Path(__file__).resolve().parents[1]
 STEPS = 1500
 CUDA_TESTS = ["tests/raster", "tests/model/test_train_device.py"]
 """Where the CUDA cases are; ``-k "cuda or gsplat"`` picks them (and test_rasterize_gsplat.py's CPU ones)."""
-BUDGETS = {"render": 60, "train_real_compile": 90, "train_real": 45, "tests": 150, "serve": 60,
-           "train_demo_compile": 60, "train_step": 75, "train_demo": 40, "eval": 45}
+BUDGETS = {"render": 60, "train_real": 90, "tests": 150, "serve": 60, "train_step": 75, "train_demo": 40,
+           "train_real_compile": 60, "train_demo_compile": 45, "eval": 45}
 """Seconds each part may take on the GPU; a training run's are its training alone (its setup and the final
 scoring get another ``TRAIN_EXTRA``)."""
 TRAIN_EXTRA = 45
@@ -127,7 +125,7 @@ def _parts(args) -> list[tuple[str, list[str], float]]:
                   "--json", str(out / "serve.json")],
         "eval": [*py, "-m", "edmcgs.cli", "eval", "--demo", "-q", *dev],
         "train_step": [*py, "-m", "bench.train_step", *dev, "--recording", str(args.real), "--config", "real",
-                       "--compile", "--steps", "3" if tiny else "20", *small,
+                       "--steps", "3" if tiny else "20", *small,
                        "--json", str(out / "train_step.json")],
     }
     for name in ("train_real", "train_real_compile", "train_demo", "train_demo_compile"):

@@ -36,9 +36,11 @@ READ_STEPS = 5
 """Steps whose host reads (and CUDA synchronisations) are counted."""
 
 
-def profile_steps(trainer, steps: int) -> tuple[dict, dict, list[dict], float]:
+def profile_steps(trainer, steps: int) -> tuple[dict, dict, list[dict], float, dict]:
     """({stage: host ms per step}, {stage: GPU ms per step} (empty on the CPU), the 12 slowest ops by self
-    time (on CUDA: by GPU time), median wall ms per step) of ``steps`` steps."""
+    time (on CUDA: by GPU time), median wall ms per step, {"ops": torch ops per step not called by another,
+    "launches": kernel launches per step (CUDA)}) of ``steps`` steps. On a GPU each op costs the host
+    about 10 us to issue: a step of thousands waits on Python, not on its kernels."""
     import torch
     from torch.profiler import ProfilerActivity, profile, record_function
 
@@ -53,6 +55,16 @@ def profile_steps(trainer, steps: int) -> tuple[dict, dict, list[dict], float]:
                 trainer.train_step()
             sync()
             walls.append((time.perf_counter() - start) * 1e3)
+    counts = {"ops": 0, "launches": 0}
+    for e in prof.events():
+        if e.name.startswith("aten::"):
+            parent = e.cpu_parent
+            while parent is not None and not parent.name.startswith("aten::"):
+                parent = parent.cpu_parent
+            counts["ops"] += parent is None
+        elif e.name in ("cudaLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernel", "cuLaunchKernelEx"):
+            counts["launches"] += 1
+    counts = {k: v / steps for k, v in counts.items()}
     events = prof.key_averages()
     # the trainer's ranges: "part: what" or one of these (torch's ops are "aten::...", "autograd::...")
     named = ("step", "backward", "optimizer step", "density control", "next anchor")
@@ -72,7 +84,7 @@ def profile_steps(trainer, steps: int) -> tuple[dict, dict, list[dict], float]:
     top = [{"op": e.key, "self_ms": e.self_cpu_time_total / steps / 1e3, "calls": e.count // steps}
            | ({"gpu_ms": getattr(e, "self_device_time_total", 0.0) / steps / 1e3} if cuda else {})
            for e in ops]
-    return ranges, gpu, top, float(np.median(walls))
+    return ranges, gpu, top, float(np.median(walls)), counts
 
 
 def host_reads(trainer, steps: int = READ_STEPS) -> dict:
@@ -167,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
     trainer.step = round(args.at * trainer.total_steps)
     for _ in range(WARMUP):
         trainer.train_step()
-    ranges, gpu, top, step_ms = profile_steps(trainer, args.steps)
+    ranges, gpu, top, step_ms, counts = profile_steps(trainer, args.steps)
     total = ranges.pop("step")
     gpu_total = gpu.pop("step", None)
     cuda = trainer.device.type == "cuda"
@@ -184,6 +196,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'(outside the stages)':<30}{rest:>10.2f}{rest / total:>8.0%}")
     print(f"{'step (profiled)':<30}{total:>10.2f}" + (f"{'':>8}{gpu_total:>10.2f}" if cuda else ""))
     print(f"{'step (median, wall)':<30}{step_ms:>10.2f}")
+    print(f"torch ops per step (not called by another op): {counts['ops']:.0f}"
+          + (f"; kernel launches: {counts['launches']:.0f}" if cuda else ""))
     print(f"\nslowest ops by {'GPU' if cuda else 'self'} time (ms/step):")
     print(f"{'op':<44}{'self ms':>9}{'calls':>7}" + (f"{'GPU ms':>9}" if cuda else ""))
     for row in top:
@@ -206,7 +220,9 @@ def main(argv: list[str] | None = None) -> int:
                            "device": str(trainer.device), "device_name": where, "threads": args.threads,
                            "rasterizer": rasterizer, "compile": args.compile,
                            "gaussians": len(trainer.model.gaussians),
-                           "step_ms_median": step_ms, "step_ms_profiled": total, "stages_ms": ranges,
+                           "step_ms_median": step_ms, "step_ms_profiled": total,
+                           "ops_per_step": counts["ops"], "launches_per_step": counts["launches"],
+                           "stages_ms": ranges,
                            "step_gpu_ms": gpu_total, "stages_gpu_ms": gpu, "top_ops": top,
                            "host_reads": reads, "cuda_syncs": syncs, "load_average_1m": load})
     return 0

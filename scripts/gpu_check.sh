@@ -54,7 +54,7 @@ PY
       echo "gsplat's extension ready after $((SECONDS - t0)) s"
       built=$("$PY" -c "from torch.utils.cpp_extension import _get_build_directory as d; \
 print(d('gsplat_cuda', False))")/gsplat_cuda.so
-      [[ -f $built ]] && gzip -c "$built" > "$OUT/gsplat_cuda.so.gz"  # for .gpu/: later runs skip the build
+      if [[ -f $built ]]; then gzip -c "$built" > "$OUT/gsplat_cuda.so.gz"; fi  # for .gpu/: no build next time
     else  # uninstalled, so that no later process tries the build again: CUDA renders take the torch path
       echo "gsplat's extension NOT built after $((SECONDS - t0)) s: uninstalling gsplat"
       "$PY" -m pip uninstall -q -y gsplat

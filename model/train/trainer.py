@@ -86,9 +86,10 @@ class Trainer:
     def __init__(self, model: EdMCGS, data: TrainingData, *, device: str | torch.device = "cpu",
                  progress: bool = True, clock: Callable[[], float] = time.perf_counter,
                  compile: bool = False, sync: GradientSync | None = None):
-        """compile: skin the Gaussians with ``torch.compile``'s fused kernels (``EdMCGS.skinning``): after
-        a compile of some seconds on the first steps, each step is faster (on the CPU too: the fused
-        blend never builds the gathered [N, K, 12] maps); the values agree with the default to float32
+        """compile: the step's pure tensor functions (skinning, the prior's network, the event branch, the
+        image losses) by ``torch.compile``: after a compile of about a minute on the first steps, a CPU
+        step takes about 0.6 of the time (a GPU step more: the compiled regions' own host time outweighs
+        the launches they save, docs/benchmarks/gpu.md); the values agree with the default to float32
         rounding, not bit for bit."""
         self.cfg = cfg = model.config
         self.sync = sync
@@ -109,9 +110,8 @@ class Trainer:
         self.model = model.to(self.device).train()
         self.photometric_loss, self.pyramid_l1, self.event_loss = photometric_loss, pyramid_l1, event_loss
         if compile:
-            # The step's pure tensor functions as fused kernels, forward and backward: a few each instead of
-            # hundreds of small ops, which is what a GPU step waits on (each op is a kernel launch). The
-            # point counts change with the windows (dynamic), the image sizes do not (one graph each).
+            # Fused kernels, forward and backward: a few each instead of hundreds of small ops. The point
+            # counts change with the windows (dynamic shapes), the image sizes do not (one graph each).
             self.model.skinning = torch.compile(lbs, dynamic=True)
             self.model.prior.compiled_field = torch.compile(self.model.prior.field, dynamic=True)
             if self.model.transition is not None:
