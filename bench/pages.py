@@ -175,12 +175,20 @@ class Figures:
 
 
 def _outside_code(line: str, expand) -> str:
-    """``line`` with its placeholders expanded, but not those inside `code spans`."""
+    """``line`` with its placeholders expanded, but not those inside `code spans`; a ``{{`` left open
+    (a placeholder broken over two lines) is an error, not text on the page."""
     out, at = [], 0
+
+    def fill(text: str) -> str:
+        done = PLACEHOLDER.sub(expand, text)
+        if "{{" in PLACEHOLDER.sub("", text):
+            raise InvalidInputError(f"figures: a placeholder opens and closes on one line: {line.strip()!r}")
+        return done
+
     for span in CODE_SPAN.finditer(line):
-        out += [PLACEHOLDER.sub(expand, line[at:span.start()]), span[0]]
+        out += [fill(line[at:span.start()]), span[0]]
         at = span.end()
-    return "".join([*out, PLACEHOLDER.sub(expand, line[at:])])
+    return "".join([*out, fill(line[at:])])
 
 
 def _source(name: str, fields: dict, where: str) -> Source:

@@ -100,6 +100,11 @@ def test_a_wrong_reference_is_named(tmp_path, body, says):
         Figures(_reports(tmp_path)).render("{{ " + body + " }}")
 
 
+def test_a_placeholder_broken_over_two_lines_is_refused(tmp_path):
+    with pytest.raises(InvalidInputError, match="opens and closes on one line"):
+        Figures(_reports(tmp_path)).render("p50 {{ bench/serve.json\nrender_p50_ms }} ms")
+
+
 def test_a_file_without_provenance_is_refused(tmp_path):
     reports = tmp_path / "reports"
     reports.mkdir()
