@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
     parser.add_argument("--compile", action="store_true",
                         help="fuse the step's skinning, deformation networks and losses with "
-                             "torch.compile: on the CPU about 1.7x faster steps after a compile of about a "
+                             "torch.compile: on the CPU about 1.3x faster steps after a compile of about a "
                              "minute (on a GPU not established); values equal to float32 rounding")
     parser.add_argument("--resume", nargs="?", const=True, default=None, metavar="CKPT",
                         help="continue the run saved in CKPT (default: the checkpoint at --output) with its "
