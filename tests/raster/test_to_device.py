@@ -18,6 +18,8 @@ def test_on_the_cpu_the_values_arrive_as_they_are():
 def test_on_cuda_the_copy_does_not_synchronise():
     busy = torch.rand(4096, 4096, device="cuda")
     host = torch.arange(16, dtype=torch.float32).reshape(4, 4)
+    to_device(host, "cuda")  # the first pinned block is allocated (cudaHostAlloc may wait); later reuse it
+    torch.cuda.synchronize()
     torch.cuda.set_sync_debug_mode("error")  # any synchronising call raises
     try:
         for _ in range(5):
