@@ -47,6 +47,8 @@ BUDGETS = {"render": 60, "train_real": 90, "tests": 150, "serve": 60, "train_ste
 """Seconds each part may take on the GPU; a training run's are its training alone (its setup and the final
 scoring get another ``TRAIN_EXTRA``)."""
 TRAIN_EXTRA = 45
+TRAIN_PARTS = ("train_real", "train_real_compile", "train_demo", "train_demo_compile")
+"""The parts that train (``train_run``), each ``train_PRESET[_compile]``."""
 TAIL_LINES = 12
 """Last output lines of each part kept in gpu.json (all of it is in gpu.log)."""
 PARTS = tuple(BUDGETS)
@@ -137,13 +139,13 @@ def _parts(args) -> list[tuple[str, list[str], float]]:
                        "--steps", "3" if tiny else "20", *small,
                        "--json", str(out / "train_step.json")],
     }
-    for name in ("train_real", "train_real_compile", "train_demo", "train_demo_compile"):
+    for name in TRAIN_PARTS:
         preset = name.split("_")[1]
         parts[name] = [*py, "-m", "bench.gpu", "--train", preset, *(real if preset == "real" else []), *dev,
                        *(["--compile"] if name.endswith("_compile") else []), "--steps", steps,
                        "--budget", str(budgets[name]), *small, "--json", str(out / f"{name}.json")]
-    extra = {name: TRAIN_EXTRA if name.startswith("train_") and name != "train_step" else 0 for name in parts}
-    return [(name, parts[name], budgets[name] + extra[name]) for name in PARTS if name in args.parts]
+    return [(name, parts[name], budgets[name] + (TRAIN_EXTRA if name in TRAIN_PARTS else 0))
+            for name in PARTS if name in args.parts]
 
 
 def _run_part(name: str, cmd: list[str], limit: float, log) -> dict:
@@ -175,7 +177,7 @@ def summarize(parts: dict) -> dict:
         out[f"{row['path']}_{row['pass']}_ms"] = row["median_ms"]
     for name, part in parts.items():
         res = part.get("results", {})
-        if not name.startswith("train_") or name == "train_step" or not res.get("steps_done"):
+        if name not in TRAIN_PARTS or not res.get("steps_done"):
             continue
         key = name.removeprefix("train_")
         out |= {f"{key}_steps": res["steps_done"], f"{key}_train_s": res["train_seconds"],

@@ -87,6 +87,21 @@ def profile_steps(trainer, steps: int) -> tuple[dict, dict, list[dict], float, d
     return ranges, gpu, top, float(np.median(walls)), counts
 
 
+def op_cost_us(device, ops: int = 20_000) -> float:
+    """Host microseconds to issue one small op on ``device`` (an in-place add, the device waited for at the
+    end): the floor of each op of a step when a GPU waits on Python."""
+    import torch
+
+    x = torch.zeros(16, device=device)
+    sync = torch.cuda.synchronize if x.device.type == "cuda" else (lambda: None)
+    sync()
+    start = time.perf_counter()
+    for _ in range(ops):
+        x.add_(1)
+    sync()
+    return (time.perf_counter() - start) / ops * 1e6
+
+
 def host_reads(trainer, steps: int = READ_STEPS) -> dict:
     """What ``steps`` steps read back to the host: per step in all, and per step by line (project code
     that asked itself; reads inside libraries, such as torch's CPU optimizer, under their caller)."""
@@ -196,8 +211,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'(outside the stages)':<30}{rest:>10.2f}{rest / total:>8.0%}")
     print(f"{'step (profiled)':<30}{total:>10.2f}" + (f"{'':>8}{gpu_total:>10.2f}" if cuda else ""))
     print(f"{'step (median, wall)':<30}{step_ms:>10.2f}")
+    per_op = op_cost_us(trainer.device)
     print(f"torch ops per step (not called by another op): {counts['ops']:.0f}"
-          + (f"; kernel launches: {counts['launches']:.0f}" if cuda else ""))
+          + (f"; kernel launches: {counts['launches']:.0f}" if cuda else "")
+          + f"; host time to issue one small op: {per_op:.1f} us")
     print(f"\nslowest ops by {'GPU' if cuda else 'self'} time (ms/step):")
     print(f"{'op':<44}{'self ms':>9}{'calls':>7}" + (f"{'GPU ms':>9}" if cuda else ""))
     for row in top:
@@ -222,6 +239,7 @@ def main(argv: list[str] | None = None) -> int:
                            "gaussians": len(trainer.model.gaussians),
                            "step_ms_median": step_ms, "step_ms_profiled": total,
                            "ops_per_step": counts["ops"], "launches_per_step": counts["launches"],
+                           "us_per_small_op": per_op,
                            "stages_ms": ranges,
                            "step_gpu_ms": gpu_total, "stages_gpu_ms": gpu, "top_ops": top,
                            "host_reads": reads, "cuda_syncs": syncs, "load_average_1m": load})

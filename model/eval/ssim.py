@@ -49,7 +49,7 @@ def ssim_map(a: Tensor, b: Tensor, *, size: int = 11, sigma: float = 1.5,
             size, sigma = fit, sigma * fit / size
     # The five maps blurred in one depthwise convolution, each image channel its own group: one call, not
     # four, and on the CPU a one-channel convolution's backward is several times slower than a depthwise
-    # one's (grey 346x260: SSIM and its gradient 55 -> 10 ms).
+    # one's (the real preset's step on grey frames 176 / 159 -> 95 / 102 ms: docs/benchmarks/training.md).
     c, h, w = a.shape[-1], a.shape[0], a.shape[1]
     n = 5 * c
     x = torch.stack([a, b, a * a, b * b, a * b]).permute(0, 3, 1, 2).reshape(1, n, h, w)

@@ -81,10 +81,16 @@ def _warn_once(error: str) -> None:
 
 def camera(w2c: Tensor, intrinsics: Intrinsics) -> tuple[Tensor, Tensor]:
     """(viewmats [1, 4, 4], Ks [1, 3, 3]) of our camera in gsplat's conventions, on w2c's device and dtype."""
-    k = to_device(torch.tensor([[intrinsics.fx, 0.0, intrinsics.cx + 0.5],
-                                [0.0, intrinsics.fy, intrinsics.cy + 0.5],
-                                [0.0, 0.0, 1.0]], dtype=w2c.dtype), w2c.device)
-    return w2c[None].contiguous(), k[None]
+    return w2c[None].contiguous(), _ks(intrinsics, w2c.dtype, w2c.device)
+
+
+@functools.lru_cache(maxsize=16)
+def _ks(intrinsics: Intrinsics, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """[1, 3, 3] intrinsics matrix, principal point at gsplat's pixel centres: made once per camera and
+    device (a training step renders a few cameras thousands of times; gsplat only reads it)."""
+    return to_device(torch.tensor([[[intrinsics.fx, 0.0, intrinsics.cx + 0.5],
+                                    [0.0, intrinsics.fy, intrinsics.cy + 0.5],
+                                    [0.0, 0.0, 1.0]]], dtype=dtype), device)
 
 
 def composite_gsplat(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, feat: Tensor,

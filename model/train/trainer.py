@@ -88,9 +88,8 @@ class Trainer:
                  compile: bool = False, sync: GradientSync | None = None):
         """compile: the step's pure tensor functions (skinning, the prior's network, the event branch, the
         image losses) by ``torch.compile``: after a compile of about a minute on the first steps, a CPU
-        step takes about 0.7 of the time (on a GPU the compiled regions' own host time eats into what
-        they save: docs/benchmarks/gpu.md); the values agree with the default to float32 rounding, not
-        bit for bit."""
+        step takes about 0.7 of the time (on a GPU the gain is not established: docs/benchmarks/gpu.md);
+        the values agree with the default to float32 rounding, not bit for bit."""
         self.cfg = cfg = model.config
         self.sync = sync
         rank, world = (0, 1) if sync is None else (sync.rank, sync.world)
