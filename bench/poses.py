@@ -1,7 +1,7 @@
 """Poses from a recording's own frames (``edmcgs.poses``, as ``edmcgs poses`` / ``--poses auto`` run it):
 frames registered, trajectory error against the true poses, time.
 
-    .venv/bin/python -m bench.poses [--json PATH] [--quick] [--recording REC ...] [--scenes a,b]
+    .venv/bin/python -m bench.poses [--json PATH] [--quick] [--recording REC ...] [--scenes a,b] [--repeat N]
 
 Scenes (``--scenes``, default all):
 
@@ -28,7 +28,9 @@ Per scene: frames, frames registered in the kept model, the absolute trajectory 
 alignment (evo; metres of the scene and % of the true path length; not for a camera that only turns;
 with the IMU fused when the scene has one, and from the frames alone beside it),
 the largest rotation error of a frame relative to the first (degrees), wall and CPU seconds of the
-estimate (CPU: every thread of this process, i.e. COLMAP's). Targets: ATE <= 1 % of the path, >= 95 %
+estimate (CPU: every thread of this process, i.e. COLMAP's). With ``--repeat N`` each scene is estimated
+N times (COLMAP's threads make runs differ): the row is the run with the median error, beside every
+run's error and the largest. Targets: ATE <= 1 % of the path, >= 95 %
 of a real recording's frames registered, ``rigid-60`` within 120 s wall.
 """
 
@@ -45,7 +47,7 @@ from tqdm import tqdm
 from bench.results import table, write_json
 from edmcgs.errors import EdmcgsError
 from edmcgs.geometry import Intrinsics
-from edmcgs.poses import estimate_poses, with_imu
+from edmcgs.poses import estimate_poses
 from edmcgs.synth.build import scene_imu
 from edmcgs.synth.davis import ImuConfig
 from edmcgs.synth.scene import make_scene, render
@@ -53,8 +55,8 @@ from harness.pose_scenes import rigid_sweep, trajectory_error
 
 REAL = Path(__file__).resolve().parents[1] / "tests" / "data" / "test-frame.aedat4"
 SCENES = ("jumpingjack-sweep", "jumpingjack-orbit", "rigid-small", "rigid-60", "traffic-pan", "test-frame")
-TARGETS = {"ate_pct": ("<=", 1.0), "registered_pct": (">=", 95.0), "rigid-60_wall_s": ("<=", 120.0),
-           "traffic-pan_wall_s": ("<=", 120.0)}
+TARGETS = {"ate_pct": ("<=", 1.0), "ate_pct_max": ("<=", 1.0), "registered_pct": (">=", 95.0),
+           "rigid-60_wall_s": ("<=", 120.0), "traffic-pan_wall_s": ("<=", 120.0)}
 
 
 def synth_frames(name: str, camera: str, seconds: float, rate_hz: float = 25.0):
@@ -111,8 +113,7 @@ def measure(name: str, quick: bool) -> dict:
     row: dict = {"frames": len(t_us), "size": f"{images.shape[2]}x{images.shape[1]}", "imu": imu is not None}
     wall, cpu = time.perf_counter(), time.process_time()
     try:
-        frames_only = estimate_poses(t_us, images, intrinsics, progress=False)
-        estimate = frames_only if imu is None else with_imu(frames_only, imu)
+        estimate = estimate_poses(t_us, images, intrinsics, imu=imu, progress=False)
     except EdmcgsError as exc:
         row.update(error=str(exc), wall_s=time.perf_counter() - wall, cpu_s=time.process_time() - cpu)
         return row
@@ -126,11 +127,25 @@ def measure(name: str, quick: bool) -> dict:
         if not estimate.rotation_only:
             rmse, length = trajectory_error(estimate.t_us, estimate.c2w, truth)
             row.update(ate_m=rmse, path_m=length, ate_pct=100.0 * rmse / length)
-        if imu is not None and not (estimate.static or estimate.rotation_only):
-            rmse, length = trajectory_error(frames_only.t_us, frames_only.c2w, truth)
+        if estimate.frames_c2w is not None:  # the frames' own poses, before the IMU refined them
+            frames = estimate.frames_c2w
+            rmse, length = trajectory_error(estimate.t_us, frames, truth)
             row.update(frames_only_ate_pct=100.0 * rmse / length, frames_only_rot_deg=max(
-                _angle(a, b) for a, b in zip(_from_first(frames_only.c2w), _from_first(truth), strict=True)))
+                _angle(a, b) for a, b in zip(_from_first(frames), _from_first(truth), strict=True)))
     return row
+
+
+def _median_run(runs: list[dict]) -> dict:
+    """The run with the median trajectory error, with every run's error and the largest; the first run
+    that failed, if any did (with how many); the first, for a scene with no truth."""
+    failed = [run for run in runs if "error" in run]
+    if failed:
+        return failed[0] | {"failed_runs": len(failed), "runs": len(runs)}
+    errors = [run.get("ate_pct") for run in runs]
+    if len(runs) == 1 or any(e is None for e in errors):
+        return runs[0]
+    order = np.argsort(errors, kind="stable")
+    return runs[int(order[(len(runs) - 1) // 2])] | {"ate_pct_runs": errors, "ate_pct_max": max(errors)}
 
 
 def _from_first(c2w: np.ndarray) -> np.ndarray:
@@ -150,7 +165,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--recording", action="append", default=[], metavar="REC",
                         help="also any recording (AEDAT4 or HDF5), scored against its true poses if it has "
                              "them")
+    parser.add_argument("--repeat", type=int, default=1, metavar="N",
+                        help="estimate each scene N times (COLMAP's threads make runs differ): the row of "
+                             "the run with the median trajectory error, and every run's error (default 1)")
     args = parser.parse_args(argv)
+    if args.repeat < 1:
+        parser.error("--repeat must be at least 1")
     names = [s for s in args.scenes.split(",") if s]
     unknown = sorted(set(names) - set(SCENES))
     if unknown:
@@ -160,7 +180,8 @@ def main(argv: list[str] | None = None) -> int:
     with tqdm(names, desc="bench.poses", unit="scene") as bar:
         for name in bar:
             bar.set_postfix_str(Path(name).name)
-            rows[Path(name).stem if name in args.recording else name] = measure(name, args.quick)
+            runs = [measure(name, args.quick) for _ in range(args.repeat)]
+            rows[Path(name).stem if name in args.recording else name] = _median_run(runs)
     flat: dict = {"load_avg_1m": os.getloadavg()[0], "quick": args.quick}
     targets = {}
     for name, row in rows.items():

@@ -8,8 +8,16 @@ bias turns an integrated rotation by degrees over seconds, an accelerometer's bi
 position by metres. Both are combined in a batch least squares over every registered frame, in two steps:
 
 1. rotations: the gyro's rotation between successive frames (preintegrated, its bias estimated) against
-   each frame's rotation from structure from motion;
-2. positions: the accelerometer's velocity and position increments between successive frames
+   each frame's rotation from structure from motion. Where the bias those rotations imply is one the
+   part would not have (``DRIFT_CHI2``), the frames drift: structure from motion trades turning for
+   translation when it follows a small or moving subject (jumpingjack's orbit falls 24 degrees short of an
+   80 degree turn, at a steady rate that a gyro bias of 6 deg/s would also explain, and no sensor here
+   tells the two apart). The bias is then estimated from the frames' rotations between successive frames
+   alone, each step's error independent (a drift spread over many steps is weak evidence of a bias), with
+   the part's prior, and the rotations are the gyro's;
+2. (optional, ``adjust``) the frames' positions estimated again with their rotations held at step 1's
+   (a bundle adjustment by the caller: the translation a drifting rotation had pulled along comes back);
+3. positions: the accelerometer's velocity and position increments between successive frames
    (preintegrated in the rotations of step 1), with the gravity vector, the accelerometer's bias and the
    metric scale of structure from motion's units estimated, against each frame's position.
 
@@ -24,11 +32,13 @@ caller keeps the frames' poses and says so.
 
 Noise model: white noise at the densities of a DAVIS346's IMU class (MPU-6500: gyro 0.01 deg/s/sqrt(Hz),
 accelerometer 300 ug/sqrt(Hz)) and a constant bias per axis over the recording (no random walk: a bias
-that wanders over minutes is absorbed by the frames' weight).
+that wanders over minutes is absorbed by the frames' weight), with a prior from the part's turn-on
+tolerance (``GYRO_BIAS``, ``ACCEL_BIAS``).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,6 +56,23 @@ ACCEL_BIAS = 0.05 * STANDARD_GRAVITY
 """Prior standard deviation of the accelerometer's bias per axis, m/s^2 (an MPU-6500-class part's turn-on
 offset is up to 60 mg): without it a bias along an axis the camera never turned is indistinguishable
 from gravity and the frames' own error."""
+GYRO_BIAS = np.radians(5.0 / 3)
+"""Prior standard deviation of the gyro's bias per axis, rad/s: an MPU-6500-class part's initial zero-rate
+tolerance, +-5 deg/s, taken as three standard deviations (OKVIS's default, 0.03 rad/s, is the same). It
+decides the bias only where the frames say little of it."""
+DRIFT_CHI2 = 7.81
+"""Chi-square, 3 degrees of freedom, 5 %: the frames' rotations drift when the gyro bias they imply as they
+stand lies this far (squared, in standard deviations of ``GYRO_BIAS``) from zero: a bias the part would
+not have."""
+NEAREST_M = 0.05
+"""Smallest median scene depth, metres, the position step accepts (the poses' unit is the median depth of
+the scene, as ``edmcgs.poses`` makes it): nothing a DAVIS346's lens focuses on is nearer. Where the camera
+circles at a steady rate the accelerometer cannot tell its motion from a bias and a still camera, and a
+fit at a vanishing scale copies the frames at no cost."""
+SCALE_STARTS = 2.0 ** np.arange(-8, 9)
+"""Starts of the position step's scale, as factors of the windowed estimate (``_initial_scale``, which can
+be 60 times off on an orbit): its iterations settle in the basin they start in, and the fit that explains
+both sensors best is kept."""
 MOUNT_SPAN_S = 0.5
 """Span over which the gyro's rotations and the frames' are compared to estimate the IMU's mounting."""
 MAX_GAP_S = 0.05
@@ -91,17 +118,26 @@ class InertialFit:
     """RMS angle between the frames' rotations from structure from motion and the fit."""
     position_scatter: float
     """RMS distance between the frames' positions from structure from motion and the fit (units)."""
+    frames_drift_dps: float | None = None
+    """Where the frames' rotations drift against the gyro: the rate (deg/s) at which they do, a bias their
+    rotations alone would have given the gyro; None where they do not."""
 
     def summary(self) -> str:
+        drift = "" if self.frames_drift_dps is None else (
+            f"; the frames' rotations drift by {self.frames_drift_dps:.1f} deg/s against the gyro: its "
+            "rotations kept")
         return (f"IMU fused (the frames' poses scatter {self.rotation_scatter_deg:.2f} deg and "
                 f"{self.position_scatter:.4f} units about it; 1 unit = {self.metres_per_unit:.3f} m; gyro "
-                f"bias {np.linalg.norm(self.gyro_bias_dps):.2f} deg/s)")
+                f"bias {np.linalg.norm(self.gyro_bias_dps):.2f} deg/s{drift})")
 
 
-def fuse_imu(t_us, c2w, imu, *, imu_to_camera: np.ndarray | None = None) -> InertialFit:
+def fuse_imu(t_us, c2w, imu, *, imu_to_camera: np.ndarray | None = None,
+             adjust: Callable[[np.ndarray], np.ndarray] | None = None) -> InertialFit:
     """``c2w`` (float64 [F, 4, 4], camera-to-world from structure from motion at ``t_us``, int64 [F]
     strictly increasing) refined by ``imu`` (``IMU_DTYPE`` samples: g, degrees/s, on the frames' clock).
     ``imu_to_camera``: the IMU's mounting (rotation [3, 3]), estimated from the rates when None.
+    ``adjust``: given the fused rotations (c2w [F, 3, 3]), the frames' positions [F, 3] estimated again
+    with them held (in ``c2w``'s world and units); None keeps ``c2w``'s positions.
     Raises ``ImuUnusable`` when the IMU cannot refine them."""
     t_us, c2w = _checked(t_us, c2w)
     t_s = (t_us - t_us[0]) * 1e-6
@@ -115,22 +151,33 @@ def fuse_imu(t_us, c2w, imu, *, imu_to_camera: np.ndarray | None = None) -> Iner
         raise InvalidInputError("imu_to_camera must be a 3x3 rotation")
     gyro_c, force_c = gyro @ mount.T, force @ mount.T
     R, gyro_bias, rot_scatter = _rotations(seg, gyro_c, vision_R)
+    drift = None
+    if np.sum((gyro_bias / GYRO_BIAS) ** 2) > DRIFT_CHI2:  # the frames' long-term rotation is not trusted
+        stepwise = _stepwise_bias(seg, gyro_c, vision_R)
+        drift = float(np.degrees(np.linalg.norm(gyro_bias - stepwise)))
+        gyro_bias = stepwise
+        R = _chained(_preintegrate(seg, gyro_c - gyro_bias, np.zeros_like(gyro_c)).dR, vision_R)
+        rot_scatter = float(np.sqrt(np.mean(np.sum(rotation_log(np.swapaxes(vision_R, 1, 2) @ R) ** 2, 1))))
     spread = _spread(vision_R)
     if spread > np.radians(MIN_TURN_DEG) and rot_scatter > MAX_SCATTER * spread:
         raise ImuUnusable(f"the gyro's rotations differ from the frames' by {np.degrees(rot_scatter):.1f} "
                           f"deg RMS, against {np.degrees(spread):.1f} deg of turning (another camera's IMU, "
                           "or axes other than assumed)")
-    pre = _preintegrate(seg, gyro_c - gyro_bias, force_c)
-    P, s, g, accel_bias, pos_scatter = _positions(pre, R, vision_p, t_s)
+    if adjust is not None:
+        vision_p = np.asarray(adjust(R), np.float64)
+        if vision_p.shape != (len(t_us), 3) or not np.all(np.isfinite(vision_p)):
+            raise ImuUnusable("the frames' positions could not be estimated again with the gyro's rotations")
+    fit = _positions(_preintegrate(seg, gyro_c - gyro_bias, force_c), R, vision_p, t_s)
     c2w_out = np.tile(np.eye(4), (len(t_us), 1, 1))
     c2w_out[:, :3, :3] = R
-    c2w_out[:, :3, 3] = P
+    c2w_out[:, :3, 3] = fit.positions
     if not np.all(np.isfinite(c2w_out)):
         raise ImuUnusable("the fit did not converge to finite poses")
     return InertialFit(
-        c2w=c2w_out, gyro_bias_dps=np.degrees(mount.T @ gyro_bias), accel_bias_g=mount.T @ accel_bias /
-        STANDARD_GRAVITY, gravity=g / np.linalg.norm(g), metres_per_unit=float(s), imu_to_camera=mount,
-        rotation_scatter_deg=float(np.degrees(rot_scatter)), position_scatter=float(pos_scatter))
+        c2w=c2w_out, gyro_bias_dps=np.degrees(mount.T @ gyro_bias), accel_bias_g=mount.T @ fit.accel_bias /
+        STANDARD_GRAVITY, gravity=fit.gravity / STANDARD_GRAVITY, metres_per_unit=fit.metres_per_unit,
+        imu_to_camera=mount, rotation_scatter_deg=float(np.degrees(rot_scatter)),
+        position_scatter=fit.scatter, frames_drift_dps=drift)
 
 
 def _checked(t_us, c2w) -> tuple[np.ndarray, np.ndarray]:
@@ -342,8 +389,10 @@ def _rotations(seg: _Segments, gyro: np.ndarray,
                          _blocks(k, np.full(n - 1, 3 * n), -pre.jr / sigma)]
             gyro_part = _joined(gyro_rows)
             vision_part = _blocks(np.arange(n), 3 * np.arange(n), eye / sigma_vision)
+            prior = _blocks(np.zeros(1, np.int64), np.array([3 * n]), np.eye(3)[None] / GYRO_BIAS)
             x = _solve([(*gyro_part, (between / sigma[:, :, 0]).ravel(), False),
-                        (*vision_part, (off / sigma_vision).ravel(), True)], 3 * n + 3)
+                        (*vision_part, (off / sigma_vision).ravel(), True),
+                        (*prior, (bias + step_bias) / GYRO_BIAS, False)], 3 * n + 3)
             R = R @ rotation_exp(x[:3 * n].reshape(n, 3))
             step_bias = step_bias + x[3 * n:]
             if np.abs(x).max() < 1e-9:
@@ -354,31 +403,100 @@ def _rotations(seg: _Segments, gyro: np.ndarray,
     return R, bias, float(np.sqrt(np.mean(np.sum(off**2, axis=1))))
 
 
-def _positions(pre: _Preintegrated, R: np.ndarray, vision_p: np.ndarray,
-               t_s: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, float]:
-    """(positions [F, 3] in the frames' units, metres per unit, gravity m/s^2 [3] in the world,
-    accelerometer bias m/s^2 [3] in camera axes, RMS distance of the frames' positions from the fit).
+def _stepwise_bias(seg: _Segments, gyro: np.ndarray, vision_R: np.ndarray) -> np.ndarray:
+    """The gyro's bias (rad/s [3] in camera axes) from the frames' rotations between successive frames
+    alone (each step's error independent) and the prior ``GYRO_BIAS``: Gauss-Newton, Huber-weighted, the
+    steps' scatter re-estimated."""
+    steps = np.swapaxes(vision_R[:-1], 1, 2) @ vision_R[1:]
+    bias, sigma = np.zeros(3), np.radians(0.5)
+    prior = np.eye(3) / GYRO_BIAS**2
+    for _ in range(20):
+        pre = _preintegrate(seg, gyro - bias, np.zeros_like(gyro))
+        r = rotation_log(np.swapaxes(pre.dR, 1, 2) @ steps)  # r(bias + d) ~ r - jr d
+        norm = np.linalg.norm(r, axis=1) / sigma
+        w = np.where(norm > HUBER, HUBER / np.maximum(norm, 1e-12), 1.0) / sigma**2
+        normal = np.einsum("n,nji,njk->ik", w, pre.jr, pre.jr) + prior
+        d = np.linalg.solve(normal, np.einsum("n,nji,nj->i", w, pre.jr, r) - prior @ bias)
+        bias = bias + d
+        sigma = max(_robust_rms(r), np.radians(0.01))
+        if np.abs(d).max() < 1e-9:
+            break
+    return bias
+
+
+def _chained(dR: np.ndarray, vision_R: np.ndarray) -> np.ndarray:
+    """The rotations [F, 3, 3] chained from the steps ``dR`` [F - 1, 3, 3], turned as a whole onto
+    ``vision_R`` (least squares)."""
+    R = np.tile(np.eye(3), (len(vision_R), 1, 1))
+    for i, step in enumerate(dR):
+        R[i + 1] = R[i] @ step
+    return nearest_rotation(np.einsum("nij,nkj->ik", vision_R, R)) @ R
+
+
+@dataclass(frozen=True)
+class _PositionFit:
+    """What the position step made of the accelerometer and the frames' positions."""
+
+    positions: np.ndarray
+    """float64 [F, 3], in the frames' units."""
+    metres_per_unit: float
+    gravity: np.ndarray
+    """m/s^2 [3] in the world."""
+    accel_bias: np.ndarray
+    """m/s^2 [3] in camera axes."""
+    scatter: float
+    """RMS distance of the frames' positions from the fit (units)."""
+    misfit: float
+    """The IMU's whitened misfit plus the frames' at their jitter (the same for every start)."""
+
+
+def _positions(pre: _Preintegrated, R: np.ndarray, vision_p: np.ndarray, t_s: np.ndarray) -> _PositionFit:
+    """Of the fits started from each of ``SCALE_STARTS`` at a plausible scale, the one that explains both
+    sensors best."""
+    world_dv = np.einsum("nij,nj->ni", R[:-1], pre.dv)
+    down = -world_dv.sum(0)  # the mean specific force balances gravity
+    down /= max(np.linalg.norm(down), 1e-12)
+    scale = _initial_scale(pre, R, vision_p, t_s, STANDARD_GRAVITY * down)
+    fits, failure = [], ImuUnusable("the IMU's motion does not fit the frames' at any positive scale")
+    for start in scale * SCALE_STARTS[scale * SCALE_STARTS >= NEAREST_M]:
+        try:
+            fit = _positions_from(pre, R, vision_p, t_s, down, start)
+        except ImuUnusable as exc:
+            failure = exc
+            continue
+        if fit.metres_per_unit >= NEAREST_M:
+            fits.append(fit)
+    if not fits:
+        raise failure
+    return min(fits, key=lambda fit: fit.misfit)
+
+
+def _positions_from(pre: _Preintegrated, R: np.ndarray, vision_p: np.ndarray, t_s: np.ndarray,
+                    down: np.ndarray, scale: float) -> _PositionFit:
+    """``_positions``' fit from a start: gravity along ``down`` (unit [3]), ``scale`` metres per unit.
 
     Linear least squares in the units of structure from motion (the scale cannot collapse): each frame's
-    position and velocity, and gravity, the bias and metres-to-units (lambda) times it (gravity * lambda,
-    bias * lambda), so that the increments read lambda * (R dp + ...) stay linear. The IMU's rows are
-    whitened by its noise in units (lambda of the previous solve); gravity's norm is held by a row along
-    its previous direction."""
+    position and velocity, and gravity, the accelerometer's bias and metres-to-units (lambda) times it
+    (gravity * lambda, bias * lambda), so that the increments read lambda * (R dp + ...) stay linear. The
+    IMU's rows are whitened by its noise in units (lambda of the previous solve); gravity's norm is held by
+    a row along its previous direction. The misfit compares the frames at their jitter, the same for every
+    start: the scatter the fit re-estimates would let a fit at a vanishing scale, where the IMU no longer
+    constrains the positions, copy the frames and claim no error."""
     n = len(t_s)
     k = np.arange(n - 1)
     dt = pre.dt[:, None, None]
     eye = np.tile(np.eye(3), (n - 1, 1, 1))
-    world_dv = np.einsum("nij,nj->ni", R[:-1], pre.dv)
-    down = -world_dv.sum(0)  # the mean specific force balances gravity
-    down /= max(np.linalg.norm(down), 1e-12)
-    lam = 1.0 / _initial_scale(pre, R, vision_p, t_s, STANDARD_GRAVITY * down)
+    lam = 1.0 / scale
     # the frames' jitter, from their second differences (a smooth path has next to none at video rates)
-    sigma_vision = max(_robust_rms(vision_p[2:] - 2 * vision_p[1:-1] + vision_p[:-2]) / np.sqrt(6), 1e-5)
+    sigma_vision = jitter = max(_robust_rms(vision_p[2:] - 2 * vision_p[1:-1] + vision_p[:-2]) / np.sqrt(6),
+                                1e-5)
     Q, U, G, B, L = 0, 3 * n, 6 * n, 6 * n + 2, 6 * n + 5
     col = np.zeros(n - 1, np.int64)
     f = np.arange(n)
     lam_rows = (3 * k[:, None] + np.arange(3)).ravel()
 
+    world_dp = np.einsum("nij,nj->ni", R[:-1], pre.dp)
+    world_dv = np.einsum("nij,nj->ni", R[:-1], pre.dv)
     for _ in range(ROUNDS):
         previous = lam
         # gravity * lambda = lambda * g * down + T t, t the tilt (units/s^2) across the current direction
@@ -390,9 +508,8 @@ def _positions(pre: _Preintegrated, R: np.ndarray, vision_p: np.ndarray,
             _blocks(k, Q + 3 * k + 3, eye / sp), _blocks(k, Q + 3 * k, -eye / sp),
             _blocks(k, U + 3 * k, -eye * dt / sp), _blocks(k, col + G, -0.5 * tilt * dt**2 / sp),
             _blocks(k, col + B, -(R[:-1] @ pre.jp) / sp),
-            (lam_rows, np.full(len(lam_rows), L), -((np.einsum("nij,nj->ni", R[:-1], pre.dp)
-                                                    + 0.5 * STANDARD_GRAVITY * down * dt[:, :, 0]**2)
-                                                   / sp[:, :, 0]).ravel())])
+            (lam_rows, np.full(len(lam_rows), L),
+             -((world_dp + 0.5 * STANDARD_GRAVITY * down * dt[:, :, 0]**2) / sp[:, :, 0]).ravel())])
         velocity = _joined([
             _blocks(k, U + 3 * k + 3, eye / sv), _blocks(k, U + 3 * k, -eye / sv),
             _blocks(k, col + G, -tilt * dt / sv), _blocks(k, col + B, -(R[:-1] @ pre.jv) / sv),
@@ -411,9 +528,15 @@ def _positions(pre: _Preintegrated, R: np.ndarray, vision_p: np.ndarray,
         sigma_vision = max(_robust_rms(positions - vision_p), 1e-5)
         if abs(lam / previous - 1) < CONVERGED:
             break
-    gravity, bias = STANDARD_GRAVITY * down, x[B:B + 3] / lam
-    scatter = float(np.sqrt(np.mean(np.sum((positions - vision_p) ** 2, axis=1))))
-    return positions, 1.0 / lam, gravity, bias, scatter
+    off = np.sum((positions - vision_p) ** 2, axis=1)
+    misfit = sum(_squares(*rows, x) for rows in (position, velocity, prior)) + float(off.sum()) / jitter**2
+    return _PositionFit(positions, 1.0 / lam, STANDARD_GRAVITY * down, x[B:B + 3] / lam,
+                        float(np.sqrt(off.mean())), misfit)
+
+
+def _squares(row: np.ndarray, column: np.ndarray, value: np.ndarray, x: np.ndarray) -> float:
+    """|J x|^2 of the sparse J given by its (row, column, value) entries."""
+    return float(np.sum(np.bincount(row, weights=value * x[column]) ** 2))
 
 
 def _initial_scale(pre: _Preintegrated, R: np.ndarray, vision_p: np.ndarray, t_s: np.ndarray,

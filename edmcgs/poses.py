@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -101,6 +102,9 @@ class PoseEstimate:
     imu: str | None = None
     """What the IMU did: how the fused poses fit (``edmcgs.inertial``), or why it was left out; None
     when the recording had none, or the camera was static or only turned."""
+    frames_c2w: np.ndarray | None = None
+    """float64 [R, 4, 4]: the frames' own poses before the IMU refined them (in their own world and units);
+    None when the IMU did not."""
 
     def summary(self) -> str:
         """One line: what registered, the camera, the time."""
@@ -132,34 +136,42 @@ def estimate_poses(t_us, images, intrinsics: Intrinsics | None = None, *, imu: n
     ``intrinsics``: the camera (held fixed), or None to estimate it. Raises ``PoseEstimationError`` when
     fewer than ``min_registered`` of the frames register in one model, or no two frames match.
     """
-    estimate = _frames_only(t_us, images, intrinsics, min_registered=min_registered, progress=progress,
-                            threads=threads, seed=seed)
-    return estimate if imu is None else with_imu(estimate, imu)
+    return _estimate(t_us, images, intrinsics, imu, min_registered=min_registered, progress=progress,
+                     threads=threads, seed=seed)
 
 
-def with_imu(estimate: PoseEstimate, imu: np.ndarray) -> PoseEstimate:
+def with_imu(estimate: PoseEstimate, imu: np.ndarray,
+             adjust: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None) -> PoseEstimate:
     """``estimate``'s poses refined by the IMU (``edmcgs.inertial.fuse_imu``), the world moved to the
     first frame's refined camera (its points with it); unchanged, with the reason in ``imu``, when the
-    IMU cannot refine them. A static or turning camera is left as it is."""
+    IMU cannot refine them. A static or turning camera is left as it is. ``adjust``: given the fused
+    rotations, the frames' positions and the points estimated again with them held (``estimate``'s world
+    and units); None keeps the frames' own."""
     from edmcgs.inertial import ImuUnusable, fuse_imu
 
     if estimate.static or estimate.rotation_only:
         return estimate
     start = time.perf_counter()
+    adjusted: dict[str, np.ndarray] = {}
+
+    def positions(rotations: np.ndarray) -> np.ndarray:
+        adjusted["positions"], adjusted["points"] = adjust(rotations)
+        return adjusted["positions"]
+
     try:
-        fit = fuse_imu(estimate.t_us, estimate.c2w, imu)
+        fit = fuse_imu(estimate.t_us, estimate.c2w, imu, adjust=None if adjust is None else positions)
     except ImuUnusable as exc:
         return replace(estimate, imu=f"IMU left out: {exc}")
     to_first = np.linalg.inv(fit.c2w[0])
-    xyz = estimate.point_xyz
+    xyz = adjusted.get("points", estimate.point_xyz)
     if xyz is not None:
         xyz = xyz @ to_first[:3, :3].T + to_first[:3, 3]
     return replace(estimate, c2w=to_first @ fit.c2w, point_xyz=xyz, imu=fit.summary(),
-                   seconds=estimate.seconds + time.perf_counter() - start)
+                   frames_c2w=estimate.c2w, seconds=estimate.seconds + time.perf_counter() - start)
 
 
-def _frames_only(t_us, images, intrinsics: Intrinsics | None, *, min_registered: float, progress: bool,
-                 threads: int, seed: int) -> PoseEstimate:
+def _estimate(t_us, images, intrinsics: Intrinsics | None, imu: np.ndarray | None, *, min_registered: float,
+              progress: bool, threads: int, seed: int) -> PoseEstimate:
     t_us, images = _checked(t_us, images, intrinsics)
     if not 0 < min_registered <= 1:
         raise InvalidInputError(f"min_registered must be in (0, 1], got {min_registered}")
@@ -220,14 +232,24 @@ def _frames_only(t_us, images, intrinsics: Intrinsics | None, *, min_registered:
         raise PoseEstimationError(f"only {registered} of {n} frames registered in one model{split}; poses "
                                   f"need {min_registered:.0%} (give --poses TRAJ.txt, or --intrinsics if "
                                   "the camera is known)")
-    index, c2w, xyz, colors = _poses(best, images)
+    world = _World.of(best)
+    index, c2w, xyz, colors = _poses(best, world, images)
     camera = best.cameras[next(iter(best.cameras))]
     estimated, k = _camera(camera, intrinsics, width, height)
-    return PoseEstimate(
+    estimate = PoseEstimate(
         frames=n, registered=registered, t_us=t_us[index], c2w=c2w, intrinsics=estimated,
         estimated_intrinsics=intrinsics is None, distortion=k, static=False, models=len(models),
         points=len(xyz), motion_px=motion_px, seconds=time.perf_counter() - start, point_xyz=xyz,
         point_colors=colors)
+    if imu is None:
+        return estimate
+
+    def held(rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        _hold_rotations(pycolmap, best, world, rotations, fixed=intrinsics is not None)
+        _, adjusted, points, _ = _poses(best, world, images, colors=False)
+        return adjusted[:, :3, 3], points
+
+    return with_imu(estimate, imu, adjust=held)
 
 
 def _checked(t_us, images, intrinsics) -> tuple[np.ndarray, np.ndarray]:
@@ -439,13 +461,15 @@ def _map(pycolmap, database: Path, folder: Path, output: Path, reproj_px: float,
         raise PoseEstimationError(f"structure from motion failed: {exc}") from exc
 
 
-def _adjust(pycolmap, model, *, fixed: bool) -> None:
+def _adjust(pycolmap, model, *, fixed: bool, held_rotations: bool = False) -> None:
     """A last bundle adjustment of ``model`` with a robust loss: a few matches on a moving part or a
     repeated texture otherwise pull whole frames centimetres off (the mapper's own adjustments use a
-    squared loss)."""
+    squared loss). ``held_rotations``: the cameras' rotations held as they are, their positions and the
+    points adjusted."""
     options = pycolmap.BundleAdjustmentOptions()
     options.refine_focal_length = options.refine_extra_params = not fixed
     options.refine_principal_point = False
+    options.constant_rig_from_world_rotation = held_rotations
     options.print_summary = False
     options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     options.ceres.loss_function_scale = ROBUST_PX
@@ -457,24 +481,60 @@ def _adjust(pycolmap, model, *, fixed: bool) -> None:
     pycolmap.create_default_bundle_adjuster(options, config, model).solve()
 
 
-def _poses(model, images: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(frame indices [R], c2w [R, 4, 4]) of the registered frames, in the first one's camera frame, scaled
-    so that the median depth of the model's points, seen from the registered frames, is 1; and the points
-    in that frame (float64 [P, 3]) with their colours in ``images`` (uint8 [P, C])."""
-    images_by_id = {image_id: im for image_id, im in model.images.items() if im.has_pose}
-    ordered = sorted((int(Path(im.name).stem), im) for im in images_by_id.values())
-    index = np.array([i for i, _ in ordered], dtype=np.int64)
-    w2c = np.tile(np.eye(4), (len(ordered), 1, 1))
-    w2c[:, :3] = [im.cam_from_world().matrix() for _, im in ordered]
+def _registered(model) -> list:
+    """The model's registered images, in time order."""
+    return [image for _, image in sorted((int(Path(im.name).stem), im) for im in model.images.values()
+                                         if im.has_pose)]
+
+
+def _w2c(images: list) -> np.ndarray:
+    """float64 [R, 4, 4]: the images' world-to-camera transforms (COLMAP's)."""
+    w2c = np.tile(np.eye(4), (len(images), 1, 1))
+    w2c[:, :3] = [im.cam_from_world().matrix() for im in images]
+    return w2c
+
+
+@dataclass(frozen=True)
+class _World:
+    """Where a model's poses are expressed: the first registered frame's camera (COLMAP's ``w2c0`` [4, 4]),
+    scaled by ``scale`` so that the median depth of the points seen from the registered frames is 1."""
+
+    w2c0: np.ndarray
+    scale: float
+
+    @classmethod
+    def of(cls, model) -> _World:
+        w2c = _w2c(_registered(model))
+        points = np.array([p.xyz for p in model.points3D.values()], dtype=np.float64).reshape(-1, 3)
+        depths = np.einsum("rj,pj->rp", w2c[:, 2, :3], points) + w2c[:, 2, 3:]  # [R, P]
+        depths = depths[depths > 0]
+        return cls(w2c[0], 1.0 / float(np.median(depths)) if depths.size else 1.0)
+
+
+def _poses(model, world: _World, images: np.ndarray,
+           colors: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """(frame indices [R], c2w [R, 4, 4]) of the registered frames, in ``world``; and the points in it
+    (float64 [P, 3]) with their colours in ``images`` (uint8 [P, C]; None unless ``colors``)."""
+    registered = _registered(model)
+    index = np.array([int(Path(im.name).stem) for im in registered], dtype=np.int64)
+    c2w = world.w2c0 @ np.linalg.inv(_w2c(registered))
+    c2w[:, :3, 3] *= world.scale
     ids = list(model.points3D.keys())
     points = np.array([model.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
-    depths = np.einsum("rj,pj->rp", w2c[:, 2, :3], points) + w2c[:, 2, 3:]  # [R, P]
-    depths = depths[depths > 0]
-    scale = 1.0 / float(np.median(depths)) if depths.size else 1.0
-    c2w = w2c[0] @ np.linalg.inv(w2c)  # the world: the first registered frame's camera
-    c2w[:, :3, 3] *= scale
-    xyz = scale * (points @ w2c[0, :3, :3].T + w2c[0, :3, 3])
-    return index, c2w, xyz, _colors(model, ids, images_by_id, images)
+    xyz = world.scale * (points @ world.w2c0[:3, :3].T + world.w2c0[:3, 3])
+    by_id = {im.image_id: im for im in registered}
+    return index, c2w, xyz, _colors(model, ids, by_id, images) if colors else None
+
+
+def _hold_rotations(pycolmap, model, world: _World, rotations: np.ndarray, *, fixed: bool) -> None:
+    """Turn the registered cameras of ``model`` to ``rotations`` (c2w [R, 3, 3] in ``world``, time order)
+    about their centres, then adjust their positions and the points with the rotations held."""
+    for image, rotation in zip(_registered(model), rotations, strict=True):
+        cam_from_world = (world.w2c0[:3, :3].T @ rotation).T
+        centre = image.projection_center()
+        model.frames[image.frame_id].rig_from_world = pycolmap.Rigid3d(
+            pycolmap.Rotation3d(cam_from_world), -cam_from_world @ centre)
+    _adjust(pycolmap, model, fixed=fixed, held_rotations=True)
 
 
 def _colors(model, ids: list[int], images_by_id: dict, images: np.ndarray) -> np.ndarray:

@@ -19,6 +19,7 @@ from edmcgs.poses import estimate_poses
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import Recording, read_recording, write_recording
 from edmcgs.sensor.frames import Frames
+from edmcgs.synth.davis import ImuConfig, simulated_imu
 from edmcgs.synth.scene import make_scene
 from edmcgs.synth.traffic import TrafficScene
 from harness.pose_scenes import rigid_sweep, trajectory_error
@@ -68,7 +69,12 @@ def test_a_synthetic_moving_camera_is_within_one_percent_of_its_path(sweep):
     rmse, length = trajectory_error(estimate.t_us, estimate.c2w, truth[np.searchsorted(t_us, estimate.t_us)])
     assert length > 1.0
     assert rmse <= 0.01 * length, f"ATE {rmse:.4f} of a {length:.3f} path"
-    # the points come in the poses' frame, in the colours the frames show where they project
+    assert estimate.imu is None and estimate.frames_c2w is None
+    _assert_points_show_in_frames(estimate, t_us, images, intrinsics)
+
+
+def _assert_points_show_in_frames(estimate, t_us, images, intrinsics) -> None:
+    """The points come in the poses' frame, in the colours the frames show where they project."""
     xyz, colors = estimate.point_xyz, estimate.point_colors
     assert xyz.shape == (estimate.points, 3) and estimate.points > 100 and colors.shape == (len(xyz), 3)
     for pose, image in zip(estimate.c2w[::6], images[np.searchsorted(t_us, estimate.t_us)][::6], strict=True):
@@ -78,6 +84,21 @@ def test_a_synthetic_moving_camera_is_within_one_percent_of_its_path(sweep):
         assert seen.mean() > 0.8
         shown = image[v[seen], u[seen]].astype(int)
         assert np.median(np.abs(shown - colors[seen]).max(1)) <= 12
+
+
+def test_with_the_cameras_imu_the_positions_follow_the_gyros_rotations(sweep):
+    """The IMU a DAVIS346 reads on the sweep's arc: the rotations become the gyro's, the frames' positions
+    and the points are adjusted again with them held, and the points still sit where the frames show them."""
+    t_us, images, truth, intrinsics = sweep
+    scene = make_scene("lego", "small", "sweep")
+    imu, _ = simulated_imu(lambda ts: np.stack([scene.camera_at(float(t)) for t in ts]), int(t_us[-1]),
+                           ImuConfig(), seed=0)
+    estimate = estimate_poses(t_us, images, intrinsics, imu=imu, progress=False)
+    assert estimate.imu.startswith("IMU fused") and estimate.frames_c2w.shape == estimate.c2w.shape
+    assert np.allclose(estimate.c2w[0], np.eye(4))
+    rmse, length = trajectory_error(estimate.t_us, estimate.c2w, truth[np.searchsorted(t_us, estimate.t_us)])
+    assert rmse <= 0.01 * length, f"ATE {rmse:.4f} of a {length:.3f} path"
+    _assert_points_show_in_frames(estimate, t_us, images, intrinsics)
 
 
 def test_the_scale_puts_the_scene_at_a_median_depth_of_one(sweep):
