@@ -21,7 +21,9 @@ all related by homographies that are rotations (it turns about its centre: no pa
 e.g. a pan) gets rotations alone, from those homographies, chained through the earliest frame each
 frame matched (its focal length, when not given, the one that makes them closest
 to rotations); a recording where fewer than ``min_registered`` of the frames register in one model is
-refused, naming the count.
+refused, naming the count. A recording's IMU refines the poses (``edmcgs.inertial``): the rotations it
+settles on are held while the model's positions and points are bundle-adjusted again, before its
+accelerometer fixes the positions.
 pycolmap is imported when poses are estimated, never at import time.
 """
 
