@@ -73,6 +73,7 @@ SCALE_STARTS = 2.0 ** np.arange(-8, 9)
 """Starts of the position step's scale, as factors of the windowed estimate (``_initial_scale``, which can
 be 60 times off on an orbit): its iterations settle in the basin they start in, and the fit that explains
 both sensors best is kept."""
+NO_SCALE = "the IMU's motion does not fit the frames' at any positive scale"
 MOUNT_SPAN_S = 0.5
 """Span over which the gyro's rotations and the frames' are compared to estimate the IMU's mounting."""
 MAX_GAP_S = 0.05
@@ -150,15 +151,17 @@ def fuse_imu(t_us, c2w, imu, *, imu_to_camera: np.ndarray | None = None,
     if mount.shape != (3, 3) or not np.allclose(mount.T @ mount, np.eye(3), atol=1e-4):
         raise InvalidInputError("imu_to_camera must be a 3x3 rotation")
     gyro_c, force_c = gyro @ mount.T, force @ mount.T
-    R, gyro_bias, rot_scatter = _rotations(seg, gyro_c, vision_R)
+    R, gyro_bias = _rotations(seg, gyro_c, vision_R)
     drift = None
     if np.sum((gyro_bias / GYRO_BIAS) ** 2) > DRIFT_CHI2:  # the frames' long-term rotation is not trusted
         stepwise = _stepwise_bias(seg, gyro_c, vision_R)
         drift = float(np.degrees(np.linalg.norm(gyro_bias - stepwise)))
         gyro_bias = stepwise
-        R = _chained(_preintegrate(seg, gyro_c - gyro_bias, np.zeros_like(gyro_c)).dR, vision_R)
-        rot_scatter = float(np.sqrt(np.mean(np.sum(rotation_log(np.swapaxes(vision_R, 1, 2) @ R) ** 2, 1))))
-    spread = _spread(vision_R)
+    pre = _preintegrate(seg, gyro_c - gyro_bias, force_c)
+    if drift is not None:
+        R = _chained(pre.dR, vision_R)
+    rot_scatter = _rms_angle(vision_R, R)
+    spread = _rms_angle(nearest_rotation(vision_R.sum(0))[None], vision_R)  # the frames' turning
     if spread > np.radians(MIN_TURN_DEG) and rot_scatter > MAX_SCATTER * spread:
         raise ImuUnusable(f"the gyro's rotations differ from the frames' by {np.degrees(rot_scatter):.1f} "
                           f"deg RMS, against {np.degrees(spread):.1f} deg of turning (another camera's IMU, "
@@ -167,7 +170,7 @@ def fuse_imu(t_us, c2w, imu, *, imu_to_camera: np.ndarray | None = None,
         vision_p = np.asarray(adjust(R), np.float64)
         if vision_p.shape != (len(t_us), 3) or not np.all(np.isfinite(vision_p)):
             raise ImuUnusable("the frames' positions could not be estimated again with the gyro's rotations")
-    fit = _positions(_preintegrate(seg, gyro_c - gyro_bias, force_c), R, vision_p, t_s)
+    fit = _positions(pre, R, vision_p, t_s)
     c2w_out = np.tile(np.eye(4), (len(t_us), 1, 1))
     c2w_out[:, :3, :3] = R
     c2w_out[:, :3, 3] = fit.positions
@@ -313,10 +316,9 @@ def _mounting(seg: _Segments, gyro: np.ndarray, vision_R: np.ndarray) -> np.ndar
     return mount if misfit < 0.5 * as_is else np.eye(3)
 
 
-def _spread(vision_R: np.ndarray) -> float:
-    """RMS angle of the rotations [F, 3, 3] from their chordal mean, rad."""
-    mean = nearest_rotation(vision_R.sum(0))
-    return float(np.sqrt(np.mean(np.sum(rotation_log(mean.T @ vision_R) ** 2, axis=1))))
+def _rms_angle(a: np.ndarray, b: np.ndarray) -> float:
+    """RMS angle between the rotations a and b ([F or 1, 3, 3] each), rad."""
+    return float(np.sqrt(np.mean(np.sum(rotation_log(np.swapaxes(a, 1, 2) @ b) ** 2, axis=1))))
 
 
 def _robust_rms(r: np.ndarray) -> float:
@@ -367,10 +369,9 @@ def _blocks(first: np.ndarray, column: np.ndarray, matrices: np.ndarray) -> tupl
     return (3 * first[:, None, None] + i).ravel(), (column[:, None, None] + j).ravel(), matrices.ravel()
 
 
-def _rotations(seg: _Segments, gyro: np.ndarray,
-               vision_R: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """(fused c2w rotations [F, 3, 3], gyro bias rad/s [3] in camera axes, RMS angle of the frames' rotations
-    from them, rad). Gauss-Newton on a small rotation per frame (R <- R Exp(e)) and the bias."""
+def _rotations(seg: _Segments, gyro: np.ndarray, vision_R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(fused c2w rotations [F, 3, 3], gyro bias rad/s [3] in camera axes). Gauss-Newton on a small rotation
+    per frame (R <- R Exp(e)) and the bias."""
     n = len(vision_R)
     R, bias = vision_R.copy(), np.zeros(3)
     sigma_vision = np.radians(0.5)
@@ -399,8 +400,7 @@ def _rotations(seg: _Segments, gyro: np.ndarray,
                 break
         bias = bias + step_bias
         sigma_vision = max(_robust_rms(rotation_log(np.swapaxes(vision_R, 1, 2) @ R)), np.radians(0.01))
-    off = rotation_log(np.swapaxes(vision_R, 1, 2) @ R)
-    return R, bias, float(np.sqrt(np.mean(np.sum(off**2, axis=1))))
+    return R, bias
 
 
 def _stepwise_bias(seg: _Segments, gyro: np.ndarray, vision_R: np.ndarray) -> np.ndarray:
@@ -453,27 +453,30 @@ class _PositionFit:
 def _positions(pre: _Preintegrated, R: np.ndarray, vision_p: np.ndarray, t_s: np.ndarray) -> _PositionFit:
     """Of the fits started from each of ``SCALE_STARTS`` at a plausible scale, the one that explains both
     sensors best."""
+    world_dp = np.einsum("nij,nj->ni", R[:-1], pre.dp)
     world_dv = np.einsum("nij,nj->ni", R[:-1], pre.dv)
     down = -world_dv.sum(0)  # the mean specific force balances gravity
     down /= max(np.linalg.norm(down), 1e-12)
-    scale = _initial_scale(pre, R, vision_p, t_s, STANDARD_GRAVITY * down)
-    fits, failure = [], ImuUnusable("the IMU's motion does not fit the frames' at any positive scale")
-    for start in scale * SCALE_STARTS[scale * SCALE_STARTS >= NEAREST_M]:
+    # the frames' jitter, from their second differences (a smooth path has next to none at video rates)
+    jitter = max(_robust_rms(vision_p[2:] - 2 * vision_p[1:-1] + vision_p[:-2]) / np.sqrt(6), 1e-5)
+    starts = _initial_scale(pre, world_dp, world_dv, vision_p, t_s, STANDARD_GRAVITY * down) * SCALE_STARTS
+    fits = []
+    for start in starts[starts >= NEAREST_M]:
         try:
-            fit = _positions_from(pre, R, vision_p, t_s, down, start)
-        except ImuUnusable as exc:
-            failure = exc
+            fit = _positions_from(pre, R, world_dp, world_dv, vision_p, jitter, down, start)
+        except ImuUnusable:
             continue
         if fit.metres_per_unit >= NEAREST_M:
             fits.append(fit)
     if not fits:
-        raise failure
+        raise ImuUnusable(NO_SCALE)
     return min(fits, key=lambda fit: fit.misfit)
 
 
-def _positions_from(pre: _Preintegrated, R: np.ndarray, vision_p: np.ndarray, t_s: np.ndarray,
-                    down: np.ndarray, scale: float) -> _PositionFit:
-    """``_positions``' fit from a start: gravity along ``down`` (unit [3]), ``scale`` metres per unit.
+def _positions_from(pre: _Preintegrated, R: np.ndarray, world_dp: np.ndarray, world_dv: np.ndarray,
+                    vision_p: np.ndarray, jitter: float, down: np.ndarray, scale: float) -> _PositionFit:
+    """``_positions``' fit from a start: gravity along ``down`` (unit [3]), ``scale`` metres per unit;
+    ``world_dp``, ``world_dv``: the increments turned into the world by R; ``jitter``: the frames'.
 
     Linear least squares in the units of structure from motion (the scale cannot collapse): each frame's
     position and velocity, and gravity, the accelerometer's bias and metres-to-units (lambda) times it
@@ -482,21 +485,16 @@ def _positions_from(pre: _Preintegrated, R: np.ndarray, vision_p: np.ndarray, t_
     a row along its previous direction. The misfit compares the frames at their jitter, the same for every
     start: the scatter the fit re-estimates would let a fit at a vanishing scale, where the IMU no longer
     constrains the positions, copy the frames and claim no error."""
-    n = len(t_s)
+    n = len(vision_p)
     k = np.arange(n - 1)
     dt = pre.dt[:, None, None]
     eye = np.tile(np.eye(3), (n - 1, 1, 1))
-    lam = 1.0 / scale
-    # the frames' jitter, from their second differences (a smooth path has next to none at video rates)
-    sigma_vision = jitter = max(_robust_rms(vision_p[2:] - 2 * vision_p[1:-1] + vision_p[:-2]) / np.sqrt(6),
-                                1e-5)
+    lam, sigma_vision = 1.0 / scale, jitter
     Q, U, G, B, L = 0, 3 * n, 6 * n, 6 * n + 2, 6 * n + 5
     col = np.zeros(n - 1, np.int64)
     f = np.arange(n)
     lam_rows = (3 * k[:, None] + np.arange(3)).ravel()
 
-    world_dp = np.einsum("nij,nj->ni", R[:-1], pre.dp)
-    world_dv = np.einsum("nij,nj->ni", R[:-1], pre.dv)
     for _ in range(ROUNDS):
         previous = lam
         # gravity * lambda = lambda * g * down + T t, t the tilt (units/s^2) across the current direction
@@ -522,7 +520,7 @@ def _positions_from(pre: _Preintegrated, R: np.ndarray, vision_p: np.ndarray, t_
                    6 * n + 6)
         positions, lam = x[:3 * n].reshape(n, 3), float(x[L])
         if not lam > 0:
-            raise ImuUnusable("the IMU's motion does not fit the frames' at any positive scale")
+            raise ImuUnusable(NO_SCALE)
         g = STANDARD_GRAVITY * down + T @ x[G:G + 2] / lam
         down = g / np.linalg.norm(g)
         sigma_vision = max(_robust_rms(positions - vision_p), 1e-5)
@@ -539,13 +537,14 @@ def _squares(row: np.ndarray, column: np.ndarray, value: np.ndarray, x: np.ndarr
     return float(np.sum(np.bincount(row, weights=value * x[column]) ** 2))
 
 
-def _initial_scale(pre: _Preintegrated, R: np.ndarray, vision_p: np.ndarray, t_s: np.ndarray,
-                   gravity: np.ndarray) -> float:
+def _initial_scale(pre: _Preintegrated, world_dp: np.ndarray, world_dv: np.ndarray, vision_p: np.ndarray,
+                   t_s: np.ndarray, gravity: np.ndarray) -> float:
     """Metres per unit: over windows of about a second, the least-squares scale that fits the dead-reckoned
     positions (each window's start position and velocity free) to the frames'; their median, each window
-    weighted by how far its dead reckoning bends from a straight line (how much it says of the scale)."""
-    world_dp = np.einsum("nij,nj->ni", R[:-1], pre.dp) + 0.5 * gravity * pre.dt[:, None] ** 2
-    world_dv = np.einsum("nij,nj->ni", R[:-1], pre.dv) + gravity * pre.dt[:, None]
+    weighted by how far its dead reckoning bends from a straight line (how much it says of the scale).
+    ``world_dp``, ``world_dv``: the increments turned into the world, without gravity's."""
+    world_dp = world_dp + 0.5 * gravity * pre.dt[:, None] ** 2
+    world_dv = world_dv + gravity * pre.dt[:, None]
     n = len(t_s)
     window = max(3, int(np.searchsorted(t_s, t_s[0] + 1.0)))
     scales, accel = [], []

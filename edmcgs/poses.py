@@ -496,6 +496,12 @@ def _w2c(images: list) -> np.ndarray:
     return w2c
 
 
+def _points(model) -> tuple[list[int], np.ndarray]:
+    """The model's 3D point ids and positions (COLMAP's world, float64 [P, 3])."""
+    ids = list(model.points3D.keys())
+    return ids, np.array([model.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
+
+
 @dataclass(frozen=True)
 class _World:
     """Where a model's poses are expressed: the first registered frame's camera (COLMAP's ``w2c0`` [4, 4]),
@@ -507,7 +513,7 @@ class _World:
     @classmethod
     def of(cls, model) -> _World:
         w2c = _w2c(_registered(model))
-        points = np.array([p.xyz for p in model.points3D.values()], dtype=np.float64).reshape(-1, 3)
+        _, points = _points(model)
         depths = np.einsum("rj,pj->rp", w2c[:, 2, :3], points) + w2c[:, 2, 3:]  # [R, P]
         depths = depths[depths > 0]
         return cls(w2c[0], 1.0 / float(np.median(depths)) if depths.size else 1.0)
@@ -521,8 +527,7 @@ def _poses(model, world: _World, images: np.ndarray,
     index = np.array([int(Path(im.name).stem) for im in registered], dtype=np.int64)
     c2w = world.w2c0 @ np.linalg.inv(_w2c(registered))
     c2w[:, :3, 3] *= world.scale
-    ids = list(model.points3D.keys())
-    points = np.array([model.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
+    ids, points = _points(model)
     xyz = world.scale * (points @ world.w2c0[:3, :3].T + world.w2c0[:3, 3])
     by_id = {im.image_id: im for im in registered}
     return index, c2w, xyz, _colors(model, ids, by_id, images) if colors else None

@@ -19,7 +19,8 @@ from edmcgs.poses import estimate_poses
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import Recording, read_recording, write_recording
 from edmcgs.sensor.frames import Frames
-from edmcgs.synth.davis import ImuConfig, simulated_imu
+from edmcgs.synth.build import scene_imu
+from edmcgs.synth.davis import ImuConfig
 from edmcgs.synth.scene import make_scene
 from edmcgs.synth.traffic import TrafficScene
 from harness.pose_scenes import rigid_sweep, trajectory_error
@@ -90,9 +91,7 @@ def test_with_the_cameras_imu_the_positions_follow_the_gyros_rotations(sweep):
     """The IMU a DAVIS346 reads on the sweep's arc: the rotations become the gyro's, the frames' positions
     and the points are adjusted again with them held, and the points still sit where the frames show them."""
     t_us, images, truth, intrinsics = sweep
-    scene = make_scene("lego", "small", "sweep")
-    imu, _ = simulated_imu(lambda ts: np.stack([scene.camera_at(float(t)) for t in ts]), int(t_us[-1]),
-                           ImuConfig(), seed=0)
+    imu, _ = scene_imu(make_scene("lego", "small", "sweep"), int(t_us[-1]), ImuConfig(), seed=0)
     estimate = estimate_poses(t_us, images, intrinsics, imu=imu, progress=False)
     assert estimate.imu.startswith("IMU fused") and estimate.frames_c2w.shape == estimate.c2w.shape
     assert np.allclose(estimate.c2w[0], np.eye(4))
