@@ -254,7 +254,8 @@ def markdown(r: dict, command: str) -> str:
     pa = r["poses"]
     lines = ["# street3d benchmark: the `moving` preset on a handheld camera, with estimated poses", "",
              f"`{command}` on {r['machine']}. The scene: {r['scene']}; {r['anchors']} anchors, "
-             f"{r['frames']} held-out frames and {r['novel_frames']} novel views scored. One seed.", "",
+             f"{r['frames']} held-out frames and {r['novel_frames']} novel views scored. One training "
+             f"seed ({r.get('seed', 0)}).", "",
              "## Poses", "",
              "`edmcgs record REC --poses auto` (structure from motion over every frame): "
              f"{pa['registered']} of {pa['frames']} frames registered, {pa['points']} points, absolute "
@@ -301,6 +302,8 @@ def _parser() -> argparse.ArgumentParser:
     p = variant_parser("street3d", __doc__, VARIANTS, "a street3d recording instead of building one")
     p.add_argument("--size", choices=("full", "small"), default="full", help="the street's size")
     p.add_argument("--seconds", type=float, default=4.0, help="the street's length in time")
+    p.add_argument("--seed", type=int, default=0, help="the trainings' seed (--set seed=K; the street "
+                                                       "and its poses stay the same)")
     return p
 
 
@@ -319,7 +322,8 @@ def main(argv: list[str] | None = None) -> int:
     auto_path, pose_cost = estimate(rec_path)
     true_path, accuracy = true_twin(rec_path, auto_path)
     paths = {"auto": auto_path, "true": true_path}
-    steps = [] if args.steps is None else [f"iterations={args.steps}"]
+    steps = ([] if args.steps is None else [f"iterations={args.steps}"]) + \
+        ([f"seed={args.seed}"] if args.seed else [])
     runs = [train(paths[VARIANTS[n][0]], n, steps + VARIANTS[n][1], args.cache, PRESET) for n in names]
     recs = {kind: open_recording(path) for kind, path in paths.items()}
     datas = {n: training_data(recs[VARIANTS[n][0]]) for n in names}
@@ -359,7 +363,7 @@ def main(argv: list[str] | None = None) -> int:
          "scene": described, "anchors": len(first.anchors_t_us), "frames": len(first.evaluable()),
          "novel_frames": next(iter(views.values()))["frames"] if views else 0, "moving_fraction": moving,
          "poses": accuracy, "pose_cost": pose_cost, "runs": runs, "scores": held, "novel": views,
-         "summary": summary, "commands": commands}
+         "summary": summary, "commands": commands, "seed": args.seed}
     r["targets_met"] = {k: meets(v, TARGETS[k]) for k, v in summary.items() if k in TARGETS}
     args.out.mkdir(parents=True, exist_ok=True)
     picked = pick_frames(first, street, truth_poses[0])

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from edmcgs.model.motion.row_grad import gather_rows
 from edmcgs.model.render.sh import SH_C0
 
 
@@ -119,10 +120,11 @@ class Gaussians(nn.Module):
         ``scales()``, ``opacities()``, ``colors()`` give it (quats as stored): the work follows the rows."""
         if rows is None:
             return [self.means, self.quats, self.scales(), self.opacities(), self.colors()]
-        features = self.features[rows]
+        features = gather_rows(self.features, rows)  # sparse gradients: the rows' work, not N's
         colors = torch.sigmoid(features[:, 0]) if features.shape[1] == 1 else features
-        return [self.means[rows], self.quats[rows], torch.exp(self.log_scales[rows]),
-                torch.sigmoid(self.opacity_logits[rows]), colors]
+        return [gather_rows(self.means, rows), gather_rows(self.quats, rows),
+                torch.exp(gather_rows(self.log_scales, rows)),
+                torch.sigmoid(gather_rows(self.opacity_logits, rows)), colors]
 
     def replace(self, tensors: dict[str, Tensor]) -> None:
         """Swap in new per-Gaussian parameters (after densification); N may change."""

@@ -14,10 +14,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from edmcgs.model.motion.row_grad import at_rows
+
 
 class RowAdam(torch.optim.Adam):
     """torch's Adam, except that the groups named in ``row_groups`` step only ``rows`` (set before each
-    step; None: every row, exactly torch's Adam)."""
+    step; None: every row, exactly torch's Adam). Their gradients may be sparse (``motion.row_grad``)."""
 
     def __init__(self, params, *, row_groups: tuple[str, ...], **kwargs):
         super().__init__(params, **kwargs)
@@ -46,7 +48,7 @@ class RowAdam(torch.optim.Adam):
             for _, p, grad in held:
                 p.grad = grad
         for group, p, grad in held:
-            self._row_step(group, p, grad[self.rows])
+            self._row_step(group, p, at_rows(grad, self.rows))
         return loss
 
     def _row_step(self, group: dict, p: Tensor, grad: Tensor) -> None:

@@ -17,6 +17,8 @@ import torch
 import torch.distributed as dist
 from torch import Tensor
 
+from edmcgs.model.motion.row_grad import at_rows, sparse_rows
+
 
 class GradientSync:
     """The averaging of one data-parallel run (the process group must be initialised)."""
@@ -63,30 +65,33 @@ class GradientSync:
         it); for the ``row_groups`` only ``rows`` (None: all rows)."""
         started = time.perf_counter()
         parts: list[tuple[Tensor, Tensor | None]] = []
+        views: list[Tensor] = []  # each gradient as it is averaged: whole, or at the rows
         had = []
         for group in optimizer.param_groups:
             for p in group["params"]:
+                r = rows if group.get("name") in row_groups and rows is not None else None
                 had.append(p.grad is not None)
                 if p.grad is None:
-                    p.grad = torch.zeros_like(p)
-                parts.append((p, rows if group.get("name") in row_groups and rows is not None else None))
-        flat = torch.cat([*[(p.grad if r is None else p.grad[r]).reshape(-1) for p, r in parts],
-                          torch.tensor(had, dtype=parts[0][0].grad.dtype, device=parts[0][0].grad.device)])
+                    views.append(torch.zeros_like(p) if r is None else p.new_zeros((len(r), *p.shape[1:])))
+                else:
+                    views.append(p.grad if r is None else at_rows(p.grad, r))
+                parts.append((p, r))
+        flat = torch.cat([*[view.reshape(-1) for view in views],
+                          torch.tensor(had, dtype=views[0].dtype, device=views[0].device)])
         dist.all_reduce(flat)
         self._timed(started, flat)
         anyone = flat[-len(parts):] > 0
         flat = flat[:-len(parts)] / self.world
         offset = 0
-        for (p, r), keep in zip(parts, anyone.tolist(), strict=True):
-            view = p.grad if r is None else p.grad[r]
+        for (p, r), view, keep in zip(parts, views, anyone.tolist(), strict=True):
             chunk = flat[offset:offset + view.numel()].view_as(view)
             offset += view.numel()
             if not keep:
                 p.grad = None
             elif r is None:
-                p.grad.copy_(chunk)
-            else:
-                p.grad[r] = chunk
+                p.grad = view.copy_(chunk)
+            else:  # the rows alone, as a window's gradient comes (motion.row_grad)
+                p.grad = sparse_rows(r, chunk, p.shape)
 
     def agree(self, module: torch.nn.Module) -> bool:
         """Whether every worker holds the same parameters (a checksum of each compared, bit for bit)."""

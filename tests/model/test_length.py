@@ -10,6 +10,8 @@ import torch
 
 from edmcgs.model.config import preset
 from edmcgs.model.data import EventGrid
+from edmcgs.model.motion import gaussians as gaussians_module
+from edmcgs.model.motion.row_grad import at_rows, gather_rows
 from edmcgs.model.train.row_adam import RowAdam
 from edmcgs.model.train.trainer import MOMENTUM_STEPS, Trainer
 from tests.support import tiny_scene
@@ -103,6 +105,46 @@ def test_row_adam_steps_the_rows_given_as_adam_does_and_leaves_the_rest():
     others = torch.tensor([0, 2, 3, 6])
     assert torch.equal(ours.detach()[others], moved[others])  # no momentum drift outside the rows
     assert not torch.equal(theirs.detach()[others], moved[others])  # as torch's Adam would drift them
+
+
+def test_a_row_gather_gives_indexing_s_values_and_a_sparse_gradient_of_its_rows_alone():
+    torch.manual_seed(0)
+    source = torch.nn.Parameter(torch.randn(9, 2, 3))
+    dense = torch.nn.Parameter(source.detach().clone())
+    rows_a, rows_b = torch.tensor([1, 4, 5]), torch.tensor([4, 8])
+    weight = torch.randn(3, 2, 3)
+    for p, gather in ((source, gather_rows), (dense, lambda s, r: s[r])):
+        a, b = gather(p, rows_a), gather(p, rows_b)
+        ((a * weight).sum() + b.pow(2).sum()).backward()
+    torch.testing.assert_close(gather_rows(source, rows_a), dense[rows_a], rtol=0, atol=0)
+    assert source.grad.is_sparse and not dense.grad.is_sparse
+    assert sorted(source.grad.coalesce().indices()[0].tolist()) == [1, 4, 5, 8]  # row 4 twice, summed
+    torch.testing.assert_close(source.grad.to_dense(), dense.grad, rtol=0, atol=1e-7)
+    rows = torch.tensor([0, 1, 4, 5, 8])  # a row beyond the gradient's reads zero
+    torch.testing.assert_close(at_rows(source.grad, rows), dense.grad[rows], rtol=0, atol=1e-7)
+    torch.testing.assert_close(at_rows(dense.grad, rows), dense.grad[rows], rtol=0, atol=0)
+    with torch.no_grad():  # no graph, no sparse gradient: plain indexing
+        assert gather_rows(source, rows_a).grad_fn is None
+
+
+def test_windowed_steps_move_the_model_as_dense_gradients_would(monkeypatch):
+    """The sparse row gradients are a cost, not a change: the same steps with ``p[rows]``'s dense
+    gradients give the same model."""
+    def trained(gather) -> dict[str, torch.Tensor]:
+        monkeypatch.setattr(gaussians_module, "gather_rows", gather)
+        torch.manual_seed(0)
+        model, data = build(WINDOWED.replace(iterations=6))
+        trainer = Trainer(model, data, progress=False)
+        assert model.windowed
+        for _ in range(6):
+            assert np.isfinite(trainer.train_step()["loss"])
+        assert model.gaussians.means.grad.is_sparse == (gather is gather_rows)
+        return {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+    sparse, dense = trained(gather_rows), trained(lambda s, r: s[r])
+    assert sparse.keys() == dense.keys()
+    for name in sparse:
+        torch.testing.assert_close(sparse[name], dense[name], rtol=1e-5, atol=1e-6, msg=name)
 
 
 @torch.no_grad()

@@ -6,6 +6,7 @@ the engine swaps a newer model in whole, and a render already running finishes o
 from __future__ import annotations
 
 import queue
+import time
 from pathlib import Path
 
 import numpy as np
@@ -252,6 +253,10 @@ def test_the_learner_process_reports_and_saves_when_told_to_stop(scene, tmp_path
                                       t_end_us=hi))
         model, report = taken.get(timeout=120)
         assert report["version"] == 1 and len(model.meta.anchors_us) == report["anchors"] >= 3
+        # on_model runs before the reader thread counts the model served: wait for that, bounded
+        deadline = time.monotonic() + 30
+        while learning.info()["model"] is None and time.monotonic() < deadline:
+            time.sleep(0.05)
         assert learning.info()["model"]["version"] == 1 and learning.info()["running"]
     finally:
         saved = learning.close()
