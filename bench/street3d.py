@@ -1,6 +1,7 @@
 """The street3d benchmark: the `moving` preset on a handheld camera in a 3D street, with estimated poses.
 
-    .venv/bin/python -m bench.street3d [--size full|small] [--seconds S] [--steps N] [--variants ...]
+    .venv/bin/python -m bench.street3d [--size full|small] [--seconds S] [--steps N] [--seed K]
+        [--variants ...]
 
 1. Builds the street (``edmcgs synth street3d --size SIZE --seconds S --seed 0``: a handheld DAVIS346
    walking along a ray-cast street, cars driving both ways; 25 Hz grey APS frames with exposure blur and
@@ -255,7 +256,7 @@ def markdown(r: dict, command: str) -> str:
     lines = ["# street3d benchmark: the `moving` preset on a handheld camera, with estimated poses", "",
              f"`{command}` on {r['machine']}. The scene: {r['scene']}; {r['anchors']} anchors, "
              f"{r['frames']} held-out frames and {r['novel_frames']} novel views scored. One training "
-             f"seed ({r.get('seed', 0)}).", "",
+             f"seed ({r['seed']}).", "",
              "## Poses", "",
              "`edmcgs record REC --poses auto` (structure from motion over every frame): "
              f"{pa['registered']} of {pa['frames']} frames registered, {pa['points']} points, absolute "
@@ -322,9 +323,9 @@ def main(argv: list[str] | None = None) -> int:
     auto_path, pose_cost = estimate(rec_path)
     true_path, accuracy = true_twin(rec_path, auto_path)
     paths = {"auto": auto_path, "true": true_path}
-    steps = ([] if args.steps is None else [f"iterations={args.steps}"]) + \
-        ([f"seed={args.seed}"] if args.seed else [])
-    runs = [train(paths[VARIANTS[n][0]], n, steps + VARIANTS[n][1], args.cache, PRESET) for n in names]
+    sets = ([] if args.steps is None else [f"iterations={args.steps}"]) + \
+        ([f"seed={args.seed}"] if args.seed else [])  # every variant's --set, before its own
+    runs = [train(paths[VARIANTS[n][0]], n, sets + VARIANTS[n][1], args.cache, PRESET) for n in names]
     recs = {kind: open_recording(path) for kind, path in paths.items()}
     datas = {n: training_data(recs[VARIANTS[n][0]]) for n in names}
     novel = {n: recs[VARIANTS[n][0]].novel_views for n in names}
@@ -357,7 +358,7 @@ def main(argv: list[str] | None = None) -> int:
     commands = ([] if args.recording else [f"edmcgs synth street3d {' '.join(scene)} -o street.h5"]) + [
         "edmcgs record street.h5 --poses auto -o street_auto.h5",
         *[f"edmcgs train {'street_auto.h5' if VARIANTS[n][0] == 'auto' else 'street_true.h5'} "
-          f"--config {PRESET} --threads 1" + "".join(f" --set {o}" for o in steps + VARIANTS[n][1])
+          f"--config {PRESET} --threads 1" + "".join(f" --set {o}" for o in sets + VARIANTS[n][1])
           + f" -o {n.replace(' ', '_').replace('=', '_')}.ckpt" for n in names]]
     r = {"machine": f"{platform.machine()}, {os.cpu_count()} CPUs", "recording": str(rec_path),
          "scene": described, "anchors": len(first.anchors_t_us), "frames": len(first.evaluable()),

@@ -2,9 +2,9 @@
 
 ``p[rows]``'s backward writes a zero-filled gradient the size of ``p``: for a model drawn in anchor
 windows, one [N, ...] tensor per per-Gaussian parameter per step, over every Gaussian of the recording
-(330 k at 60 s of DAVIS346 traffic, about 8 ms a step on one core). ``gather_rows`` gives the same values
-and a sparse COO gradient holding the gathered rows alone; ``at_rows`` reads a gradient of either layout
-at the rows an optimizer steps (``train/row_adam``).
+(330 k at 60 s of full-size DAVIS346 traffic; figures: docs/benchmarks/scale.md). ``gather_rows`` gives
+the same values and a sparse COO gradient holding the gathered rows alone; ``at_rows`` reads a gradient
+of either layout at the rows an optimizer steps (``train/row_adam``, ``train/sync``).
 """
 
 from __future__ import annotations

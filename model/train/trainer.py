@@ -455,11 +455,12 @@ class Trainer:
         # A single degenerate splat can produce a NaN gradient entry; zeroing it keeps Adam's moments finite.
         for group in self.optimizer.param_groups:
             for p in group["params"]:
-                if p.grad is not None and p.grad.is_sparse:  # a window's rows (motion.row_grad)
+                if p.grad is None:
+                    continue
+                if p.grad.is_sparse:  # a window's rows (motion.row_grad): their values alone
                     p.grad = p.grad.coalesce()
-                    p.grad.values().nan_to_num_(nan=0.0, posinf=0.0, neginf=0.0)
-                elif p.grad is not None:
-                    torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+                torch.nan_to_num_(p.grad.values() if p.grad.is_sparse else p.grad, nan=0.0, posinf=0.0,
+                                  neginf=0.0)
 
     def _density_control(self, progress: float) -> None:
         cfg, model = self.cfg, self.model
