@@ -435,8 +435,8 @@ class Trainer:
         rng = np.random.default_rng(cfg.seed + 1)
         points, colors, scales, views = backproject_anchors(
             data.anchor_images, data.anchor_poses, intr, model.center.cpu().numpy().astype(np.float64),
-            float(model.extent), cfg.init_points, rng, np.zeros(data.channels), candidates=misses,
-            depth=np.stack(depths), return_views=True)
+            float(model.extent), cfg.initial_points(len(misses)), rng, np.zeros(data.channels),
+            candidates=misses, depth=np.stack(depths), return_views=True)
         self.lift_counts = np.bincount(views.numpy(), minlength=len(misses)).tolist()
         g = model.gaussians
         new = Gaussians.from_points(points, colors, scales, sh_degree=g.sh_degree, opacity=cfg.init_opacity,
@@ -469,10 +469,10 @@ class Trainer:
         if self._due(cfg.densify_every):
             if self.sync is not None:  # every worker's views: the same Gaussians added everywhere
                 self.sync.sum_(self.stats.total, self.stats.count)
-            extent = self.extent
+            extent, cap = self.extent, cfg.gaussian_cap(len(self.data.anchors_t_us))
             densify_and_prune(model.gaussians, self.optimizer, self.stats, grad_threshold=cfg.densify_grad,
                               extent=extent, percent_dense=cfg.percent_dense, min_opacity=cfg.prune_opacity,
-                              max_size=cfg.prune_size * extent, max_count=cfg.max_gaussians,
+                              max_size=cfg.prune_size * extent, max_count=cap,
                               generator=self.generator)
             self.stats = GradientStats(len(model.gaussians), self.device)
             self.grown_at = self.step

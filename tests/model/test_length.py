@@ -41,6 +41,19 @@ def test_the_real_preset_takes_steps_points_and_gaussians_per_anchor_window():
     assert unwindowed.control_points(301) == 512 and unwindowed.initial_points(301) == 60000
 
 
+def test_the_moving_preset_takes_steps_points_and_lifted_gaussians_per_anchor_window():
+    moving = preset("moving")
+    # street3d's 4 s at 5 fps (21 anchors): the 1500 steps, 512 points, 60000 lifted and 150000 at most
+    # that it was measured with
+    assert (moving.total_steps(21), moving.control_points(21), moving.initial_points(21),
+            moving.gaussian_cap(21)) == (1500, 512, 60000, 150000)
+    # a minute: the same per window; the static set keeps its own budget beside the movers'
+    assert (moving.total_steps(301), moving.control_points(301), moving.initial_points(301),
+            moving.gaussian_cap(301)) == (22500, 7224, 859_957, 949_957)
+    assert preset("real").gaussian_cap(301) == 60000 + 1_128_750 - 60000
+    assert preset("demo").gaussian_cap(301) == preset("demo").max_gaussians
+
+
 def test_a_new_model_gets_points_per_window():
     model, _ = build(WINDOWED.replace(control_points_per_window=5, num_control_points=12))
     assert model.control.num_points == 15  # three anchors

@@ -26,7 +26,8 @@ from tests.support.models import TINY, one_torch_thread, perturb_prior  # noqa: 
 
 SMALL = preset("moving").replace(
     num_control_points=32, deform_width=32, deform_depth=2, substeps=4, max_pair_steps=4, eval_every=0,
-    checkpoint_every=0, densify_every=3, event_warmup=(0.0, 0.2), init_points=2000)
+    checkpoint_every=0, densify_every=3, event_warmup=(0.0, 0.2), init_points=2000,
+    steps_per_window=0, control_points_per_window=0, init_points_per_window=0)  # a fixed, tiny schedule
 
 
 def _true_points(rec, every: int = 7) -> tuple[np.ndarray, np.ndarray]:
@@ -218,3 +219,17 @@ def test_drawn_plans_are_kept_within_their_byte_budget(street, monkeypatch):
     monkeypatch.setattr(dynamic, "DRAWN_PLANS", 1)
     model.drawn_plan(0)
     assert list(model._drawn_plans) == [(0, True)]
+
+
+def test_the_lift_takes_its_gaussians_per_anchor_window():
+    # 80 pixels to lift, 10 Gaussians allowed in all, 20 per window over three anchors: 60 lifted
+    data = tiny_scene.data()
+    data.anchor_images[:] = 128
+    data.anchor_images[1, 10:18, 20:30] = 250
+    points = np.random.default_rng(0).uniform([-0.5, -0.3, 1.8], [0.5, 0.3, 2.2], (64, 3))
+    data.points_xyz, data.points_colors = points, np.full((64, 3), 128, np.uint8)
+    cfg = SMALL.replace(bg_layer=False, background=(128 / 255,) * 3, dynamic_threshold=0.1, lift_at=0.0,
+                        iterations=2, init_points=10, init_points_per_window=20, densify_every=100)
+    trainer = Trainer(new_model(data, cfg), data, progress=False)
+    trainer.train_step()
+    assert trainer.lifted and trainer.lift_counts == [0, 60, 0]
