@@ -95,17 +95,21 @@ def test_the_static_set_needs_points():
         SMALL.replace(anchor_windows=False)
 
 
-def test_the_lift_puts_what_the_static_set_misses_into_its_window():
-    # A grey wall (the background colour) that the static set and the layer explain, and a bright
-    # square that only anchor 1 sees: the square's pixels, and only they, are lifted into window 1.
+def _square_on_a_wall(**changes):
+    """A grey wall (the background colour) that the static set explains, and a bright 8x10 square that
+    only anchor 1 sees (80 pixels to lift); the data and SMALL with ``changes``."""
     data = tiny_scene.data()
     data.anchor_images[:] = 128
     data.anchor_images[1, 10:18, 20:30] = 250
-    rng = np.random.default_rng(0)
-    points = rng.uniform([-0.5, -0.3, 1.8], [0.5, 0.3, 2.2], (64, 3))
+    points = np.random.default_rng(0).uniform([-0.5, -0.3, 1.8], [0.5, 0.3, 2.2], (64, 3))
     data.points_xyz, data.points_colors = points, np.full((64, 3), 128, np.uint8)
-    cfg = SMALL.replace(bg_layer=False, background=(128 / 255,) * 3, dynamic_threshold=0.1, lift_at=0.5,
-                        iterations=4, init_points=10_000, densify_every=100)
+    return data, SMALL.replace(bg_layer=False, background=(128 / 255,) * 3, dynamic_threshold=0.1,
+                               densify_every=100, **changes)
+
+
+def test_the_lift_puts_what_the_static_set_misses_into_its_window():
+    # the square's pixels, and only they, are lifted into window 1
+    data, cfg = _square_on_a_wall(lift_at=0.5, iterations=4, init_points=10_000)
     model = new_model(data, cfg)
     trainer = Trainer(model, data, progress=False)
     trainer.train_step()
@@ -223,13 +227,7 @@ def test_drawn_plans_are_kept_within_their_byte_budget(street, monkeypatch):
 
 def test_the_lift_takes_its_gaussians_per_anchor_window():
     # 80 pixels to lift, 10 Gaussians allowed in all, 20 per window over three anchors: 60 lifted
-    data = tiny_scene.data()
-    data.anchor_images[:] = 128
-    data.anchor_images[1, 10:18, 20:30] = 250
-    points = np.random.default_rng(0).uniform([-0.5, -0.3, 1.8], [0.5, 0.3, 2.2], (64, 3))
-    data.points_xyz, data.points_colors = points, np.full((64, 3), 128, np.uint8)
-    cfg = SMALL.replace(bg_layer=False, background=(128 / 255,) * 3, dynamic_threshold=0.1, lift_at=0.0,
-                        iterations=2, init_points=10, init_points_per_window=20, densify_every=100)
+    data, cfg = _square_on_a_wall(lift_at=0.0, iterations=2, init_points=10, init_points_per_window=20)
     trainer = Trainer(new_model(data, cfg), data, progress=False)
     trainer.train_step()
     assert trainer.lifted and trainer.lift_counts == [0, 60, 0]
