@@ -10,6 +10,7 @@ from torch import Tensor
 
 from edmcgs.geometry import quat_normalize, quat_to_rotmat
 from edmcgs.model.motion.gaussians import PER_GAUSSIAN, Gaussians
+from edmcgs.model.train.row_adam import select_rows
 
 
 class GradientStats:
@@ -82,11 +83,7 @@ def _rebuild(optimizer: torch.optim.Optimizer, gaussians: Gaussians, keep: Tenso
         fresh = getattr(gaussians, name)
         state = optimizer.state.pop(old, None)
         if state:
-            for key in ("exp_avg", "exp_avg_sq"):
-                moment = state[key][keep]
-                if added:
-                    moment = torch.cat([moment, moment.new_zeros((added, *moment.shape[1:]))])
-                state[key] = moment
+            select_rows(state, keep, added)
             optimizer.state[fresh] = state
         group["params"][0] = fresh
 

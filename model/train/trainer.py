@@ -3,8 +3,8 @@
 A run takes ``config.total_steps`` steps (a fixed number, or a number per span between anchors). With
 anchor windows a step works on the windows it draws alone (their Gaussians and control points, the
 event sums of their gap: ``EventGrid`` makes them on demand), so its cost does not grow with the
-recording's length; the optimizer steps the rows of the windows drawn in the last ``MOMENTUM_STEPS``
-steps alone (``RowAdam``: those Adam's momentum still moves). Data-parallel: each worker draws
+recording's length; the optimizer steps the rows of the windows drawn alone (``RowAdam``, lazy: a
+window's momentum moves are paid when it is drawn again). Data-parallel: each worker draws
 from its ``shard`` of the windows and ``sync`` averages the gradients (``sync.GradientSync``).
 
 One iteration:
@@ -25,7 +25,6 @@ import math
 import os
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 
 import numpy as np
@@ -58,11 +57,6 @@ from edmcgs.model.train.resume import remove_sidecar, save_final
 from edmcgs.model.train.row_adam import RowAdam
 from edmcgs.model.train.schedule import exp_decay, ramp
 from edmcgs.model.train.sync import GradientSync
-
-MOMENTUM_STEPS = math.ceil(math.log(1e-3) / math.log(0.9))
-"""Steps after its last draw that a window's Gaussians keep moving by Adam's momentum (beta1 0.9: 66
-steps, after which a step is below 1e-3 of the one that drew it), as torch's Adam moves them; past
-that they wait for their next draw (``RowAdam``), so a step's work is bounded whatever the length."""
 
 MAX_BAD_STEPS = 20
 """Consecutive non-finite losses after which training stops with a TrainingError."""
@@ -156,8 +150,6 @@ class Trainer:
         self.rng = np.random.default_rng(cfg.seed if rank == 0 else [cfg.seed, rank])
         self.generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
         self.history: list[dict] = []
-        self.recent: deque[list[int]] = deque(maxlen=MOMENTUM_STEPS)
-        """The windows each of the last steps drew (their Gaussians are the rows ``RowAdam`` steps)."""
         self.train_seconds = 0.0
         """Wall-clock seconds spent in training steps (not in evaluation or checkpointing)."""
         self.interrupted = False
@@ -284,9 +276,20 @@ class Trainer:
         terms: dict[str, Tensor] = {}
 
         n = self._draw(self.anchor_shard)
+        paired = not static and self.grid is not None  # an event pair in a gap besides the anchor
+        if paired:
+            gap = self._draw(self.gap_shard)
+            s = self.grid.substeps
+            a = 0 if self.rng.random() < cfg.anchored_pairs else int(self.rng.integers(0, s))
+            b = int(self.rng.integers(a + 1, min(s, a + cfg.max_pair_steps) + 1))
         windows = model_has_windows(model)
         rowwise = model.windowed  # a step's work: the rows of the windows it draws (no static set)
-        drawn = [n]  # the windows this step draws
+        rows = None
+        if rowwise:
+            drawn = [n, gap] if paired else [n]
+            rows = torch.unique(torch.cat([model.window_rows(w).gaussians for w in drawn]))
+            with stage("optimizer catch-up"):
+                self.optimizer.catch_up(rows)  # their momentum moves since last drawn, before they are read
         with stage("anchor: deform"):
             weights = None
             if rowwise:
@@ -302,11 +305,7 @@ class Trainer:
             terms["photo"] = self.photometric_loss(image, self.anchor_images[n], cfg.lambda_dssim)
         loss = terms["photo"]
 
-        if not static and self.grid is not None:
-            gap = self._draw(self.gap_shard)
-            s = self.grid.substeps
-            a = 0 if self.rng.random() < cfg.anchored_pairs else int(self.rng.integers(0, s))
-            b = int(self.rng.integers(a + 1, min(s, a + cfg.max_pair_steps) + 1))
+        if paired:
             with stage("event pair: sums"):
                 cum = self.grid.cumulative(gap)
             with stage("event pair: control motion"):
@@ -332,8 +331,6 @@ class Trainer:
             if cfg.tli:
                 terms["tli"] = tli_loss(cp + trans_a, cp + trans_b, graph)
                 loss = loss + cfg.lambda_tli * terms["tli"]
-            if rowwise:
-                drawn.append(gap)
             if windows and cfg.lambda_next > 0 and self.grid.ends_at_anchor[gap] and self.lifted:
                 # The gap's Gaussians carried by all its events to the next anchor frame.
                 with stage("next anchor"):
@@ -379,12 +376,6 @@ class Trainer:
             return {"loss": float("nan")}
         with stage("backward"):
             loss.backward()
-        rows = None
-        if rowwise:
-            # the Gaussians of the windows drawn in the last MOMENTUM_STEPS steps: Adam still moves them
-            self.recent.append(drawn)
-            moving = sorted({w for step in self.recent for w in step})
-            rows = torch.unique(torch.cat([model.window_rows(w).gaussians for w in moving]))
         if self.sync is not None:
             with stage("all-reduce"):
                 rows = None if rows is None else self.sync.union(rows)
@@ -441,6 +432,7 @@ class Trainer:
         g = model.gaussians
         new = Gaussians.from_points(points, colors, scales, sh_degree=g.sh_degree, opacity=cfg.init_opacity,
                                     birth=views)
+        self.optimizer.flush()
         append(g, self.optimizer, {name: getattr(new, name).detach().to(self.device)
                                    for name in (*PER_GAUSSIAN, "birth")})
         model.control.resample(g.means, radius=cfg.radius_init * float(model.extent), birth=g.birth)
@@ -466,6 +458,8 @@ class Trainer:
         cfg, model = self.cfg, self.model
         if not (cfg.densify_from <= progress < cfg.densify_until):
             return
+        if self._due(cfg.densify_every) or self._due(cfg.opacity_reset_every):
+            self.optimizer.flush()  # density control reads and edits every row
         if self._due(cfg.densify_every):
             if self.sync is not None:  # every worker's views: the same Gaussians added everywhere
                 self.sync.sum_(self.stats.total, self.stats.count)
@@ -494,6 +488,7 @@ class Trainer:
     # ------------------------------------------------------------------ loop, evaluation, resume
     def evaluate(self, frames: int | None = None) -> dict[str, float]:
         """Mean PSNR / SSIM on ``frames`` evenly spaced held-out frames (all when None)."""
+        self.optimizer.flush()
         idx = self.data.evaluable()
         if frames is not None and idx.size > frames:
             idx = idx[np.linspace(0, idx.size - 1, frames).round().astype(int)]
@@ -571,6 +566,7 @@ class Trainer:
             if checkpoint_path and self.lead:
                 self.save_resumable(checkpoint_path)
             return self.history
+        self.optimizer.flush()
         if self.sync is not None and not self.sync.agree(self.model):
             raise TrainingError("the data-parallel workers' models differ at the end: nothing was written")
         self.model.event_scale.fill_(1.0)
@@ -588,11 +584,13 @@ class Trainer:
         self.saved_step = self.step
 
     def train_state(self) -> dict:
-        """Everything besides the model needed to continue this run (plain containers and tensors)."""
+        """Everything besides the model needed to continue this run (plain containers and tensors); the
+        model is brought current first (``RowAdam.flush``), as a checkpoint of it follows."""
+        self.optimizer.flush()
         return {"step": self.step, "optimizer": self.optimizer.state_dict(), "stats": self.stats.state_dict(),
                 "rng": self.rng.bit_generator.state, "generator": self.generator.get_state(),
                 "history": self.history, "train_seconds": self.train_seconds, "lifted": self.lifted,
-                "lift_counts": self.lift_counts, "recent": list(self.recent)}
+                "lift_counts": self.lift_counts}
 
     def load_train_state(self, state: dict) -> None:
         """Continue from ``train_state()`` output (the model must come from the same checkpoint)."""
@@ -605,8 +603,6 @@ class Trainer:
         self.train_seconds = float(state.get("train_seconds", 0.0))
         self.lifted = bool(state.get("lifted", not self.cfg.static_set))
         self.lift_counts = list(state.get("lift_counts", []))
-        self.recent.clear()
-        self.recent.extend([int(w) for w in step] for step in state.get("recent", []))
 
 
 def model_has_windows(model: EdMCGS) -> bool:

@@ -3,8 +3,6 @@ on demand, and a step of a model drawn in anchor windows working on its windows 
 
 from __future__ import annotations
 
-from collections import deque
-
 import numpy as np
 import torch
 
@@ -12,8 +10,8 @@ from edmcgs.model.config import preset
 from edmcgs.model.data import EventGrid
 from edmcgs.model.motion import gaussians as gaussians_module
 from edmcgs.model.motion.row_grad import at_rows, gather_rows
-from edmcgs.model.train.row_adam import RowAdam
-from edmcgs.model.train.trainer import MOMENTUM_STEPS, Trainer
+from edmcgs.model.train.row_adam import RowAdam, select_rows
+from edmcgs.model.train.trainer import Trainer
 from tests.support import tiny_scene
 from tests.support.models import TINY, build, one_torch_thread  # noqa: F401
 
@@ -86,38 +84,62 @@ def test_event_sums_made_on_demand_equal_the_sums_made_up_front():
         assert (grid.capacity, grid.made) == (gaps, made)
 
 
-def test_row_adam_steps_the_rows_given_as_adam_does_and_leaves_the_rest():
+def test_row_adam_is_torch_s_adam_paid_lazily_whatever_rows_wait_and_for_how_long():
+    """Rows left out of a step wait, their momentum moves owed; paid (``catch_up`` of the rows a step
+    draws, ``flush`` of all), the path is torch's Adam's with zero gradients there: with a learning rate
+    changing every step, rows idle past the momentum's horizon, and a state saved and loaded midway."""
     torch.manual_seed(0)
-    rows = torch.tensor([1, 4, 5])
-    start = torch.randn(7, 3)
-    ours = torch.nn.Parameter(start.clone())
-    theirs = torch.nn.Parameter(start.clone())
-    sub = torch.nn.Parameter(start[rows].clone())
+    start = torch.randn(40, 3)
+    ours, theirs = torch.nn.Parameter(start.clone()), torch.nn.Parameter(start.clone())
     row_adam = RowAdam([{"name": "means", "params": [ours], "lr": 0.1}], row_groups=("means",), eps=1e-15)
     adam = torch.optim.Adam([theirs], lr=0.1, eps=1e-15)
-    adam_sub = torch.optim.Adam([sub], lr=0.1, eps=1e-15)
-    for step in range(5):
-        grad = torch.randn(7, 3)
-        if step:
-            grad[[0, 2, 3, 6]] = 0.0  # the rows no drawn window holds
-        for p, g in ((ours, grad), (theirs, grad), (sub, grad[rows])):
-            p.grad = g.clone()
-        row_adam.rows = None if step == 0 else rows  # first every row, as torch's Adam
+    generator = torch.Generator().manual_seed(1)
+    for step in range(400):
+        for optimizer in (row_adam, adam):
+            optimizer.param_groups[0]["lr"] = 0.1 * 0.99 ** step
+        rows = None if step == 0 else torch.unique(torch.randint(0, 40, (3,), generator=generator))
+        if step > 100:  # rows 30 to 39 idle for 300 steps: past the 264 the owed moves are summed over
+            rows = rows[rows < 30] if len(rows[rows < 30]) else torch.tensor([0])
+        grad = torch.randn(40, 3, generator=generator)
+        if rows is not None:
+            grad[~torch.isin(torch.arange(40), rows)] = 0.0
+        if step == 80:  # a train state saved and loaded: the owed moves survive it
+            saved = row_adam.state_dict()
+            row_adam = RowAdam([{"name": "means", "params": [ours], "lr": 0.1}], row_groups=("means",),
+                               eps=1e-15)
+            row_adam.load_state_dict(saved)
+            assert row_adam.state[ours]["row_step"].dtype == torch.long
+            assert row_adam.state[ours]["owed"].dtype == torch.float64
+            assert row_adam.state[ours]["step"] == 80
+        row_adam.catch_up(rows)
+        if rows is not None:  # the rows a step reads are current before it
+            torch.testing.assert_close(ours.detach()[rows], theirs.detach()[rows], rtol=1e-5, atol=1e-5)
+        ours.grad, theirs.grad = grad.clone(), grad.clone()
+        row_adam.rows = rows
         row_adam.step(), adam.step()
-        if step == 0:
-            torch.testing.assert_close(ours.detach(), theirs.detach(), rtol=0, atol=0)
-            adam_sub = torch.optim.Adam([sub], lr=0.1, eps=1e-15)
-            with torch.no_grad():
-                sub.copy_(ours[rows])
-            moved = ours.detach().clone()
-            adam_sub.state[sub] = {k: (v[rows].clone() if v.dim() else v.clone())
-                                   for k, v in row_adam.state[ours].items()}
-            continue
-        adam_sub.step()
-    torch.testing.assert_close(ours.detach()[rows], sub.detach(), rtol=1e-6, atol=1e-7)
-    others = torch.tensor([0, 2, 3, 6])
-    assert torch.equal(ours.detach()[others], moved[others])  # no momentum drift outside the rows
-    assert not torch.equal(theirs.detach()[others], moved[others])  # as torch's Adam would drift them
+    waiting = ours.detach().clone()
+    assert (waiting[30:] - theirs.detach()[30:]).abs().max() > 1e-3  # the idle rows' moves still owed
+    row_adam.flush()
+    torch.testing.assert_close(ours.detach(), theirs.detach(), rtol=1e-5, atol=1e-5)
+    assert (theirs.detach() - start).abs().max() > 1.0
+    for key in ("exp_avg", "exp_avg_sq"):
+        torch.testing.assert_close(row_adam.state[ours][key], adam.state[theirs][key], rtol=1e-4, atol=1e-9)
+    assert row_adam.state[ours]["row_step"].eq(400).all()
+
+
+def test_density_control_keeps_the_owed_moves_of_the_rows_it_keeps():
+    torch.manual_seed(0)
+    means = torch.nn.Parameter(torch.randn(6, 3))
+    row_adam = RowAdam([{"name": "means", "params": [means], "lr": 0.1}], row_groups=("means",), eps=1e-15)
+    for rows in (torch.arange(6), torch.tensor([1, 2])):
+        row_adam.rows = rows
+        means.grad = torch.ones(6, 3)
+        row_adam.step()
+    state = row_adam.state[means]
+    keep = torch.tensor([True, False, True, True, True, False])
+    select_rows(state, keep, added=2)
+    assert state["row_step"].tolist() == [1, 2, 1, 1, 2, 2]  # rows 0, 3, 4 owe step 2; the new are current
+    assert state["exp_avg"].shape == (6, 3) and not state["exp_avg"][4:].any()
 
 
 def test_a_row_gather_gives_indexing_s_values_and_a_sparse_gradient_of_its_rows_alone():
@@ -182,35 +204,31 @@ def test_a_window_state_is_the_full_state_of_its_gaussians():
     assert float(full.opacities[others].abs().max()) == 0.0  # nothing else is drawn there
 
 
-def test_a_windowed_step_moves_the_gaussians_of_the_windows_drawn_lately_alone():
-    """The windows drawn in the last steps move (the step's by their gradients, the earlier ones' by Adam's
-    momentum); the others wait. A run remembers MOMENTUM_STEPS steps; here two."""
+def test_a_windowed_step_moves_the_gaussians_of_the_windows_it_draws_alone():
+    """A step moves the Gaussians of the windows it draws (caught up first with the momentum they owe);
+    the others wait until drawn again, or until the model is read whole (``flush``)."""
     model, data = build(WINDOWED.replace(iterations=8, lr_means=0.05))
     trainer = Trainer(model, data, progress=False)
-    assert trainer.recent.maxlen == MOMENTUM_STEPS == 66
-    trainer.recent = deque(maxlen=2)
     birth = model.gaussians.birth
-    momentum_seen = False
+    owed_seen = False
     for _ in range(8):
-        drawn_before = {name: getattr(model.gaussians, name).detach().clone()
-                        for name in ("means", "opacity_logits", "features")}
+        before = {name: getattr(model.gaussians, name).detach().clone()
+                  for name in ("means", "opacity_logits", "features")}
         state = trainer.rng.bit_generator.state
         n = trainer._draw(trainer.anchor_shard)  # the draws the step will make
+        gap = trainer._draw(trainer.gap_shard)
         trainer.rng.bit_generator.state = state
-        terms = trainer.train_step()
-        assert np.isfinite(terms["loss"])
-        lately = torch.tensor(sorted({w for step in trainer.recent for w in step}))
-        untouched = ~torch.isin(birth, lately)
-        for name, before in drawn_before.items():
-            after = getattr(model.gaussians, name).detach()
-            assert torch.equal(after[untouched], before[untouched]), name
-        assert not torch.equal(model.gaussians.means.detach()[birth == n], drawn_before["means"][birth == n])
-        before = trainer.recent[0][0] if len(trainer.recent) == 2 else None  # the anchor the step before drew
-        if before is not None and before not in trainer.recent[-1]:
-            momentum_seen = True  # not drawn now: moved by its momentum alone
-            moved = model.gaussians.means.detach()[birth == before]
-            assert not torch.equal(moved, drawn_before["means"][birth == before])
-    assert momentum_seen
+        assert np.isfinite(trainer.train_step()["loss"])
+        untouched = ~torch.isin(birth, torch.tensor([n, gap]))
+        for name, value in before.items():
+            assert torch.equal(getattr(model.gaussians, name).detach()[untouched], value[untouched]), name
+        assert not torch.equal(model.gaussians.means.detach()[birth == n], before["means"][birth == n])
+        waiting = model.gaussians.means.detach().clone()
+        trainer.optimizer.flush()
+        moved = (model.gaussians.means.detach() != waiting).any(1)
+        assert not moved[~untouched].any()  # the drawn windows were current
+        owed_seen |= bool(moved[untouched].any())  # a window drawn before, idle now: its momentum paid
+    assert owed_seen
 
 
 def test_a_windowed_run_takes_its_steps_per_window():
