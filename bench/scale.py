@@ -22,6 +22,8 @@
 Every step is cached in ``--cache`` by what determines it (recordings by their arguments, runs by the
 recording and the resolved config, scores and serving by the checkpoint): an interrupted run resumes,
 and a long training can run alone (``--only train --lengths 60``) while the rest is read from the cache.
+A length repeated trains again, cached apart: ``--lengths 3,60,3`` in a fresh cache runs the lengths
+alternately in one session, and the 60 s / 3 s ratios take the mean of the 3 s runs.
 Writes ``scale.md`` and ``bench/scale.json`` into ``--out``.
 """
 
@@ -125,10 +127,11 @@ def run_key(rec: Path, extra: list[str]) -> str:
     return f"{rec.stem}_{_digest(rec.name, rec.stat().st_size, cfg, extra)}"
 
 
-def train(rec: Path, cache: Path, extra: list[str] | None = None) -> dict:
-    """``edmcgs train REC --config real --threads 1`` (and ``extra``) in its own process, cached."""
+def train(rec: Path, cache: Path, extra: list[str] | None = None, run: int = 1) -> dict:
+    """``edmcgs train REC --config real --threads 1`` (and ``extra``) in its own process, cached (``run``
+    2, 3, ...: the same training again, cached apart: a length repeated in ``--lengths``)."""
     extra = extra or []
-    key = run_key(rec, extra)
+    key = run_key(rec, extra) + ("" if run == 1 else f"_run{run}")
     ckpt = cache / f"{key}.ckpt"
 
     def make() -> dict:
@@ -338,20 +341,28 @@ def cluster_estimate(two: dict, machines: int) -> float:
 
 # ------------------------------------------------------------------------------- the report
 
+def _length(row: str) -> int:
+    """A row's length in seconds: a row is named by it, ``"3"``, a repeated run with its number, ``"3#2"``."""
+    return int(row.split("#")[0])
+
+
 def summarise(results: dict) -> dict:
     s = {}
     for scene, rows in results["scenes"].items():
         margins = [r["margin_db"] for r in rows.values() if "margin_db" in r]
         if margins:
             s[f"{scene}_margin_db_min"] = min(margins)
-        # the longest length against the shortest (the targets name 60 s against 3 s)
-        lengths = sorted(rows, key=int)
+        # the longest length against the shortest (the targets name 60 s against 3 s), each the mean of
+        # its runs (a length repeated in --lengths: the runs alternate the lengths in one session)
+        lengths = sorted({_length(k) for k in rows})
         short, long = (lengths[0], lengths[-1]) if len(lengths) > 1 else (None, None)
         for key, name in (("cpu_per_s", "cpu_per_s_ratio"), ("render_p50_ms", "render_p50_ratio")):
-            if short and key in rows[short] and key in rows[long]:
-                s[f"{scene}_{name}_{long}_{short}"] = rows[long][key] / rows[short][key]
-        if long and "peak_gb" in rows[long]:
-            s[f"{scene}_train_peak_gb_{long}"] = rows[long]["peak_gb"]
+            ours = {n: [r[key] for k, r in rows.items() if _length(k) == n and key in r]
+                    for n in (short, long)}
+            if short and ours[short] and ours[long]:
+                s[f"{scene}_{name}_{long}_{short}"] = float(np.mean(ours[long]) / np.mean(ours[short]))
+        if long and "peak_gb" in rows[str(long)]:
+            s[f"{scene}_train_peak_gb_{long}"] = rows[str(long)]["peak_gb"]
     if "event_path" in results:
         s["event_path_peak_gb_600s"] = results["event_path"]["peak_gb"]
     if "ray" in results:
@@ -383,8 +394,10 @@ def markdown(r: dict, command: str) -> str:
                   "| length | anchors | events | steps | train wall | train CPU | CPU per s of recording "
                   "| peak RSS | checkpoint | Gaussians | PSNR model | hold | blend | integrate | margin "
                   "| /render p50 | server RSS |", "|" + "---|" * 17]
-        for length, row in sorted(rows.items(), key=lambda kv: int(kv[0])):
-            cells = [f"{length} s", str(row["anchors"]), f"{row['events'] / 1e6:.1f} M",
+        for name, row in sorted(rows.items(), key=lambda kv: (_length(kv[0]), kv[0])):
+            length, _, run = name.partition("#")
+            cells = [f"{length} s" + (f", run {run}" if run else ""), str(row["anchors"]),
+                     f"{row['events'] / 1e6:.1f} M",
                      str(row.get("steps", "—"))]
             for key, fmt, unit in (("wall_min", ".1f", " min"), ("cpu_min", ".1f", " min"),
                                    ("cpu_per_s", ".1f", " s"), ("peak_gb", ".2f", " GB"),
@@ -395,10 +408,11 @@ def markdown(r: dict, command: str) -> str:
                                    ("server_rss_mb", ".0f", " MB")):
                 cells.append("—" if row.get(key) is None else f"{row[key]:{fmt}}{unit}")
             lines.append("| " + " | ".join(cells) + " |")
-        missing = sorted((length for length, row in rows.items() if "wall_min" not in row), key=int)
+        missing = sorted({_length(name) for name, row in rows.items() if "wall_min" not in row})
         if missing:
-            lines += ["", f"Not trained yet: {', '.join(missing)} s; `python -m bench.scale --only train "
-                          f"--scenes {scene} --lengths {','.join(missing)}` trains them (each length cached "
+            listed = ",".join(map(str, missing))
+            lines += ["", f"Not trained yet: {listed} s; `python -m bench.scale --only train "
+                          f"--scenes {scene} --lengths {listed}` trains them (each length cached "
                           "as it finishes)."]
         lines.append("")
     if "event_path" in r:
@@ -436,7 +450,8 @@ def markdown(r: dict, command: str) -> str:
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m bench.scale", description=__doc__.split("\n\n")[0])
     p.add_argument("--scenes", default=",".join(SCENES), help=f"comma-separated, of {list(SCENES)}")
-    p.add_argument("--lengths", default=",".join(map(str, LENGTHS)), help="seconds, comma-separated")
+    p.add_argument("--lengths", default=",".join(map(str, LENGTHS)),
+                   help="seconds, comma-separated (a length repeated trains again: 3,60,3 alternates them)")
     p.add_argument("--only", default=",".join(STEPS), help=f"steps to run, of {list(STEPS)} (the others "
                                                            "are read from the cache where they are)")
     p.add_argument("--out", type=Path, default=Path("reports"), help="where scale.md and bench/scale.json go")
@@ -474,7 +489,9 @@ def main(argv: list[str] | None = None) -> int:
                "overrides": args.overrides, "scenes": {}}
     for scene in scenes:
         rows, recs, runs = {}, {}, {}
-        for length in lengths:
+        for i, length in enumerate(lengths):
+            again = lengths[:i].count(length) + 1  # a repeated length trains again: its run number
+            name = str(length) if again == 1 else f"{length}#{again}"
             path = recording_path(cache, scene, length, args.size)
             if "build" in only:
                 path = recording(cache, scene, length, args.size)
@@ -482,10 +499,11 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             recs[length] = path
             row = describe(path)
-            key = run_key(path, sets)
+            key = run_key(path, sets) + ("" if again == 1 else f"_run{again}")
             if "train" in only or (cache / f"{key}.json").exists():
-                run = train(path, cache, sets)
-                runs[length] = run
+                run = train(path, cache, sets, again)
+                if again == 1:
+                    runs[length] = run  # served: the first run of each length
                 row |= {"wall_min": run["wall_s"] / 60, "cpu_min": run["cpu_s"] / 60,
                         "cpu_per_s": run["cpu_s"] / row["seconds"], "peak_gb": run["peak_gb"],
                         "checkpoint_mb": run["checkpoint_mb"], "gaussians": run["gaussians"],
@@ -497,7 +515,7 @@ def main(argv: list[str] | None = None) -> int:
                     row |= {SHORT[name]: sc[name]["psnr"] for name in BASELINES}
                     row["psnr"] = sc["model"]["psnr"]
                     row["margin_db"] = row["psnr"] - max(sc[name]["psnr"] for name in BASELINES)
-            rows[str(length)] = row
+            rows[name] = row
         if runs and "serve" in only:
             served = serve(recs, runs, cache, args.serve_rounds, args.serve_seconds)
             for length, s in served.items():

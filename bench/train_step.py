@@ -1,16 +1,18 @@
 """Where a training step's time goes: the stages of ``Trainer.train_step``, profiled.
 
     .venv/bin/python -m bench.train_step [--checkpoint CKPT --recording REC | --recording REC --config P]
-        [--set KEY=VALUE] [--at 0.9] [--steps 30] [--threads 1] [--device cpu|cuda] [--json PATH]
+        [--set KEY=VALUE] [--at 0.9] [--steps 30] [--timed 0] [--threads 1] [--device cpu|cuda]
+        [--json PATH]
 
 Trains on from a checkpoint (default: the bundled demo, trained, with its recording), or from a new
 model built from ``--recording`` with the preset; moves the step counter to ``--at`` of the schedule
 (so that the deformation, the event pairs and densification run as they do then), warms up, then
-runs ``--steps`` steps under the torch profiler. Prints, per stage (the named ranges of
-``train_step``), its wall time per step, inclusive of what it calls, and its share of the step; then
-the slowest ops by self time, which splits the backward into its autograd nodes
-(``CompositeFastBackward``, ...). The rasterizer is ``EDMCGS_RASTERIZER``'s
-(numba on the CPU by default, gsplat on CUDA where installed, else torch). Timings are wall clock on a
+runs ``--timed`` steps timed alone (the torch profiler's memory grows with the steps it holds: over a
+few hundred steps of a long recording, many GB) and ``--steps`` steps under the torch profiler. Prints,
+per stage (the named ranges of ``train_step``), its wall time per step, inclusive of what it calls,
+and its share of the step; then the slowest ops by self time, which splits the backward into its
+autograd nodes (``CompositeFastBackward``, ...). The rasterizer is ``EDMCGS_RASTERIZER``'s (numba on the
+CPU by default, gsplat on CUDA where installed, else torch). Timings are wall clock on a
 shared machine: the load average is printed.
 
 Then what a step reads back to the host, by the line that asks (``harness/host_reads``: on a GPU
@@ -102,6 +104,23 @@ def op_cost_us(device, ops: int = 20_000) -> float:
     return (time.perf_counter() - start) / ops * 1e6
 
 
+def timed_steps(trainer, steps: int) -> dict | None:
+    """{median_ms, last_half_median_ms, mean_ms} of ``steps`` steps' wall time, unprofiled (None: none)."""
+    if steps < 1:
+        return None
+    import torch
+
+    sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
+    walls = []
+    for _ in range(steps):
+        start = time.perf_counter()
+        trainer.train_step()
+        sync()
+        walls.append((time.perf_counter() - start) * 1e3)
+    return {"steps": steps, "median_ms": float(np.median(walls)),
+            "last_half_median_ms": float(np.median(walls[steps // 2:])), "mean_ms": float(np.mean(walls))}
+
+
 def host_reads(trainer, steps: int = READ_STEPS) -> dict:
     """What ``steps`` steps read back to the host: per step in all, and per step by line (project code
     that asked itself; reads inside libraries, such as torch's CPU optimizer, under their caller)."""
@@ -150,6 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--at", type=float, default=0.9, help="fraction of the schedule to profile at (0.9)")
     p.add_argument("--steps", type=int, default=30, help="profiled steps (30)")
+    p.add_argument("--timed", type=int, default=0, help="steps timed before those, without the profiler "
+                   "(0; a few hundred show a long recording's steady state, cheaply)")
     p.add_argument("--threads", type=int, default=1, help="torch threads (1, as edmcgs train's default)")
     p.add_argument("--device", default="cpu", help="torch device to train on (cpu, cuda, cuda:N)")
     p.add_argument("--compile", action="store_true", help="the skinning by torch.compile (edmcgs train "
@@ -158,8 +179,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if not 0 <= args.at <= 1:
         p.error(f"--at must lie in [0, 1], got {args.at}")
-    if args.steps < 1 or args.threads < 1:
-        p.error("--steps and --threads must be >= 1")
+    if args.steps < 1 or args.threads < 1 or args.timed < 0:
+        p.error("--steps and --threads must be >= 1, --timed >= 0")
     import torch
 
     from edmcgs.errors import InvalidInputError
@@ -194,6 +215,7 @@ def main(argv: list[str] | None = None) -> int:
     trainer.step = round(args.at * trainer.total_steps)
     for _ in range(WARMUP):
         trainer.train_step()
+    timed = timed_steps(trainer, args.timed)
     ranges, gpu, top, step_ms, counts = profile_steps(trainer, args.steps)
     total = ranges.pop("step")
     gpu_total = gpu.pop("step", None)
@@ -211,6 +233,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'(outside the stages)':<30}{rest:>10.2f}{rest / total:>8.0%}")
     print(f"{'step (profiled)':<30}{total:>10.2f}" + (f"{'':>8}{gpu_total:>10.2f}" if cuda else ""))
     print(f"{'step (median, wall)':<30}{step_ms:>10.2f}")
+    if timed:
+        print(f"{'step (median, unprofiled)':<30}{timed['median_ms']:>10.2f}   over {args.timed} steps "
+              f"(last half {timed['last_half_median_ms']:.2f})")
     per_op = op_cost_us(trainer.device)
     print(f"torch ops per step (not called by another op): {counts['ops']:.0f}"
           + (f"; kernel launches: {counts['launches']:.0f}" if cuda else "")
@@ -237,7 +262,7 @@ def main(argv: list[str] | None = None) -> int:
                            "device": str(trainer.device), "device_name": where, "threads": args.threads,
                            "rasterizer": rasterizer, "compile": args.compile,
                            "gaussians": len(trainer.model.gaussians),
-                           "step_ms_median": step_ms, "step_ms_profiled": total,
+                           "step_ms_median": step_ms, "step_ms_profiled": total, "timed": timed,
                            "ops_per_step": counts["ops"], "launches_per_step": counts["launches"],
                            "us_per_small_op": per_op,
                            "stages_ms": ranges,

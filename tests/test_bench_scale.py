@@ -1,0 +1,20 @@
+"""bench.scale's summary and page with a length repeated (``--lengths 3,60,3``): each run is a row, and the
+60 s / 3 s ratios take the mean of the 3 s runs."""
+
+from bench import scale
+
+
+def _row(cpu_per_s: float, render_ms: float | None = None) -> dict:
+    row = {"anchors": 16, "events": 2e6, "steps": 1500, "cpu_per_s": cpu_per_s, "margin_db": 1.5}
+    return row if render_ms is None else row | {"render_p50_ms": render_ms}
+
+
+def test_a_repeated_length_is_its_own_row_and_the_ratio_takes_the_mean_of_its_runs():
+    rows = {"3": _row(50.0, 10.0), "60": _row(66.0, 12.0), "3#2": _row(60.0)}
+    results = {"machine": "test", "size": "full", "scenes": {"traffic": rows}}
+    summary = results["summary"] = scale.summarise(results)
+    assert summary["traffic_cpu_per_s_ratio_60_3"] == 66.0 / 55.0
+    assert summary["traffic_render_p50_ratio_60_3"] == 12.0 / 10.0  # served: the first run alone
+    page = scale.markdown(results, "python -m bench.scale --lengths 3,60,3")
+    table = [line for line in page.splitlines() if line.startswith("| 3 s") or line.startswith("| 60 s")]
+    assert [line.split(" | ")[0] for line in table] == ["| 3 s", "| 3 s, run 2", "| 60 s"]
