@@ -403,6 +403,7 @@ class Trainer:
         more than ``dynamic_threshold`` into the anchor's window, at the render's depth where it has
         one (``backproject_anchors``); then sample the control points from them."""
         cfg, model, data = self.cfg, self.model, self.data
+        self.settle()  # renders the model whole, then adds rows
         intr = model.meta.intrinsics
         was_training = model.training
         model.eval()
@@ -432,7 +433,6 @@ class Trainer:
         g = model.gaussians
         new = Gaussians.from_points(points, colors, scales, sh_degree=g.sh_degree, opacity=cfg.init_opacity,
                                     birth=views)
-        self.optimizer.flush()
         append(g, self.optimizer, {name: getattr(new, name).detach().to(self.device)
                                    for name in (*PER_GAUSSIAN, "birth")})
         model.control.resample(g.means, radius=cfg.radius_init * float(model.extent), birth=g.birth)
@@ -459,7 +459,7 @@ class Trainer:
         if not (cfg.densify_from <= progress < cfg.densify_until):
             return
         if self._due(cfg.densify_every) or self._due(cfg.opacity_reset_every):
-            self.optimizer.flush()  # density control reads and edits every row
+            self.settle()  # density control reads and edits every row
         if self._due(cfg.densify_every):
             if self.sync is not None:  # every worker's views: the same Gaussians added everywhere
                 self.sync.sum_(self.stats.total, self.stats.count)
@@ -486,9 +486,15 @@ class Trainer:
                     self.optimizer.state.pop(p, None)
 
     # ------------------------------------------------------------------ loop, evaluation, resume
+    def settle(self) -> None:
+        """Bring every Gaussian current: the momentum moves the windows not drawn lately owe are paid
+        (``RowAdam.flush``). Training does it before it reads the model whole (evaluation, density
+        control, checkpoints); code that reads the model between steps calls it first."""
+        self.optimizer.flush()
+
     def evaluate(self, frames: int | None = None) -> dict[str, float]:
         """Mean PSNR / SSIM on ``frames`` evenly spaced held-out frames (all when None)."""
-        self.optimizer.flush()
+        self.settle()
         idx = self.data.evaluable()
         if frames is not None and idx.size > frames:
             idx = idx[np.linspace(0, idx.size - 1, frames).round().astype(int)]
@@ -566,7 +572,7 @@ class Trainer:
             if checkpoint_path and self.lead:
                 self.save_resumable(checkpoint_path)
             return self.history
-        self.optimizer.flush()
+        self.settle()
         if self.sync is not None and not self.sync.agree(self.model):
             raise TrainingError("the data-parallel workers' models differ at the end: nothing was written")
         self.model.event_scale.fill_(1.0)
@@ -586,7 +592,7 @@ class Trainer:
     def train_state(self) -> dict:
         """Everything besides the model needed to continue this run (plain containers and tensors); the
         model is brought current first (``RowAdam.flush``), as a checkpoint of it follows."""
-        self.optimizer.flush()
+        self.settle()
         return {"step": self.step, "optimizer": self.optimizer.state_dict(), "stats": self.stats.state_dict(),
                 "rng": self.rng.bit_generator.state, "generator": self.generator.get_state(),
                 "history": self.history, "train_seconds": self.train_seconds, "lifted": self.lifted,

@@ -195,6 +195,7 @@ class Learner:
         # (a fixed total per round: the round's steps, not the preset's per anchor window)
         model = new_model(data, base.replace(iterations=max(steps, 1), steps_per_window=0, train_scale=scale))
         if self.model is not None:
+            previous.trainer.settle()
             warm_start(model, self.model)
         self.model, self.data = model, data
         self.round = Round(Trainer(model, data, progress=False), rec, steps, len(data.anchors_t_us),
@@ -257,6 +258,7 @@ class Learner:
         self.version += 1
         path = path or self.config.workdir / f"learned-{self.version:04d}.ckpt"
         trainer = self.round.trainer
+        trainer.settle()
         model = trainer.model
         was_training = model.training
         model.eval()

@@ -224,7 +224,7 @@ def test_a_windowed_step_moves_the_gaussians_of_the_windows_it_draws_alone():
             assert torch.equal(getattr(model.gaussians, name).detach()[untouched], value[untouched]), name
         assert not torch.equal(model.gaussians.means.detach()[birth == n], before["means"][birth == n])
         waiting = model.gaussians.means.detach().clone()
-        trainer.optimizer.flush()
+        trainer.settle()
         moved = (model.gaussians.means.detach() != waiting).any(1)
         assert not moved[~untouched].any()  # the drawn windows were current
         owed_seen |= bool(moved[untouched].any())  # a window drawn before, idle now: its momentum paid

@@ -318,7 +318,14 @@ def test_a_round_of_three_anchors_of_a_still_camera_trains_the_real_preset_on_on
         assert learner.step()
     # three small frames register too few (said on the learner's output) or show no parallax
     assert outbox[-1]["camera"] in ("still", "estimated: still") and outbox[-1]["preset"] == "real"
-    assert len(np.unique(load_checkpoint(outbox[-1]["path"]).meta.trajectory.c2w, axis=0)) == 1
+    published = load_checkpoint(outbox[-1]["path"])
+    assert len(np.unique(published.meta.trajectory.c2w, axis=0)) == 1
+    # the real preset's windows: what the published model holds is every row current, momentum paid
+    trainer = learner.round.trainer
+    assert trainer.model.windowed
+    state = trainer.optimizer.state[trainer.model.gaussians.means]
+    assert bool((state["row_step"] == state["step"]).all())
+    assert torch.equal(published.gaussians.means, trainer.model.gaussians.means.detach())
 
 
 def test_renders_beside_the_learner_take_the_cores_it_leaves(monkeypatch):
