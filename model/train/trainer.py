@@ -288,7 +288,7 @@ class Trainer:
         if rowwise:
             drawn = [n, gap] if paired else [n]
             rows = torch.unique(torch.cat([model.window_rows(w).gaussians for w in drawn]))
-            with stage("optimizer catch-up"):
+            with stage("optimizer: catch-up"):
                 self.optimizer.catch_up(rows)  # their momentum moves since last drawn, before they are read
         with stage("anchor: deform"):
             weights = None
