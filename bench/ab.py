@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.pages import lookup
 from bench.results import write_json
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -56,19 +57,14 @@ def previous_tree(rev: str, cache: Path) -> Path:
     return tree / "path"
 
 
-def _value(data: dict, key: str) -> float:
-    for part in key.split("."):
-        data = data[part]
-    return float(data)
-
-
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     ours, command = (argv[:argv.index("--")], argv[argv.index("--") + 1:]) if "--" in argv else (argv, [])
     p = argparse.ArgumentParser(prog="python -m bench.ab", description=__doc__.split("\n\n")[0])
     p.add_argument("--previous", required=True, help="the release to compare with (a git revision)")
     p.add_argument("--rounds", type=int, default=2, help="runs per side (2)")
-    p.add_argument("--key", required=True, help="the figure compared: a dotted path into the command's JSON")
+    p.add_argument("--key", required=True, help="the figure compared: a dotted path into the command's JSON "
+                   "(as the docs' placeholders read it)")
     p.add_argument("--json", type=Path, required=True, help="where the runs and the ratio go")
     p.add_argument("--cache", type=Path, default=ROOT / "reports" / "cache" / "ab",
                    help="the previous releases' files")
@@ -89,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
             env["PYTHONPATH"] = os.pathsep.join(filter(None, [*path, str(ROOT), env.get("PYTHONPATH")]))
             print(f"round {round_}, {side}: {' '.join(command)}", file=sys.stderr, flush=True)
             subprocess.run([sys.executable, *command, "--json", str(out)], check=True, env=env)
-            value = _value(json.loads(out.read_text()), args.key)
+            value = float(lookup(json.loads(out.read_text()), args.key, out.name))
             runs.append({"side": side, "round": round_, "value": value, "json": out.name})
             print(f"round {round_}, {side}: {args.key} = {value:.4g}", file=sys.stderr, flush=True)
     medians = {side: float(np.median([r["value"] for r in runs if r["side"] == side]))

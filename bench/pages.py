@@ -107,10 +107,7 @@ class Figures:
 
     def value(self, name: str, key: str):
         """The value at the dotted ``key`` of ``reports/NAME``."""
-        node = self.data(name)
-        for part in _split(key):
-            node = _step(node, part, name, key)
-        return node
+        return lookup(self.data(name), key, name)
 
     def provenance(self, name: str) -> str:
         """A note for ``reports/NAME``'s own page: the command, the machine and the date that wrote it."""
@@ -197,6 +194,14 @@ def _source(name: str, fields: dict, where: str) -> Source:
         raise InvalidInputError(f"figures: reports/{name}: {where} lacks {', '.join(missing)}")
     return Source(name, str(fields["command"]), str(fields["machine"]), str(fields["date"]),
                   str(fields.get("note", "")))
+
+
+def lookup(data, key: str, name: str = "?"):
+    """The value at the dotted ``key`` of ``data`` (a JSON document; ``name``: its file, for errors), as
+    the pages' placeholders read it: ``a.b``, ``runs.0``, ``runs[side=this,round=1].value``."""
+    for part in _split(key):
+        data = _step(data, part, name, key)
+    return data
 
 
 def _split(key: str) -> list[str]:

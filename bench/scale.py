@@ -119,19 +119,21 @@ def describe(rec: Path) -> dict:
 
 # ------------------------------------------------------------------------------- 2. training
 
-def run_key(rec: Path, extra: list[str]) -> str:
-    """The recording and the resolved config (and how it is run)."""
+def run_key(rec: Path, extra: list[str], run: int = 1) -> str:
+    """The recording and the resolved config (and how it is run); ``run`` 2, 3, ...: the same training
+    again, cached apart (a length repeated in ``--lengths``)."""
     from edmcgs.pipeline import build_config, open_recording
 
     cfg = build_config("real", [], open_recording(rec, lazy_events=True)).to_dict()
-    return f"{rec.stem}_{_digest(rec.name, rec.stat().st_size, cfg, extra)}"
+    again = "" if run == 1 else f"_run{run}"
+    return f"{rec.stem}_{_digest(rec.name, rec.stat().st_size, cfg, extra)}{again}"
 
 
 def train(rec: Path, cache: Path, extra: list[str] | None = None, run: int = 1) -> dict:
-    """``edmcgs train REC --config real --threads 1`` (and ``extra``) in its own process, cached (``run``
-    2, 3, ...: the same training again, cached apart: a length repeated in ``--lengths``)."""
+    """``edmcgs train REC --config real --threads 1`` (and ``extra``) in its own process, cached by
+    ``run_key``."""
     extra = extra or []
-    key = run_key(rec, extra) + ("" if run == 1 else f"_run{run}")
+    key = run_key(rec, extra, run)
     ckpt = cache / f"{key}.ckpt"
 
     def make() -> dict:
@@ -499,7 +501,7 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             recs[length] = path
             row = describe(path)
-            key = run_key(path, sets) + ("" if again == 1 else f"_run{again}")
+            key = run_key(path, sets, again)
             if "train" in only or (cache / f"{key}.json").exists():
                 run = train(path, cache, sets, again)
                 if again == 1:

@@ -43,11 +43,10 @@ def profile_steps(trainer, steps: int) -> tuple[dict, dict, list[dict], float, d
     time (on CUDA: by GPU time), median wall ms per step, {"ops": torch ops per step not called by another,
     "launches": kernel launches per step (CUDA)}) of ``steps`` steps. On a GPU each op costs the host
     about 10 us to issue: a step of thousands waits on Python, not on its kernels."""
-    import torch
     from torch.profiler import ProfilerActivity, profile, record_function
 
     cuda = trainer.device.type == "cuda"
-    sync = torch.cuda.synchronize if cuda else (lambda: None)
+    sync = _sync(trainer.device)
     walls = []
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
     with profile(activities=activities) as prof:
@@ -95,7 +94,7 @@ def op_cost_us(device, ops: int = 20_000) -> float:
     import torch
 
     x = torch.zeros(16, device=device)
-    sync = torch.cuda.synchronize if x.device.type == "cuda" else (lambda: None)
+    sync = _sync(x.device)
     sync()
     start = time.perf_counter()
     for _ in range(ops):
@@ -104,13 +103,18 @@ def op_cost_us(device, ops: int = 20_000) -> float:
     return (time.perf_counter() - start) / ops * 1e6
 
 
+def _sync(device):
+    """What waits for ``device``'s queued work (nothing on the CPU)."""
+    import torch
+
+    return torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+
+
 def timed_steps(trainer, steps: int) -> dict | None:
     """{median_ms, last_half_median_ms, mean_ms} of ``steps`` steps' wall time, unprofiled (None: none)."""
     if steps < 1:
         return None
-    import torch
-
-    sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
+    sync = _sync(trainer.device)
     walls = []
     for _ in range(steps):
         start = time.perf_counter()

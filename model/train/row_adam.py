@@ -33,7 +33,7 @@ _LAZY_KEYS = ("row_step", "owed")
 
 class RowAdam(torch.optim.Adam):
     """torch's Adam, except that the groups named in ``row_groups`` step only ``rows`` (set before each
-    step; None: every row). Their gradients may be sparse (``motion.row_grad``)."""
+    step, after ``catch_up(rows)``; None: every row). Their gradients may be sparse (``motion.row_grad``)."""
 
     def __init__(self, params, *, row_groups: tuple[str, ...], **kwargs):
         super().__init__(params, **kwargs)
@@ -79,7 +79,7 @@ class RowAdam(torch.optim.Adam):
         index = slice(None) if rows is None else rows
         for group, p in self._row_params():
             if self.state[p]:
-                state = self._state(group, p)
+                state = self._state(p)
                 x, m, v = p[index], state["exp_avg"][index], state["exp_avg_sq"][index]
                 self._pay(group, state, index, x, m, v)
                 p[index], state["exp_avg"][index], state["exp_avg_sq"][index] = x, m, v
@@ -89,7 +89,7 @@ class RowAdam(torch.optim.Adam):
         """Every row current (``catch_up`` of all)."""
         self.catch_up(None)
 
-    def _state(self, group: dict, p: Tensor) -> dict:
+    def _state(self, p: Tensor) -> dict:
         state = self.state[p]
         if not state:
             state["step"] = 0
@@ -115,10 +115,11 @@ class RowAdam(torch.optim.Adam):
         v.mul_((beta2 ** idle).to(v.dtype))
 
     def _row_step(self, group: dict, p: Tensor, grad: Tensor) -> None:
-        """torch's Adam update (``_single_tensor_adam``) of rows ``self.rows`` of ``p``, their owed moves
-        paid first; then the move every waiting row owes for this step added to ``owed``."""
+        """torch's Adam update (``_single_tensor_adam``) of rows ``self.rows`` of ``p`` (current: the
+        caller's ``catch_up`` of them paid what they owed); then the move every waiting row owes for this
+        step added to ``owed``."""
         beta1, beta2 = group["betas"]
-        state = self._state(group, p)
+        state = self._state(p)
         rows = self.rows
         index = slice(None) if rows is None else rows
         if rows is None:
@@ -126,7 +127,6 @@ class RowAdam(torch.optim.Adam):
         else:
             grad = at_rows(grad, rows)
         x, m, v = p[index], state["exp_avg"][index], state["exp_avg_sq"][index]
-        self._pay(group, state, index, x, m, v)
         state["step"] = step = state["step"] + 1
         step_size = group["lr"] / (1 - beta1 ** step)
         bias2 = math.sqrt(1 - beta2 ** step)

@@ -378,7 +378,9 @@ class Trainer:
             loss.backward()
         if self.sync is not None:
             with stage("all-reduce"):
-                rows = None if rows is None else self.sync.union(rows)
+                if rows is not None:  # the other workers' rows too: current before the step
+                    rows = self.sync.union(rows)
+                    self.optimizer.catch_up(rows)
                 self.sync.average(self.optimizer, self.optimizer.row_groups, rows)
         self.optimizer.rows = rows
         self._sanitize_gradients()
