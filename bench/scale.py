@@ -5,9 +5,12 @@
 
 1. Builds each scene at each length, anchors at 5 fps (``edmcgs synth SCENE --fps 5 --seconds S --seed 0``:
    346x260 grey APS frames at 25 Hz, DAVIS346-like events; the frames between anchors held out).
-2. Trains each with ``edmcgs train REC --config real --threads 1`` in its own process (the preset's
-   schedule: 100 steps per span between anchors) and measures that process: wall and CPU time, peak
-   resident memory; then the checkpoint's size and Gaussians.
+2. Trains each with ``edmcgs train REC --config PRESET --threads 1`` in its own process and measures that
+   process: wall and CPU time, peak resident memory; then the checkpoint's size and Gaussians. traffic's
+   static camera trains with ``real`` (100 steps per span between anchors); street3d's handheld one
+   with ``moving`` (75 steps per span), on the poses a user would have: ``edmcgs record REC --poses
+   auto`` first (``bench.street3d.estimate``: structure from motion with the IMU, its time and its
+   trajectory error reported).
 3. Scores each checkpoint on every held-out frame beside the three baselines (hold the last anchor,
    blend the neighbouring anchors, integrate the events onto the last anchor: ``model/eval/baselines``).
 4. Serves each (``edmcgs-serve --replay REC --checkpoint CKPT --loop --speed 4``): GET /render p50, one
@@ -46,6 +49,8 @@ from bench.results import meets, table, write_json
 from bench.traffic import _edmcgs, measured_run
 
 SCENES = ("traffic", "street3d")
+PRESETS = {"traffic": "real", "street3d": "moving"}
+"""Each scene's ``--config``: the static street camera's preset, and the handheld camera's."""
 LENGTHS = (3, 10, 30, 60)
 FPS = 5
 EVENT_PATH_S = 600
@@ -117,28 +122,41 @@ def describe(rec: Path) -> dict:
             "file_mb": rec.stat().st_size / 1e6}
 
 
+def moving_poses(rec: Path) -> tuple[Path, dict]:
+    """A handheld recording with the poses ``edmcgs record --poses auto`` estimates (cached beside it), and
+    their cost and trajectory error against the true poses."""
+    from bench.street3d import estimate, pose_accuracy
+    from edmcgs.sensor.files.recording import read_recording
+
+    auto, cost = estimate(rec)
+    _, accuracy = pose_accuracy(read_recording(rec, lazy_events=True), read_recording(auto, lazy_events=True))
+    return auto, {"wall_s": cost["wall_s"], "cpu_s": cost["cpu_s"], "peak_gb": cost["peak_gb"],
+                  "registered": accuracy["registered"], "frames": accuracy["frames"],
+                  "ate_pct": accuracy["ate_pct"]}
+
+
 # ------------------------------------------------------------------------------- 2. training
 
-def run_key(rec: Path, extra: list[str], run: int = 1) -> str:
+def run_key(rec: Path, extra: list[str], run: int = 1, preset: str = "real") -> str:
     """The recording and the resolved config (and how it is run); ``run`` 2, 3, ...: the same training
     again, cached apart (a length repeated in ``--lengths``)."""
     from edmcgs.pipeline import build_config, open_recording
 
-    cfg = build_config("real", [], open_recording(rec, lazy_events=True)).to_dict()
+    cfg = build_config(preset, [], open_recording(rec, lazy_events=True)).to_dict()
     again = "" if run == 1 else f"_run{run}"
     return f"{rec.stem}_{_digest(rec.name, rec.stat().st_size, cfg, extra)}{again}"
 
 
-def train(rec: Path, cache: Path, extra: list[str] | None = None, run: int = 1) -> dict:
-    """``edmcgs train REC --config real --threads 1`` (and ``extra``) in its own process, cached by
+def train(rec: Path, cache: Path, extra: list[str] | None = None, run: int = 1, preset: str = "real") -> dict:
+    """``edmcgs train REC --config PRESET --threads 1`` (and ``extra``) in its own process, cached by
     ``run_key``."""
     extra = extra or []
-    key = run_key(rec, extra, run)
+    key = run_key(rec, extra, run, preset)
     ckpt = cache / f"{key}.ckpt"
 
     def make() -> dict:
         print(f"training {rec.name} {' '.join(extra)} ...", file=sys.stderr)
-        usage = measured_run([*_edmcgs(), "train", str(rec), "--config", "real", "--threads", "1", "-q",
+        usage = measured_run([*_edmcgs(), "train", str(rec), "--config", preset, "--threads", "1", "-q",
                               "--force", "--history", str(cache / f"{key}.csv"), "-o", str(ckpt), *extra],
                              cache / f"{key}.log")
         from edmcgs.model.checkpoint import load_checkpoint
@@ -158,13 +176,13 @@ def _steps(history: Path) -> int | None:
     return int(lines[-1].split(",")[0]) if lines else None
 
 
-def planned_steps(rec: Path, extra: list[str]) -> int:
+def planned_steps(rec: Path, extra: list[str], preset: str = "real") -> int:
     """The run's steps as its config resolves them (``total_steps``), for a run that evaluated never."""
     from edmcgs.pipeline import build_config, open_recording
 
     r = open_recording(rec, lazy_events=True)
     overrides = [extra[i + 1] for i, a in enumerate(extra[:-1]) if a == "--set"]
-    return build_config("real", overrides, r).total_steps(len(r.anchors))
+    return build_config(preset, overrides, r).total_steps(len(r.anchors))
 
 
 # ------------------------------------------------------------------------------- 3. scores
@@ -380,19 +398,25 @@ def summarise(results: dict) -> dict:
 
 
 def markdown(r: dict, command: str) -> str:
+    from edmcgs.model import config
+
     w, h = SIZES[r.get("size", "full")]
     overrides = r.get("overrides", [])
     sets = "".join(f" --set {kv}" for kv in overrides)
-    per = next((kv.split("=", 1)[1] for kv in overrides if kv.startswith("steps_per_window=")), "100")
+    per = next((kv.split("=", 1)[1] for kv in overrides if kv.startswith("steps_per_window=")), None)
     lines = ["# Scale benchmark: training, memory, quality and serving against the recording's length", "",
              f"`{command}` on {r['machine']}, a machine shared with other work. Scenes: `edmcgs synth "
              f"SCENE --fps 5 --seconds S --seed 0 --size {r.get('size', 'full')}` ({w}x{h}, DAVIS346-like); "
-             f"training `edmcgs train REC --config real --threads 1{sets}` in its own process ({per} steps "
-             "per span between anchors; CPU time is user + system of that process, peak memory its "
-             "resident set); PSNR over every held-out frame beside the three baselines on the same frames "
-             "(margin: the model over the best of them).", ""]
+             f"training `edmcgs train REC --config PRESET --threads 1{sets}` in its own process (CPU time is "
+             "user + system of that process, peak memory its resident set); PSNR over every held-out frame "
+             "beside the three baselines on the same frames (margin: the model over the best of them).", ""]
     for scene, rows in r["scenes"].items():
-        lines += [f"## {scene}", "",
+        preset = PRESETS[scene]
+        how = (f"`--config {preset}`, {per or config.preset(preset).steps_per_window} steps per span between "
+               "anchors"
+               + (", on the poses `edmcgs record REC --poses auto` estimated (structure from motion with "
+                  "the IMU; below the table)" if preset == "moving" else ""))
+        lines += [f"## {scene}", "", how + ".", "",
                   "| length | anchors | events | steps | train wall | train CPU | CPU per s of recording "
                   "| peak RSS | checkpoint | Gaussians | PSNR model | hold | blend | integrate | margin "
                   "| /render p50 | server RSS |", "|" + "---|" * 17]
@@ -410,6 +434,12 @@ def markdown(r: dict, command: str) -> str:
                                    ("server_rss_mb", ".0f", " MB")):
                 cells.append("—" if row.get(key) is None else f"{row[key]:{fmt}}{unit}")
             lines.append("| " + " | ".join(cells) + " |")
+        posed = [(name, row["poses"]) for name, row in rows.items() if "poses" in row]
+        if posed:
+            lines += ["", "| length | frames registered | ATE / path (evo, Sim(3)) | wall | CPU |",
+                      "|---|---|---|---|---|"]
+            lines += [f"| {name} s | {p['registered']} of {p['frames']} | {p['ate_pct']:.2f} % | "
+                      f"{p['wall_s']:.0f} s | {p['cpu_s']:.0f} s |" for name, p in posed]
         missing = sorted({_length(name) for name, row in rows.items() if "wall_min" not in row})
         if missing:
             listed = ",".join(map(str, missing))
@@ -499,17 +529,21 @@ def main(argv: list[str] | None = None) -> int:
                 path = recording(cache, scene, length, args.size)
             if not path.exists():
                 continue
+            row = {}
+            if PRESETS[scene] == "moving":  # trained on the poses it estimates, as a user's would be
+                path, poses = moving_poses(path)
+                row["poses"] = poses
             recs[length] = path
-            row = describe(path)
-            key = run_key(path, sets, again)
+            row |= describe(path)
+            key = run_key(path, sets, again, PRESETS[scene])
             if "train" in only or (cache / f"{key}.json").exists():
-                run = train(path, cache, sets, again)
+                run = train(path, cache, sets, again, PRESETS[scene])
                 if again == 1:
                     runs[length] = run  # served: the first run of each length
                 row |= {"wall_min": run["wall_s"] / 60, "cpu_min": run["cpu_s"] / 60,
                         "cpu_per_s": run["cpu_s"] / row["seconds"], "peak_gb": run["peak_gb"],
                         "checkpoint_mb": run["checkpoint_mb"], "gaussians": run["gaussians"],
-                        "steps": run["steps"] or planned_steps(path, sets),
+                        "steps": run["steps"] or planned_steps(path, sets, PRESETS[scene]),
                         "load_average": run.get("load_average")}
                 scores_path = cache / f"{Path(run['checkpoint']).stem}.scores.json"
                 if "score" in only or scores_path.exists():

@@ -81,22 +81,30 @@ def estimate(rec: Path) -> tuple[Path, dict]:
     return out, json.loads(cost.read_text())
 
 
-def true_twin(rec: Path, auto: Path) -> tuple[Path, dict]:
-    """REC with the structure-from-motion points of ``auto`` carried into REC's true frame (cached), and
-    the pose accuracy: {registered, frames, ate_m, path_m, ate_pct, scale}."""
+def pose_accuracy(truth_rec, est):
+    """(the similarity carrying ``est``'s estimated world onto ``truth_rec``'s true one, the pose
+    accuracy: {registered, frames, ate_m, path_m, ate_pct, points, scale, seconds}) of two recordings
+    read whole (``read_recording``)."""
     from edmcgs.geometry import Similarity
     from edmcgs.pipeline import all_frames
-    from edmcgs.sensor.files.recording import read_recording, write_recording
     from harness.pose_scenes import trajectory_error
 
-    truth_rec, est = read_recording(rec), read_recording(auto)
     frames = all_frames(truth_rec)
     truth = frames.poses[np.searchsorted(frames.t_us, est.trajectory_t_us)]
     to_true = Similarity.fit_poses(est.trajectory_c2w, truth)
     rmse, length = trajectory_error(est.trajectory_t_us, est.trajectory_c2w, truth)
-    accuracy = {"registered": len(est.trajectory_t_us), "frames": len(frames), "ate_m": rmse,
-                "path_m": length, "ate_pct": 100.0 * rmse / length, "points": len(est.points_xyz),
-                "scale": to_true.scale, "seconds": est.metadata["poses"]["seconds"]}
+    return to_true, {"registered": len(est.trajectory_t_us), "frames": len(frames), "ate_m": rmse,
+                     "path_m": length, "ate_pct": 100.0 * rmse / length, "points": len(est.points_xyz),
+                     "scale": to_true.scale, "seconds": est.metadata["poses"]["seconds"]}
+
+
+def true_twin(rec: Path, auto: Path) -> tuple[Path, dict]:
+    """REC with the structure-from-motion points of ``auto`` carried into REC's true frame (cached), and
+    the pose accuracy (``pose_accuracy``)."""
+    from edmcgs.sensor.files.recording import read_recording, write_recording
+
+    truth_rec, est = read_recording(rec), read_recording(auto)
+    to_true, accuracy = pose_accuracy(truth_rec, est)
     out = rec.with_name(rec.stem + "_true.h5")
     if not out.exists() or out.stat().st_mtime < auto.stat().st_mtime:
         write_recording(out, replace(truth_rec, points_xyz=to_true.points(est.points_xyz),

@@ -18,3 +18,15 @@ def test_a_repeated_length_is_its_own_row_and_the_ratio_takes_the_mean_of_its_ru
     page = scale.markdown(results, "python -m bench.scale --lengths 3,60,3")
     table = [line for line in page.splitlines() if line.startswith("| 3 s") or line.startswith("| 60 s")]
     assert [line.split(" | ")[0] for line in table] == ["| 3 s", "| 3 s, run 2", "| 60 s"]
+
+
+def test_the_handheld_street_trains_with_the_moving_preset_and_lists_its_estimated_poses():
+    poses = {"registered": 76, "frames": 76, "ate_pct": 0.12, "wall_s": 40.0, "cpu_s": 70.0, "peak_gb": 0.5}
+    rows = {"3": _row(60.0) | {"poses": poses}, "10": _row(70.0) | {"poses": poses | {"frames": 251}}}
+    results = {"machine": "test", "size": "full", "scenes": {"street3d": rows, "traffic": {"3": _row(50.0)}}}
+    results["summary"] = scale.summarise(results)
+    page = scale.markdown(results, "python -m bench.scale --scenes street3d,traffic --lengths 3,10")
+    street, traffic = page.split("## street3d")[1].split("## traffic")
+    assert "`--config moving`, 75 steps per span" in street and "--poses auto" in street
+    assert "| 10 s | 76 of 251 | 0.12 % | 40 s | 70 s |" in street
+    assert "`--config real`, 100 steps per span" in traffic and "--poses auto" not in traffic
