@@ -2,11 +2,13 @@
 before DV's AEDAT4, decoded here from iniVation's published layouts (no maintained Python reader decodes
 them: evlib's reads 2.0 as timestamp-first DVS128 words and 3.1 without its packet headers).
 
-- **AEDAT 2.0**: ``#`` header lines (``# AEChip: <jAER chip class>`` names the camera), then big-endian
-  (uint32 address, uint32 µs timestamp) pairs. DAVIS: a DVS event has address bits 31 and 10 clear,
-  y in bits 22-30, x in bits 12-21, polarity bit 11 (1 = ON); DVS128: bits 12-15 clear, y in bits 8-14,
-  x in bits 1-7, polarity bit 0. jAER's origin is the lower left: y is flipped to the upper left. The
-  32-bit timestamps wrap every 71.6 minutes; each wrap is undone.
+- **AEDAT 2.0**: ``#`` header lines (``# AEChip: <jAER chip class>`` names the camera; where no line
+  does, jAER's default file name, ``<chip>-<date>.aedat``, does), then big-endian (uint32 address, uint32
+  µs timestamp) pairs. DAVIS: a DVS event has address bits 31 and 10 clear, y in bits 22-30, x in bits
+  12-21, polarity bit 11 (1 = ON); DVS128 (jAER's ``DVS128.Extractor``): bit 15 (a sync event) clear,
+  y in bits 8-14, x in bits 1-7 mirrored (x = 127 - raw), polarity bit 0 (0 = ON). jAER's origin is the
+  lower left: y is flipped to the upper left. The 32-bit timestamps wrap every 71.6 minutes; each wrap
+  is undone.
 - **AEDAT 3.1**: ``#`` header lines to ``#!END-HEADER`` (``#Source N: <camera>``), then packets: a 28-byte
   little-endian header (type, source, event size, timestamp offset, timestamp overflow, capacity,
   number, valid) and ``capacity`` events. Polarity events (type 1, 8 bytes): uint32 data (bit 0 valid,
@@ -51,6 +53,8 @@ class JaerReplay(Replay):
         if not self.path.is_file():
             raise ReplayFormatError(f"{self.path}: no such file")
         self._version, self._data_at, camera = self._header()
+        if not camera and self._version == 2:  # jAER names a file for its chip unless told otherwise
+            camera = self.path.name.split("-", 1)[0]
         known = [c for c in _CAMERAS if c[0] in camera.lower().replace(" ", "")]
         self._layout = known[0][3] if known else "davis"
         if known:
@@ -120,8 +124,8 @@ class JaerReplay(Replay):
                 t += wrapped << 32
                 a = rows["a"]
                 if self._layout == "dvs128":
-                    keep = (a & 0xF000) == 0
-                    x, y, p = (a >> 1) & 0x7F, (a >> 8) & 0x7F, a & 1
+                    keep = (a & 0x80008000) == 0
+                    x, y, p = 127 - ((a >> 1) & 0x7F), (a >> 8) & 0x7F, 1 - (a & 1)
                 else:
                     keep = (a & 0x80000400) == 0
                     x, y, p = (a >> 12) & 0x3FF, (a >> 22) & 0x1FF, (a >> 11) & 1

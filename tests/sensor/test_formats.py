@@ -1,7 +1,7 @@
 """Every camera's files: Prophesee RAW / DAT (real recordings from faery's test data, tests/data/prophesee),
-ROS 1 and ROS 2 bags (written here with rosbags' own writers), the RPG text layout and jAER / cAER AEDAT
-(written here by their published layouts): each replays, records to our HDF5, and trains when it has
-frames."""
+a real DVS128's jAER AEDAT 2.0 (tests/data/jaer), ROS 1 and ROS 2 bags (written here with rosbags' own
+writers), the RPG text layout and jAER / cAER AEDAT (written here by their published layouts): each
+replays, records to our HDF5, and trains when it has frames."""
 
 import struct
 
@@ -19,6 +19,7 @@ from edmcgs.sensor.sources.pacing import Pacing
 from tests.support.recordings import DATA
 
 PROPHESEE = DATA / "prophesee"
+JAER = DATA / "jaer"
 T0 = 1_500_000_000_000_000  # µs
 
 
@@ -249,6 +250,30 @@ def test_the_rpg_layout_replays_records_and_trains(tmp_path, capsys):
 
 
 # --------------------------------------------------------------------------- jAER AEDAT 2.0 / cAER 3.1
+
+def test_a_real_dvs128_aedat2_file_replays_every_event_and_records(tmp_path):
+    # tests/data/jaer: a DVS128's jAER recording with no AEChip line (its file name names the chip). The
+    # figures are an independent decode's of jAER's layout (PyAedatTools' reading agrees): 10,615 DVS
+    # events, 6,986 of them raw polarity 1 (OFF in jAER), raw x and y summing to 722,101 and 682,733;
+    # one event 179 µs behind its predecessor, reordered.
+    path = JAER / "DVS128-2014-10-21T17-41-53+0200-20000-0.aedat"
+    with open_source(path, pacing=Pacing(factor=0)) as src:
+        assert (src.info.width, src.info.height) == (128, 128) and "DVS128" in src.info.sensor
+        assert src.info.t_range_us == (171_754_426, 177_119_891)
+        ev, _, _ = _drain(src)
+        assert src.stats.dropped == 0 and src.stats.reordered == 1
+    n = 10_615
+    assert (len(ev), ev.t_start, ev.t_end) == (n, 171_754_426, 177_119_891)
+    assert int((ev.p < 0).sum()) == 6_986
+    # jAER mirrors the DVS128's x; its origin is the lower left, ours the upper left
+    assert int(ev.x.astype(np.int64).sum()) == 127 * n - 722_101
+    assert int(ev.y.astype(np.int64).sum()) == 127 * n - 682_733
+    out = tmp_path / "dvs128.h5"
+    assert record_main([str(path), "-o", str(out), "--quiet"]) == 0
+    assert read_recording(out).events == ev
+    with pytest.raises(TrainingError, match="no anchor frames"):
+        training_data(open_recording(out))
+
 
 def test_jaer_aedat2_davis_and_caer_aedat31_replay_and_record(tmp_path):
     # AEDAT 2.0 from a DAVIS240C: address then timestamp, big-endian; one APS sample and one special
