@@ -129,10 +129,12 @@ def moving_poses(rec: Path) -> tuple[Path, dict]:
     from edmcgs.sensor.files.recording import read_recording
 
     auto, cost = estimate(rec)
-    _, accuracy = pose_accuracy(read_recording(rec, lazy_events=True), read_recording(auto, lazy_events=True))
-    return auto, {"wall_s": cost["wall_s"], "cpu_s": cost["cpu_s"], "peak_gb": cost["peak_gb"],
-                  "registered": accuracy["registered"], "frames": accuracy["frames"],
-                  "ate_pct": accuracy["ate_pct"]}
+
+    def accuracy() -> dict:
+        _, acc = pose_accuracy(read_recording(rec, lazy_events=True), read_recording(auto, lazy_events=True))
+        return {k: acc[k] for k in ("registered", "frames", "ate_pct")}
+
+    return auto, cost | _cached(auto.with_suffix(".accuracy.json"), accuracy)
 
 
 # ------------------------------------------------------------------------------- 2. training
