@@ -3,13 +3,19 @@ through pycolmap, on the CPU), for ``edmcgs poses`` and ``--poses auto``.
 
 Small grey event-camera frames defeat COLMAP's defaults (few features, tiny baselines between video
 frames, parts of the scene that move), so the stages are set for video: SIFT at a low peak threshold on
-the twice-upsampled image (COLMAP's first octave -1), sequential matching with a wide overlap (every
-frame against its ``OVERLAP`` successors, and quadratic jumps), tight RANSAC and reprojection bounds (a
-moving object's matches are outliers of the camera's motion, not a second motion the mapper averages
-in; a looser bound is tried when too few frames register with the tight one), an initial pair that
-needs only a few degrees of parallax, and a last bundle adjustment with a robust loss. The camera is
-the one given (a DV calibration or ``--intrinsics``, held fixed), else one pinhole focal length with a
-radial term estimated by the bundle adjustment and returned.
+the twice-upsampled image (COLMAP's first octave -1), sequential matching at quadratic jumps (every frame
+against the frames 1, 2, 4, 8, ... after it), tight RANSAC and reprojection bounds (a moving object's
+matches are outliers of the camera's motion, not a second motion the mapper averages in; a looser bound
+is tried when too few frames register with the tight one), an initial pair that needs only a few degrees
+of parallax, and a last bundle adjustment with a robust loss. The camera is the one given (a DV
+calibration or ``--intrinsics``, held fixed), else one pinhole focal length with a radial term estimated
+by the bundle adjustment and returned.
+
+The mapper runs on keyframes (``_keyframes``: the frames a few percent of the image apart), never on
+every frame: its cost grows much faster than the frames do when they are a pixel apart (street3d's 251
+frames at 25 Hz took 246 s, its 49 keyframes 4 s), and the tracks of near-identical frames add nothing.
+Every other frame is then localized against the keyframes' points through its verified matches (PnP),
+its inlier observations joined to their tracks, before the last bundle adjustment refines them all.
 
 Conventions of the result: OpenCV camera-to-world poses (x right, y down, z forward), the world the
 first registered frame's camera, the scale such that the median depth of the reconstructed points
@@ -45,7 +51,13 @@ MIN_REGISTERED = 0.8
 STATIC_PX = 1.0
 """A camera is static when no matched pair of frames shows a median image motion above this (pixels)."""
 OVERLAP = 20
-"""Each frame is matched against this many successors (and quadratic jumps beyond)."""
+"""Each frame is matched against the frames 2^0 .. 2^(OVERLAP - 1) after it (COLMAP's quadratic overlap)."""
+KEYFRAME_MOTION = 0.03
+"""Largest median image motion between successive keyframes, a fraction of the frames' larger side."""
+MIN_KEYFRAMES = 30
+"""Fewest keyframes a run of frames keeps (a shorter run maps every frame)."""
+KEYFRAME_GAP = 16
+"""Most frames between successive keyframes."""
 PEAK_THRESHOLD = 0.002
 """SIFT's peak threshold (COLMAP's default 0.0067 finds ~100 features on a 173x130 frame)."""
 MAX_ERROR_PX = 1.0
@@ -60,6 +72,8 @@ INIT_TRI_DEG = 4.0
 """Parallax the initial pair of frames needs (COLMAP's 16 degrees: video frames are a few apart)."""
 MIN_INLIERS = 15
 """Fewest verified inlier matches that make two frames a pair."""
+MIN_POSE_INLIERS = 30
+"""Fewest 2D-3D inliers that localize a frame (the mapper's ``abs_pose_min_num_inliers``)."""
 MAX_NON_ROTATION = 0.02
 """Largest median max |M^T M - I| of M = K^-1 H K over pairs for a camera that only turns."""
 STAGES = ("features", "matching", "motion", "mapping")
@@ -107,6 +121,8 @@ class PoseEstimate:
     frames_c2w: np.ndarray | None = None
     """float64 [R, 4, 4]: the frames' own poses before the IMU refined them (in their own world and units);
     None when the IMU did not."""
+    keyframes: int = 0
+    """Frames the mapper ran on (the rest were localized against their points; 0: no mapping)."""
 
     def summary(self) -> str:
         """One line: what registered, the camera, the time."""
@@ -122,9 +138,10 @@ class PoseEstimate:
         if self.rotation_only:
             return (f"a camera that turns about its centre (no parallax): {self.registered} of {self.frames} "
                     f"frames rotated by their homographies, {camera}, {self.seconds:.1f} s")
-        models = "" if self.models == 1 else f" (the largest of {self.models} models)"
+        models = "" if self.models == 1 else f", the largest of {self.models} models"
         imu = "" if self.imu is None else f"; {self.imu}"
-        return (f"{self.registered} of {self.frames} frames registered{models}, {self.points} points, "
+        return (f"{self.registered} of {self.frames} frames registered ({self.keyframes} keyframes mapped"
+                f"{models}), {self.points} points, "
                 f"{camera}, {self.seconds:.1f} s{imu}")
 
 
@@ -196,7 +213,8 @@ def _estimate(t_us, images, intrinsics: Intrinsics | None, imu: np.ndarray | Non
         _match(pycolmap, database, threads, seed)
         bar.update()
         bar.set_postfix_str(STAGES[2])
-        pairs = _verified_pairs(pycolmap, database)
+        matched = _verified_pairs(pycolmap, database)
+        pairs = matched.pairs
         motion_px = _image_motion(pairs)
         bar.update()
         if motion_px is None:
@@ -218,13 +236,19 @@ def _estimate(t_us, images, intrinsics: Intrinsics | None, imu: np.ndarray | Non
                 estimated_intrinsics=intrinsics is None, distortion=0.0, static=False, models=1, points=0,
                 motion_px=motion_px, seconds=time.perf_counter() - start, rotation_only=True)
         bar.set_postfix_str(STAGES[3])
+        keyframes = [names[i] for i in _keyframes(pairs, n, KEYFRAME_MOTION * max(width, height))]
         for attempt, bound in enumerate(REPROJ_PX):
-            models = _map(pycolmap, database, folder, output / str(attempt), bound,
-                          fixed=intrinsics is not None, threads=threads, seed=seed)
-            if max((m.num_reg_images() for m in models), default=0) >= min_registered * n:
-                break
+            options = _options(pycolmap, bound, keyframes, fixed=intrinsics is not None, threads=threads,
+                               seed=seed)
+            models = _map(pycolmap, database, folder, output / str(attempt), options)
+            best = models[0] if models else None
+            if best is not None:
+                _localize(pycolmap, best, matched, 2 * bound, seed)
+                if best.num_reg_images() >= min_registered * n:
+                    break
+        if best is not None and best.num_reg_images() >= min_registered * n:
+            _complete(pycolmap, database, best, options, fixed=intrinsics is not None)
         bar.update()
-    best = max(models, key=lambda r: r.num_reg_images()) if models else None
     registered = 0 if best is None else best.num_reg_images()
     if best is None:
         raise PoseEstimationError(f"0 of {n} frames registered: structure from motion found no initial pair "
@@ -242,7 +266,7 @@ def _estimate(t_us, images, intrinsics: Intrinsics | None, imu: np.ndarray | Non
         frames=n, registered=registered, t_us=t_us[index], c2w=c2w, intrinsics=estimated,
         estimated_intrinsics=intrinsics is None, distortion=k, static=False, models=len(models),
         points=len(xyz), motion_px=motion_px, seconds=time.perf_counter() - start, point_xyz=xyz,
-        point_colors=colors)
+        point_colors=colors, keyframes=len(keyframes))
     if imu is None:
         return estimate
 
@@ -333,37 +357,44 @@ def _match(pycolmap, database: Path, threads: int, seed: int) -> None:
 
 @dataclass(frozen=True)
 class _Pair:
-    """Two frames the matcher verified: their indices, their inlier keypoints (COLMAP's pixels, centres
-    at +0.5) and the homography it fitted (``b ~ H a``)."""
+    """Two frames the matcher verified (``a`` before ``b``): their inlier matches (keypoint indices
+    [M, 2], a's then b's), the matched keypoints (COLMAP's pixels, centres at +0.5) and the homography it
+    fitted (``b ~ H a``)."""
 
     a: int
     b: int
+    matches: np.ndarray
     points_a: np.ndarray
     points_b: np.ndarray
     H: np.ndarray
 
 
-def _verified_pairs(pycolmap, database: Path) -> list[_Pair]:
+@dataclass(frozen=True)
+class _Matched:
+    """What the matcher verified: the pairs, and per frame its keypoints and database image id."""
+
+    pairs: list[_Pair]
+    keypoints: dict[int, np.ndarray]
+    image_ids: dict[int, int]
+
+
+def _verified_pairs(pycolmap, database: Path) -> _Matched:
     """Every pair of frames with at least ``MIN_INLIERS`` verified inlier matches."""
     with pycolmap.Database.open(database) as db:
         index = {image.image_id: int(Path(image.name).stem) for image in db.read_all_images()}
-        keypoints: dict[int, np.ndarray] = {}
+        keypoints = {index[i]: np.asarray(db.read_keypoints(i))[:, :2].astype(np.float64) for i in index}
         pairs = []
         for pair_id, geometry in zip(*db.read_two_view_geometries(), strict=True):
-            matches = np.asarray(geometry.inlier_matches)
+            matches = np.asarray(geometry.inlier_matches, dtype=np.int64).reshape(-1, 2)
             if len(matches) < MIN_INLIERS:
                 continue
-            ids = pycolmap.pair_id_to_image_pair(pair_id)
-            for i in ids:
-                if i not in keypoints:
-                    keypoints[i] = np.asarray(db.read_keypoints(i))[:, :2].astype(np.float64)
-            (a, ka), (b, kb) = sorted((index[i], keypoints[i]) for i in ids)
-            ma, mb = (matches[:, 0], matches[:, 1]) if index[ids[0]] == a else (matches[:, 1], matches[:, 0])
+            first, second = (index[i] for i in pycolmap.pair_id_to_image_pair(pair_id))
             H = np.asarray(geometry.H, dtype=np.float64)
-            if index[ids[0]] != a:
-                H = np.linalg.inv(H)
-            pairs.append(_Pair(a, b, ka[ma], kb[mb], H))
-    return pairs
+            if first > second:
+                first, second, matches, H = second, first, matches[:, ::-1], np.linalg.inv(H)
+            pairs.append(_Pair(first, second, matches, keypoints[first][matches[:, 0]],
+                               keypoints[second][matches[:, 1]], H))
+    return _Matched(pairs, keypoints, {frame: image_id for image_id, frame in index.items()})
 
 
 def _image_motion(pairs: list[_Pair]) -> float | None:
@@ -430,10 +461,25 @@ def _non_rotation(pairs: list[_Pair], K: np.ndarray) -> np.ndarray:
         if m is not None:
             out[i] = float(np.abs(m.T @ m - np.eye(3)).max())
     return out
-def _map(pycolmap, database: Path, folder: Path, output: Path, reproj_px: float, *, fixed: bool, threads: int,
-         seed: int):
-    output.mkdir()
+def _keyframes(pairs: list[_Pair], n: int, motion_px: float) -> list[int]:
+    """The frames the mapper runs on, in time order: from the first, each the farthest verified successor
+    of the last, at most ``KEYFRAME_GAP`` frames on (fewer when the run would keep fewer than
+    ``MIN_KEYFRAMES``), whose matches moved by at most ``motion_px`` (median); the next frame when none
+    did."""
+    gap = max(1, min(KEYFRAME_GAP, n // MIN_KEYFRAMES))
+    moved = {(p.a, p.b): float(np.median(np.linalg.norm(p.points_b - p.points_a, axis=1))) for p in pairs}
+    keys = [0]
+    while keys[-1] < n - 1:
+        k = keys[-1]
+        reach = [j for j in range(k + 2, min(n, k + gap + 1)) if moved.get((k, j), np.inf) <= motion_px]
+        keys.append(max(reach, default=k + 1))
+    return keys
+
+
+def _options(pycolmap, reproj_px: float, keyframes: list[str], *, fixed: bool, threads: int, seed: int):
+    """The mapper's options: the ``keyframes`` (image names) mapped at ``reproj_px``."""
     options = pycolmap.IncrementalPipelineOptions()
+    options.image_names = keyframes
     options.num_threads = threads
     options.random_seed = seed
     options.extract_colors = False
@@ -454,13 +500,98 @@ def _map(pycolmap, database: Path, folder: Path, output: Path, reproj_px: float,
     options.triangulation.min_angle = 1.0
     options.triangulation.merge_max_reproj_error = reproj_px
     options.triangulation.complete_max_reproj_error = reproj_px
+    return options
+
+
+def _map(pycolmap, database: Path, folder: Path, output: Path, options) -> list:
+    """The mapper's models (largest first) of ``options``' keyframes."""
+    output.mkdir()
     try:
-        models = list(pycolmap.incremental_mapping(database, folder, output, options).values())
-        for model in models:
-            _adjust(pycolmap, model, fixed=fixed)
-        return models
+        models = pycolmap.incremental_mapping(database, folder, output, options).values()
     except RuntimeError as exc:
         raise PoseEstimationError(f"structure from motion failed: {exc}") from exc
+    return sorted(models, key=lambda m: -m.num_reg_images())
+
+
+def _complete(pycolmap, database: Path, model, options, *, fixed: bool) -> None:
+    """``model`` with its localized frames' own tracks triangulated (the keyframes' points alone are a
+    sparse cloud of the scene), adjusted whole with the robust loss, and the points the mapper's filter
+    rejects after it dropped."""
+    mapped = set(options.image_names)
+    with pycolmap.Database.open(database) as db:
+        cache = pycolmap.DatabaseCache.create(db, pycolmap.DatabaseCacheOptions())
+    mapper = pycolmap.IncrementalMapper(cache)
+    mapper.begin_reconstruction(model)
+    try:
+        for image in list(model.images.values()):
+            if image.has_pose and image.name not in mapped:
+                mapper.triangulate_image(options.triangulation, image.image_id)
+        _adjust(pycolmap, model, fixed=fixed)
+        mapper.filter_points(options.mapper)
+    except RuntimeError as exc:
+        raise PoseEstimationError(f"structure from motion failed: {exc}") from exc
+    finally:
+        mapper.end_reconstruction(False)
+
+
+def _localize(pycolmap, model, matched: _Matched, max_error_px: float, seed: int) -> None:
+    """Register in ``model`` every frame it lacks that its registered frames' points locate: in passes,
+    each frame's verified matches to the registered frames' keypoints with a 3D point give its 2D-3D
+    correspondences, absolute pose (LO-RANSAC at ``max_error_px``, then refined) its pose, and its inliers
+    join the points' tracks. A pass's frames give the next pass's their points, until none is added."""
+    camera_id = next(iter(model.cameras))
+    camera = model.cameras[camera_id]
+    point_ids, xyz = _points(model)
+    order = np.argsort(point_ids)
+    sorted_ids = np.asarray(point_ids, dtype=np.int64)[order]
+    options = pycolmap.AbsolutePoseEstimationOptions()
+    options.ransac.max_error = max_error_px
+    options.ransac.random_seed = seed
+    seen: dict[int, np.ndarray] = {}  # per registered frame: each keypoint's 3D point id, -1 for none
+    for image in model.images.values():
+        if image.has_pose:
+            owner = np.full(image.num_points2D(), -1, dtype=np.int64)
+            for i in image.get_observation_point2D_idxs():
+                owner[i] = image.points2D[i].point3D_id
+            seen[int(Path(image.name).stem)] = owner
+    partners: dict[int, list[tuple[int, np.ndarray]]] = {}  # frame -> [(other frame, its keypoints, ours)]
+    for p in matched.pairs:
+        partners.setdefault(p.a, []).append((p.b, p.matches[:, ::-1]))
+        partners.setdefault(p.b, []).append((p.a, p.matches))
+    while True:
+        found = {}
+        for frame, links in partners.items():
+            if frame in seen or model.exists_image(matched.image_ids[frame]):
+                continue
+            ours, theirs = [], []
+            for other, m in links:
+                if other in seen:
+                    point = seen[other][m[:, 0]]
+                    ours.append(m[point >= 0, 1])
+                    theirs.append(point[point >= 0])
+            if not ours:
+                continue
+            keypoint, first = np.unique(np.concatenate(ours), return_index=True)
+            point = np.concatenate(theirs)[first]
+            if len(point) < MIN_POSE_INLIERS:
+                continue
+            pose = pycolmap.estimate_and_refine_absolute_pose(
+                matched.keypoints[frame][keypoint], xyz[order[np.searchsorted(sorted_ids, point)]], camera,
+                options)
+            inliers = None if pose is None else np.asarray(pose["inlier_mask"], dtype=bool)
+            if inliers is not None and inliers.sum() >= MIN_POSE_INLIERS:
+                found[frame] = (pose["cam_from_world"], keypoint[inliers], point[inliers])
+        if not found:
+            return
+        for frame, (cam_from_world, keypoint, point) in found.items():
+            image_id = matched.image_ids[frame]
+            model.add_image_with_trivial_frame(pycolmap.Image(
+                name=f"{frame:06d}.png", keypoints=matched.keypoints[frame], camera_id=camera_id,
+                image_id=image_id), cam_from_world)
+            for i, point_id in zip(keypoint.tolist(), point.tolist(), strict=True):
+                model.add_observation(point_id, pycolmap.TrackElement(image_id, i))
+            seen[frame] = np.full(len(matched.keypoints[frame]), -1, dtype=np.int64)
+            seen[frame][keypoint] = point
 
 
 def _adjust(pycolmap, model, *, fixed: bool, held_rotations: bool = False) -> None:
@@ -505,16 +636,20 @@ def _points(model) -> tuple[list[int], np.ndarray]:
 @dataclass(frozen=True)
 class _World:
     """Where a model's poses are expressed: the first registered frame's camera (COLMAP's ``w2c0`` [4, 4]),
-    scaled by ``scale`` so that the median depth of the points seen from the registered frames is 1."""
+    scaled by ``scale`` so that the median depth of the points, in the registered frames that observe
+    them, is 1."""
 
     w2c0: np.ndarray
     scale: float
 
     @classmethod
     def of(cls, model) -> _World:
-        w2c = _w2c(_registered(model))
-        _, points = _points(model)
-        depths = np.einsum("rj,pj->rp", w2c[:, 2, :3], points) + w2c[:, 2, 3:]  # [R, P]
+        registered = _registered(model)
+        w2c = _w2c(registered)
+        ids, points = _points(model)
+        row = {im.image_id: r for r, im in enumerate(registered)}
+        image, owner, _ = _observations(model, ids, row)
+        depths = np.einsum("oj,oj->o", w2c[image, 2, :3], points[owner]) + w2c[image, 2, 3]
         depths = depths[depths > 0]
         return cls(w2c[0], 1.0 / float(np.median(depths)) if depths.size else 1.0)
 
@@ -544,29 +679,34 @@ def _hold_rotations(pycolmap, model, world: _World, rotations: np.ndarray, *, fi
     _adjust(pycolmap, model, fixed=fixed, held_rotations=True)
 
 
+def _observations(model, ids: list[int], rows: dict[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The tracks of the points ``ids`` in the images ``rows`` (image id -> row): per observation its
+    image's row and its point's index (int64 [O]) and its keypoint (float64 [O, 2], COLMAP's pixels)."""
+    image, owner, xy = [], [], []
+    for k, point_id in enumerate(ids):
+        for element in model.points3D[point_id].track.elements:
+            r = rows.get(element.image_id)
+            if r is not None:
+                image.append(r)
+                owner.append(k)
+                xy.append(model.images[element.image_id].points2D[element.point2D_idx].xy)
+    return (np.asarray(image, dtype=np.int64), np.asarray(owner, dtype=np.int64),
+            np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+
+
 def _colors(model, ids: list[int], images_by_id: dict, images: np.ndarray) -> np.ndarray:
     """uint8 [P, C]: each point's mean over the frames' pixels its track observes (COLMAP's keypoints have
     pixel centres at +0.5; the frames are ours, in any channels)."""
-    frame, u, v, owner = [], [], [], []
-    for k, point_id in enumerate(ids):
-        for element in model.points3D[point_id].track.elements:
-            image = images_by_id.get(element.image_id)
-            if image is None:
-                continue
-            x, y = image.points2D[element.point2D_idx].xy
-            frame.append(int(Path(image.name).stem))
-            u.append(x - 0.5)
-            v.append(y - 0.5)
-            owner.append(k)
+    frames = {image_id: int(Path(image.name).stem) for image_id, image in images_by_id.items()}
+    frame, owner, xy = _observations(model, ids, frames)
     h, w, c = images.shape[1:]
     colors = np.zeros((len(ids), c), dtype=np.float64)
-    if not owner:
+    if not len(owner):
         return colors.astype(np.uint8)
-    col = np.clip(np.rint(u), 0, w - 1).astype(np.int64)
-    row = np.clip(np.rint(v), 0, h - 1).astype(np.int64)
-    owner_arr = np.asarray(owner)
-    np.add.at(colors, owner_arr, images[np.asarray(frame), row, col].astype(np.float64))
-    counts = np.bincount(owner_arr, minlength=len(ids))[:, None]
+    col = np.clip(np.rint(xy[:, 0] - 0.5), 0, w - 1).astype(np.int64)
+    row = np.clip(np.rint(xy[:, 1] - 0.5), 0, h - 1).astype(np.int64)
+    np.add.at(colors, owner, images[frame, row, col].astype(np.float64))
+    counts = np.bincount(owner, minlength=len(ids))[:, None]
     return np.rint(colors / np.maximum(counts, 1)).astype(np.uint8)
 
 

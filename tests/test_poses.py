@@ -15,7 +15,7 @@ from edmcgs.errors import InvalidInputError, PoseEstimationError
 from edmcgs.geometry import project, world_to_camera
 from edmcgs.options import RecordingOptions
 from edmcgs.pipeline import open_recording, read_tum, training_data, write_tum
-from edmcgs.poses import estimate_poses
+from edmcgs.poses import MIN_KEYFRAMES, estimate_poses
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import Recording, read_recording, write_recording
 from edmcgs.sensor.frames import Frames
@@ -71,6 +71,19 @@ def test_a_synthetic_moving_camera_is_within_one_percent_of_its_path(sweep):
     assert length > 1.0
     assert rmse <= 0.01 * length, f"ATE {rmse:.4f} of a {length:.3f} path"
     assert estimate.imu is None and estimate.frames_c2w is None
+    _assert_points_show_in_frames(estimate, t_us, images, intrinsics)
+
+
+def test_a_long_run_maps_keyframes_and_localizes_every_other_frame_against_them():
+    """Past twice ``MIN_KEYFRAMES`` frames the mapper sees only keyframes; every frame still registers,
+    as accurately, with the points its own tracks add."""
+    t_us, images, truth, intrinsics = rigid_sweep(72, 25.0)
+    estimate = estimate_poses(t_us, images, intrinsics, progress=False)
+    assert MIN_KEYFRAMES <= estimate.keyframes < len(t_us)
+    assert estimate.registered == len(t_us) == len(estimate.t_us)
+    assert f"({estimate.keyframes} keyframes mapped)" in estimate.summary()
+    rmse, length = trajectory_error(estimate.t_us, estimate.c2w, truth)
+    assert rmse <= 0.01 * length, f"ATE {rmse:.4f} of a {length:.3f} path"
     _assert_points_show_in_frames(estimate, t_us, images, intrinsics)
 
 
