@@ -374,9 +374,9 @@ def summarise(results: dict) -> dict:
         margins = [r["margin_db"] for r in rows.values() if "margin_db" in r]
         if margins:
             s[f"{scene}_margin_db_min"] = min(margins)
-        # the longest length against the shortest (the targets name 60 s against 3 s), each the mean of
-        # its runs (a length repeated in --lengths: the runs alternate the lengths in one session)
-        lengths = sorted({_length(k) for k in rows})
+        # the longest trained length against the shortest (the targets name 60 s against 3 s), each the
+        # mean of its runs (a length repeated in --lengths: the runs alternate the lengths in one session)
+        lengths = sorted({_length(k) for k, r in rows.items() if "cpu_per_s" in r})
         short, long = (lengths[0], lengths[-1]) if len(lengths) > 1 else (None, None)
         for key, name in (("cpu_per_s", "cpu_per_s_ratio"), ("render_p50_ms", "render_p50_ratio")):
             ours = {n: [r[key] for k, r in rows.items() if _length(k) == n and key in r]

@@ -30,3 +30,16 @@ def test_the_handheld_street_trains_with_the_moving_preset_and_lists_its_estimat
     assert "`--config moving`, 75 steps per span" in street and "--poses auto" in street
     assert "| 10 s | 76 of 251 | 0.12 % | 40 s | 70 s |" in street
     assert "`--config real`, 100 steps per span" in traffic and "--poses auto" not in traffic
+
+
+def test_a_length_posed_but_not_trained_leaves_the_ratios_to_the_trained_ones():
+    poses = {"registered": 1501, "frames": 1501, "ate_pct": 0.02, "wall_s": 900.0, "cpu_s": 1600.0}
+    untrained = {"anchors": 301, "events": 8e7, "poses": poses}
+    trained = {"wall_min": 20.0, "peak_gb": 1.0}
+    rows = {"3": _row(60.0) | trained, "10": _row(66.0) | trained | {"peak_gb": 2.0}, "60": untrained}
+    results = {"machine": "test", "size": "full", "scenes": {"street3d": rows}}
+    summary = results["summary"] = scale.summarise(results)
+    assert summary["street3d_cpu_per_s_ratio_10_3"] == 66.0 / 60.0
+    assert summary["street3d_train_peak_gb_10"] == 2.0
+    page = scale.markdown(results, "python -m bench.scale --scenes street3d --lengths 3,10,60")
+    assert "| 60 s | 1501 of 1501 | 0.02 % | 900 s | 1600 s |" in page and "Not trained yet: 60 s" in page
