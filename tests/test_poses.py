@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from edmcgs import cli
+from edmcgs import cli, poses
 from edmcgs.errors import InvalidInputError, PoseEstimationError
 from edmcgs.geometry import project, world_to_camera
 from edmcgs.options import RecordingOptions
 from edmcgs.pipeline import open_recording, read_tum, training_data, write_tum
-from edmcgs.poses import MIN_KEYFRAMES, estimate_poses
+from edmcgs.poses import estimate_poses
 from edmcgs.sensor.events import Events
 from edmcgs.sensor.files.recording import Recording, read_recording, write_recording
 from edmcgs.sensor.frames import Frames
@@ -74,12 +74,13 @@ def test_a_synthetic_moving_camera_is_within_one_percent_of_its_path(sweep):
     _assert_points_show_in_frames(estimate, t_us, images, intrinsics)
 
 
-def test_a_long_run_maps_keyframes_and_localizes_every_other_frame_against_them():
+def test_a_long_run_maps_keyframes_and_localizes_every_other_frame_against_them(monkeypatch):
     """Past twice ``MIN_KEYFRAMES`` frames the mapper sees only keyframes; every frame still registers,
-    as accurately, with the points its own tracks add."""
+    as accurately, with the points its own tracks add (the bound lowered: 72 frames stand for 200)."""
+    monkeypatch.setattr(poses, "MIN_KEYFRAMES", 30)
     t_us, images, truth, intrinsics = rigid_sweep(72, 25.0)
     estimate = estimate_poses(t_us, images, intrinsics, progress=False)
-    assert MIN_KEYFRAMES <= estimate.keyframes < len(t_us)
+    assert 30 <= estimate.keyframes < len(t_us)
     assert estimate.registered == len(t_us) == len(estimate.t_us)
     assert f"({estimate.keyframes} keyframes mapped)" in estimate.summary()
     rmse, length = trajectory_error(estimate.t_us, estimate.c2w, truth)
