@@ -191,12 +191,8 @@ class Schedule:
     """Fractions of training between which the event branch's learning rate ramps from 0 to its own
     (before them the branch is off)."""
     max_gaussians: int = 200000
-    """Densification stops adding Gaussians above this count (grown with ``init_points_per_window`` and
-    ``static_points_per_window``: ``gaussian_cap``)."""
-    static_points_per_window: int = 0
-    """With anchor windows: the budget densification has beyond the initial Gaussians (``max_gaussians -
-    init_points``, a static set's in the moving preset) grown to this many times the number of anchors
-    when that is more (a moving camera sees more of the scene the longer it records); 0: fixed."""
+    """Densification stops adding Gaussians above this count (grown with ``init_points_per_window``:
+    ``gaussian_cap``)."""
     densify_from: float = 0.02
     """Fraction of training from which adaptive density control runs."""
     densify_until: float = 0.5
@@ -283,12 +279,8 @@ class EdmcgsConfig(Schedule, Losses, Initialisation, Structure):
     def gaussian_cap(self, anchors: int) -> int:
         """The count above which densification stops, for ``anchors`` anchor frames: ``max_gaussians``
         plus what the windows' initialisation may add beyond ``init_points`` (``initial_points``), so that
-        the movers of a long recording do not take the static set's budget, and that budget grown with the
-        anchors (``static_points_per_window``)."""
-        grown = self.max_gaussians - self.init_points
-        if self.anchor_windows and self.static_points_per_window > 0:
-            grown = max(grown, self.static_points_per_window * int(anchors))
-        return self.initial_points(anchors) + grown
+        the movers of a long recording do not take the static set's budget."""
+        return self.max_gaussians + self.initial_points(anchors) - self.init_points
 
     def frozen_changes(self, other: EdmcgsConfig) -> list[str]:
         """The fields of ``FROZEN_ON_RESUME`` whose values differ in ``other`` (a resume's config)."""
@@ -322,7 +314,7 @@ class EdmcgsConfig(Schedule, Losses, Initialisation, Structure):
                 raise InvalidInputError(f"config.{name} must be > 0, got {getattr(self, name)}")
         for name in ("init_anchors", "sh_degree", "pos_freqs", "time_freqs", "event_pos_freqs", "eval_every",
                      "checkpoint_every", "opacity_reset_every", "steps_per_window",
-                     "control_points_per_window", "init_points_per_window", "static_points_per_window"):
+                     "control_points_per_window", "init_points_per_window"):
             if getattr(self, name) < 0:
                 raise InvalidInputError(f"config.{name} must be >= 0, got {getattr(self, name)}")
         if self.sh_degree > 3:
@@ -435,14 +427,11 @@ def _moving() -> EdmcgsConfig:
     # bounds the lifted Gaussians over all anchors: sized for 346x260 (street3d's 21 anchors get 2.3k to
     # 3.4k each, the order of the cars' pixels in a frame). Its cost follows the recording as the real
     # preset's does: 75 steps, 24 control points and 2857 lifted Gaussians per anchor window, never fewer
-    # than street3d's 4 s has (1500 steps, 512 points, 60000 lifted: the run measured). The static set's
-    # budget, 90000 Gaussians at street3d's 4 s, grows as 4285 per anchor window: with a fixed budget
-    # street3d's 10 s ended with the 3 s run's 89k static Gaussians over three times the street
-    # (docs/benchmarks/scale.md). Figures: docs/benchmarks/moving.md (bench.street3d).
+    # than street3d's 4 s has (1500 steps, 512 points, 60000 lifted: the run measured). Figures:
+    # docs/benchmarks/moving.md (bench.street3d).
     return _real().replace(
         static_set=True, init_points=60000, max_gaussians=150000, densify_from=0.02, densify_until=0.6,
         steps_per_window=75, control_points_per_window=24, init_points_per_window=2857,
-        static_points_per_window=4285,
         densify_every=100, lift_at=0.3, init_opacity=0.8, lr_means=1.6e-4, percent_dense=0.01,
     )
 
