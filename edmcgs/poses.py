@@ -56,7 +56,7 @@ KEYFRAME_MOTION = 0.03
 """Largest median image motion between successive keyframes, a fraction of the frames' larger side."""
 MIN_KEYFRAMES = 100
 """Fewest keyframes a run of frames keeps: a run under twice this maps every frame (a figure that fills
-the frame, jumpingjack's orbit, needs every frame's tracks: mapped on 75 of its 101 frames, 3 of 11 runs
+the frame, jumpingjack's orbit, needs every frame's tracks: mapped on 75 of its 101 frames, 5 of 11 runs
 ended 9 to 15 % of the path off, against none of 6 mapping all)."""
 KEYFRAME_GAP = 16
 """Most frames between successive keyframes."""
