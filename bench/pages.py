@@ -266,7 +266,9 @@ def _format(value, spec: str, what: str) -> str:
 
 
 def _link(shown: str, source: Source) -> str:
+    # a title ends at a double quote, a table cell at a bar, and a link at an unbalanced parenthesis
     title = source.command.strip().splitlines()[0].replace('"', "'").replace("|", "/")
+    title = title.replace("(", "&#40;").replace(")", "&#41;")
     return f'[{shown}](#{source.anchor} "{title}")'
 
 

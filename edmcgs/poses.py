@@ -39,6 +39,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -370,6 +371,11 @@ class _Pair:
     points_b: np.ndarray
     H: np.ndarray
 
+    @cached_property
+    def motion_px(self) -> float:
+        """The median displacement of the inlier matches (pixels)."""
+        return float(np.median(np.linalg.norm(self.points_b - self.points_a, axis=1)))
+
 
 @dataclass(frozen=True)
 class _Matched:
@@ -402,8 +408,7 @@ def _verified_pairs(pycolmap, database: Path) -> _Matched:
 def _image_motion(pairs: list[_Pair]) -> float | None:
     """The largest, over verified pairs, of the median displacement of their inlier matches (pixels);
     None when no pair was verified."""
-    moved = [float(np.median(np.linalg.norm(p.points_b - p.points_a, axis=1))) for p in pairs]
-    return max(moved) if moved else None
+    return max((p.motion_px for p in pairs), default=None)
 
 
 def _rotations(pairs: list[_Pair], n: int, intrinsics: Intrinsics | None, width: int,
@@ -469,7 +474,7 @@ def _keyframes(pairs: list[_Pair], n: int, motion_px: float) -> list[int]:
     ``MIN_KEYFRAMES``), whose matches moved by at most ``motion_px`` (median); the next frame when none
     did."""
     gap = max(1, min(KEYFRAME_GAP, n // MIN_KEYFRAMES))
-    moved = {(p.a, p.b): float(np.median(np.linalg.norm(p.points_b - p.points_a, axis=1))) for p in pairs}
+    moved = {(p.a, p.b): p.motion_px for p in pairs}
     keys = [0]
     while keys[-1] < n - 1:
         k = keys[-1]
@@ -556,7 +561,7 @@ def _localize(pycolmap, model, matched: _Matched, max_error_px: float, seed: int
             for i in image.get_observation_point2D_idxs():
                 owner[i] = image.points2D[i].point3D_id
             seen[int(Path(image.name).stem)] = owner
-    partners: dict[int, list[tuple[int, np.ndarray]]] = {}  # frame -> [(other frame, its keypoints, ours)]
+    partners: dict[int, list[tuple[int, np.ndarray]]] = {}  # frame -> [(other frame, [M, 2]: its, ours)]
     for p in matched.pairs:
         partners.setdefault(p.a, []).append((p.b, p.matches[:, ::-1]))
         partners.setdefault(p.b, []).append((p.a, p.matches))
@@ -649,7 +654,7 @@ class _World:
         _, points = _points(model)
         # at most 256 frames and 16384 points, evenly strided: the same median to a fraction of a percent,
         # where a minute of frames against all its points would take gigabytes
-        w2c, points = w2c[::-(-len(w2c) // 256)], points[::-(-len(points) // 16384)]
+        w2c, points = w2c[::max(1, -(-len(w2c) // 256))], points[::max(1, -(-len(points) // 16384))]
         depths = np.einsum("rj,pj->rp", w2c[:, 2, :3], points) + w2c[:, 2, 3:]  # [R, P]
         depths = depths[depths > 0]
         return cls(w2c[0], 1.0 / float(np.median(depths)) if depths.size else 1.0)
@@ -683,24 +688,26 @@ def _hold_rotations(pycolmap, model, world: _World, rotations: np.ndarray, *, fi
 def _colors(model, ids: list[int], images_by_id: dict, images: np.ndarray) -> np.ndarray:
     """uint8 [P, C]: each point's mean over the frames' pixels its track observes (COLMAP's keypoints have
     pixel centres at +0.5; the frames are ours, in any channels)."""
-    frame, owner, xy = [], [], []
+    frame, u, v, owner = [], [], [], []
     for k, point_id in enumerate(ids):
         for element in model.points3D[point_id].track.elements:
             image = images_by_id.get(element.image_id)
-            if image is not None:
-                frame.append(int(Path(image.name).stem))
-                owner.append(k)
-                xy.append(image.points2D[element.point2D_idx].xy)
-    frame, owner = np.asarray(frame, dtype=np.int64), np.asarray(owner, dtype=np.int64)
-    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+            if image is None:
+                continue
+            x, y = image.points2D[element.point2D_idx].xy
+            frame.append(int(Path(image.name).stem))
+            u.append(x - 0.5)
+            v.append(y - 0.5)
+            owner.append(k)
     h, w, c = images.shape[1:]
     colors = np.zeros((len(ids), c), dtype=np.float64)
-    if not len(owner):
+    if not owner:
         return colors.astype(np.uint8)
-    col = np.clip(np.rint(xy[:, 0] - 0.5), 0, w - 1).astype(np.int64)
-    row = np.clip(np.rint(xy[:, 1] - 0.5), 0, h - 1).astype(np.int64)
-    np.add.at(colors, owner, images[frame, row, col].astype(np.float64))
-    counts = np.bincount(owner, minlength=len(ids))[:, None]
+    col = np.clip(np.rint(u), 0, w - 1).astype(np.int64)
+    row = np.clip(np.rint(v), 0, h - 1).astype(np.int64)
+    owner_arr = np.asarray(owner)
+    np.add.at(colors, owner_arr, images[np.asarray(frame), row, col].astype(np.float64))
+    counts = np.bincount(owner_arr, minlength=len(ids))[:, None]
     return np.rint(colors / np.maximum(counts, 1)).astype(np.uint8)
 
 
