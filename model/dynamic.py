@@ -268,9 +268,10 @@ class EdMCGS(nn.Module):
 
     @property
     def windowed(self) -> bool:
-        """Anchor windows and no static set: a query at t draws one window's Gaussians, moved by that
-        window's control points, so its work is one window's rows (``window_rows``). A static set is
-        drawn in every window, skinned by none: such a model queries every row, the windows' visible."""
+        """Anchor windows and no static set: ``deform`` at t skins one window's rows (``window_plan``, one
+        kept per window). With a static set, drawn in every window and skinned by none, it cuts the model
+        to the static set and the window's (``drawn_plan``: the few plans queried last are kept, each
+        holding a copy of the static set). A training step draws ``window_rows(w).drawn`` either way."""
         return self.gaussians.birth is not None and not self.config.static_set
 
     def window_rows(self, window: int) -> WindowRows:
@@ -303,7 +304,7 @@ class EdMCGS(nn.Module):
         returns (translations [M, 3], rotations [M, 4] unit, event displacement [M, 3] or None)
         """
         rows = points
-        if window is not None and self.windowed:
+        if window is not None and self.gaussians.birth is not None:
             rows = self.window_rows(window).control
             if since is None:
                 since = self.meta.normalized_time(int(self.meta.anchors_us[window]))
@@ -320,8 +321,8 @@ class EdMCGS(nn.Module):
             d_mu, d_q = d_mu - d_mu0, d_q - d_q0
         trans = d_mu * self.extent
         rot = quat_normalize(identity_rotations(cp.shape[0], device=cp.device) + d_q)
-        event_disp = None
-        if self.transition is not None and event_map is not None and (
+        event_disp = None  # (none for no points: a window before the moving preset's lift has none)
+        if self.transition is not None and event_map is not None and cp.shape[0] > 0 and (
                 bool(torch.any(event_map != 0)) if nonzero is None else nonzero):
             if self.config.local_sampling and ev_w2c is None:
                 raise InvalidInputError("ev_w2c is needed to project control points on the event camera")
@@ -362,17 +363,25 @@ class EdMCGS(nn.Module):
 
     def window_state(self, trans: Tensor, rot: Tensor, window: int, *,
                      motion_only: bool = False) -> GaussianState:
-        """The Gaussians of anchor ``window`` alone, skinned by its control points' transforms (as
-        ``control_motion(..., window=window)`` gives them): what is drawn in its gap, whatever the
-        number of windows. motion_only: as in ``state_from_motion``."""
+        """What is drawn in anchor ``window``'s gap, whatever the number of windows (the rows
+        ``window_rows(window).drawn``, in the model's order): its Gaussians skinned by its control points'
+        transforms (as ``control_motion(..., window=window)`` gives them), the static set as it stands.
+        motion_only: as in ``state_from_motion``."""
         rows = self.window_rows(window)
         g, cp = self.gaussians, self.control
-        canon = g.activated(rows.gaussians)
+        canon = g.activated(rows.drawn)
         if motion_only:
             canon = [t.detach() for t in canon]
+        means, quats = canon[0], canon[1]
         positions = cp.positions[rows.control]
-        weights = skinning_weights(canon[0].detach(), positions, cp.log_radius[rows.control], rows.bind)
-        means, quats = self.skinning(canon[0], canon[1], positions, rot, trans, rows.bind, weights)
+        skinned = len(rows.skinned) < len(rows.drawn)  # a static set beside the window's own
+        if skinned:
+            means, quats = means[rows.skinned], quats[rows.skinned]
+        weights = skinning_weights(means.detach(), positions, cp.log_radius[rows.control], rows.bind)
+        means, quats = self.skinning(means, quats, positions, rot, trans, rows.bind, weights)
+        if skinned:
+            means = canon[0].index_copy(0, rows.skinned, means)
+            quats = quat_normalize(canon[1]).index_copy(0, rows.skinned, quats)
         return GaussianState(means, quats, canon[2], canon[3], canon[4])
 
     def state_from_motion(self, trans: Tensor, rot: Tensor, window: int | None = None, *,
@@ -409,14 +418,13 @@ class EdMCGS(nn.Module):
                  weights: Tensor | None = None) -> GaussianState:
         """The (differentiable) Gaussians at normalised time ``t``; see ``control_motion``. ``window``:
         the anchor (index) whose Gaussians are drawn, moved relative to that anchor's time (with anchor
-        windows only they are returned: ``window_state``). weights: as in ``state_from_motion``."""
-        if window is not None and self.windowed:
+        windows only they are returned, the static set's included: ``window_state``). weights: as in
+        ``state_from_motion``."""
+        if window is not None and self.gaussians.birth is not None:
             trans, rot, _ = self.control_motion(t, event_map, ev_w2c, static=static, window=window)
             return self.window_state(trans, rot, window)
-        since = None if window is None or self.gaussians.birth is None else \
-            self.meta.normalized_time(int(self.meta.anchors_us[window]))
-        trans, rot, _ = self.control_motion(t, event_map, ev_w2c, static=static, since=since)
-        return self.state_from_motion(trans, rot, window, weights=weights)
+        trans, rot, _ = self.control_motion(t, event_map, ev_w2c, static=static)
+        return self.state_from_motion(trans, rot, weights=weights)
 
     # ------------------------------------------------------------------ inference API
     @torch.no_grad()

@@ -116,12 +116,6 @@ def control_motion_bound(model, samples: int = FREEZE_SAMPLES) -> torch.Tensor:
     starts = [meta.normalized_time(int(a)) for a in meta.anchors_us]
     ends = [*starts[1:], 1.0]
     for w, (since, end) in enumerate(zip(starts, ends, strict=True)):
-        if not model.windowed:  # a static set beside the windows: every point's motion, kept for its own
-            mine = cp.birth == w
-            for t in np.linspace(since, end, samples):
-                trans, rot, _ = model.control_motion(float(t), since=since)
-                bound = torch.where(mine, torch.maximum(bound, motion_bound(trans, rot, reach)), bound)
-            continue
         rows = model.window_rows(w)
         if rows.own == 0:
             continue

@@ -1,11 +1,12 @@
 """Anchor windows (config.anchor_windows): which Gaussians and control points one window draws and moves.
 
 With anchor windows a Gaussian is drawn only in the gap after the anchor it was lifted from, moved by
-that window's control points. Whatever the recording's length, a query at t (a render, a training step)
-then needs one window's rows alone: its Gaussians, the control points they are bound to, the points
-born in the window and their graph neighbours (a window with fewer than K points binds some of its
-Gaussians to a neighbouring window's). ``WindowRows`` are those rows, local indices included, so that
-the work of a step or a render follows the window, not the number of windows.
+that window's control points; a static set (config.static_set) is drawn in every gap, moved by none.
+Whatever the recording's length, a query at t (a render, a training step) then needs one window's rows
+alone: its Gaussians, the control points they are bound to, the points born in the window and their
+graph neighbours (a window with fewer than K points binds some of its Gaussians to a neighbouring
+window's), and the static set. ``WindowRows`` are those rows, local indices included, so that the work
+of a step or a render follows the window, not the number of windows.
 """
 
 from __future__ import annotations
@@ -14,6 +15,8 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+
+from edmcgs.model.motion.gaussians import STATIC
 
 
 @dataclass(frozen=True)
@@ -26,6 +29,8 @@ class WindowRows:
     own: int           # how many of ``control`` are born in the window (the first ``own``)
     bind: Tensor       # [Nw, K] each Gaussian's control points, as indices into ``control``
     graph: Tensor      # [own, K_conn] the own points' graph neighbours, as indices into ``control``
+    drawn: Tensor      # [Nd] what a query in the window draws, ascending: ``gaussians`` and the static set
+    skinned: Tensor    # [Nw] where ``gaussians`` stand in ``drawn`` (all of it without a static set)
     """
 
     gaussians: Tensor
@@ -33,6 +38,8 @@ class WindowRows:
     own: int
     bind: Tensor
     graph: Tensor
+    drawn: Tensor
+    skinned: Tensor
 
 
 def window_rows(gaussian_birth: Tensor, control_birth: Tensor, bind: Tensor, graph: Tensor,
@@ -46,7 +53,10 @@ def window_rows(gaussian_birth: Tensor, control_birth: Tensor, bind: Tensor, gra
     control = torch.cat([own, others])
     local = torch.full((control_birth.shape[0],), -1, dtype=torch.long, device=control.device)
     local[control] = torch.arange(control.shape[0], device=control.device)
-    return WindowRows(gaussians, control, int(own.shape[0]), local[bind[gaussians]], local[graph[own]])
+    drawn = torch.nonzero((gaussian_birth == window) | (gaussian_birth == STATIC))[:, 0]
+    skinned = torch.nonzero(gaussian_birth[drawn] == window)[:, 0]
+    return WindowRows(gaussians, control, int(own.shape[0]), local[bind[gaussians]], local[graph[own]], drawn,
+                      skinned)
 
 
 class WindowIndex:

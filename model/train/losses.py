@@ -75,18 +75,24 @@ def tli_loss(points_t1: Tensor, points_t2: Tensor, graph: Tensor) -> Tensor:
     points_t1, points_t2: Tensor  # [M, 3] deformed control points at t - dt/2 and t + dt/2
     graph: Tensor                 # [R, K] int64 neighbours of the first R <= M points (edges
                                   #  (j, graph[j, k]); R < M: one anchor window's own points)
-    Zero for any rigid motion between the two times; positive for a stretch or shear.
+    Zero for any rigid motion between the two times; positive for a stretch or shear; zero without
+    edges (a window with no points of its own: the moving preset's before its lift).
     """
     r = graph.shape[0]
     len1 = (points_t1[:r, None, :] - points_t1[graph]).norm(dim=-1)
     len2 = (points_t2[:r, None, :] - points_t2[graph]).norm(dim=-1)
-    return (len1 - len2).square().mean()
+    return _mean((len1 - len2).square())
+
+
+def _mean(x: Tensor) -> Tensor:
+    """The mean of ``x``; 0 when it is empty (torch's is NaN)."""
+    return x.sum() / max(x.numel(), 1)
 
 
 def laplacian_smoothness(values: Tensor, graph: Tensor) -> Tensor:
     """Mean squared difference of each point's value from the mean of its graph neighbours.
 
     values: Tensor  # [M, D] (g_phi's displacement per control point)
-    graph: Tensor   # [R, K] int64 neighbours of the first R <= M points (as ``tli_loss``)
+    graph: Tensor   # [R, K] int64 neighbours of the first R <= M points (as ``tli_loss``; none: 0)
     """
-    return (values[:graph.shape[0]] - values[graph].mean(1)).square().sum(-1).mean()
+    return _mean((values[:graph.shape[0]] - values[graph].mean(1)).square().sum(-1))

@@ -188,7 +188,7 @@ class Trainer:
             params["event"] = [*m.encoder.parameters(), *m.transition.parameters()]
         # With anchor windows a step moves only the Gaussians of the windows it drew; on CUDA one fused
         # kernel per step for the other groups instead of several per parameter group.
-        rows = PER_GAUSSIAN if m.windowed else ()
+        rows = PER_GAUSSIAN if model_has_windows(m) else ()
         # Data parallel: a step averages `world` samples, so a parameter every sample moves takes 1/world
         # of the updates; Adam's square-root rule keeps its path (a window's rows are drawn as often as in
         # one process and keep their rate). 3 s of traffic, 2 workers: -0.48 dB against one without it,
@@ -238,15 +238,11 @@ class Trainer:
         of its events)."""
         grid, model = self.grid, self.model
         emap = cum[k] if k > 0 else None
-        if model.windowed:
-            return model.control_motion(self.grid_t[gap][k], emap, self.grid_w2c[gap, k], window=gap,
-                                        nonzero=bool(grid.nonzero(gap)[k]))
-        windows = model_has_windows(model)  # with a static set: every point, moved since the gap's anchor
+        windows = model_has_windows(model)
         if k == grid.substeps and grid.ends_at_anchor[gap] and not windows:
             return model.control_motion(self.anchor_times[gap + 1])
         return model.control_motion(self.grid_t[gap][k], emap, self.grid_w2c[gap, k],
-                                    since=self.anchor_times[gap] if windows else None,
-                                    nonzero=bool(grid.nonzero(gap)[k]))
+                                    window=gap if windows else None, nonzero=bool(grid.nonzero(gap)[k]))
 
     def _draw(self, shard: np.ndarray) -> int:
         return int(shard[int(self.rng.integers(len(shard)))])
@@ -282,12 +278,12 @@ class Trainer:
             s = self.grid.substeps
             a = 0 if self.rng.random() < cfg.anchored_pairs else int(self.rng.integers(0, s))
             b = int(self.rng.integers(a + 1, min(s, a + cfg.max_pair_steps) + 1))
-        windows = model_has_windows(model)
-        rowwise = model.windowed  # a step's work: the rows of the windows it draws (no static set)
+        # With anchor windows a step's work is the rows of the windows it draws (and the static set)
+        rowwise = model_has_windows(model)
         rows = None
         if rowwise:
             drawn = [n, gap] if paired else [n]
-            rows = torch.unique(torch.cat([model.window_rows(w).gaussians for w in drawn]))
+            rows = torch.unique(torch.cat([model.window_rows(w).drawn for w in drawn]))
             with stage("optimizer: catch-up"):
                 self.optimizer.catch_up(rows)  # their momentum moves since last drawn, before they are read
         with stage("anchor: deform"):
@@ -296,8 +292,7 @@ class Trainer:
                 anchor_state = model.state_at(self.anchor_times[n], static=static, window=n)
             else:
                 weights = model.control.weights(model.gaussians.means)  # the same for every skin of this step
-                anchor_state = model.state_at(self.anchor_times[n], static=static,
-                                              window=n if windows else None, weights=weights)
+                anchor_state = model.state_at(self.anchor_times[n], static=static, weights=weights)
             anchor_state.means.retain_grad()
         with stage("anchor: render"):
             image = self._render(anchor_state, self.anchor_w2c_host[n])
@@ -315,7 +310,7 @@ class Trainer:
             for trans, rot, k in ((trans_a, rot_a, a), (trans_b, rot_b, b)):
                 with stage("event pair: skin"):
                     st = model.window_state(trans, rot, gap) if rowwise else \
-                        model.state_from_motion(trans, rot, gap if windows else None, weights=weights)
+                        model.state_from_motion(trans, rot, weights=weights)
                     st = GaussianState(st.means, st.quats, st.scales, st.opacities, st.colors.detach())
                 with stage("event pair: render"):
                     renders.append(self._render(st, self.grid_w2c_host[gap, k], self.event_intr,
@@ -331,12 +326,11 @@ class Trainer:
             if cfg.tli:
                 terms["tli"] = tli_loss(cp + trans_a, cp + trans_b, graph)
                 loss = loss + cfg.lambda_tli * terms["tli"]
-            if windows and cfg.lambda_next > 0 and self.grid.ends_at_anchor[gap] and self.lifted:
+            if rowwise and cfg.lambda_next > 0 and self.grid.ends_at_anchor[gap] and self.lifted:
                 # The gap's Gaussians carried by all its events to the next anchor frame.
                 with stage("next anchor"):
                     trans_e, rot_e, _ = (trans_b, rot_b, None) if b == s else self._gap_motion(gap, s, cum)
-                    st = model.window_state(trans_e, rot_e, gap, motion_only=True) if rowwise else \
-                        model.state_from_motion(trans_e, rot_e, gap, motion_only=True, weights=weights)
+                    st = model.window_state(trans_e, rot_e, gap, motion_only=True)
                     image_next = self._render(st, self.anchor_w2c_host[gap + 1])
                     target = self.anchor_images[gap + 1]
                     terms["next"] = self.photometric_loss(image_next, target, cfg.lambda_dssim) \
@@ -389,7 +383,7 @@ class Trainer:
             self.stats.add(screen_space_grad(anchor_state.means.grad, anchor_state.means.detach(),
                                              self.anchor_w2c[n], self.intr.fx, self.intr.fy,
                                              self.intr.width, self.intr.height),
-                           model.window_rows(n).gaussians if rowwise else None)
+                           model.window_rows(n).drawn if rowwise else None)
         with stage("optimizer step"):
             self.optimizer.step()
         self.step += self.stride

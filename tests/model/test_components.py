@@ -301,6 +301,13 @@ def test_laplacian_smoothness_zero_for_constant_field():
     assert laplacian_smoothness(torch.randn(64, 3, generator=gen), graph) > 0.1
 
 
+def test_the_graph_regularisers_of_a_window_with_no_points_are_zero_not_nan():
+    none = torch.zeros(0, 3)
+    graph = torch.zeros(0, 10, dtype=torch.long)
+    for value in (tli_loss(none, none, graph), laplacian_smoothness(none, graph)):
+        assert value.item() == 0.0
+
+
 def test_photometric_and_ssim():
     gen = torch.Generator().manual_seed(9)
     img = torch.rand(32, 40, 3, generator=gen)
