@@ -571,7 +571,7 @@ class EdMCGS(nn.Module):
         if plan is None or plan.key != key:
             full = self.skin_plan(frozen=frozen)
             n = len(self.gaussians)
-            rows = torch.nonzero(self.gaussians.visible_in(window) > 0)[:, 0]
+            rows = self.window_rows(window).drawn
             # full.bind and full.weights hold the skinned rows alone, in full.moving's order
             dev = rows.device
             slot = torch.arange(n, device=dev)

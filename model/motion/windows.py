@@ -46,15 +46,15 @@ def window_rows(gaussian_birth: Tensor, control_birth: Tensor, bind: Tensor, gra
                 window: int) -> WindowRows:
     """The rows of ``window`` from the Gaussians' and control points' windows, the binding [N, K] and
     the control points' graph [M, K_conn]."""
-    gaussians = torch.nonzero(gaussian_birth == window)[:, 0]
+    drawn = torch.nonzero((gaussian_birth == window) | (gaussian_birth == STATIC))[:, 0]
+    skinned = torch.nonzero(gaussian_birth[drawn] == window)[:, 0]
+    gaussians = drawn[skinned]
     own = torch.nonzero(control_birth == window)[:, 0]
     needed = torch.cat([bind[gaussians].reshape(-1), graph[own].reshape(-1)])
     others = torch.unique(needed[control_birth[needed] != window])  # ascending
     control = torch.cat([own, others])
     local = torch.full((control_birth.shape[0],), -1, dtype=torch.long, device=control.device)
     local[control] = torch.arange(control.shape[0], device=control.device)
-    drawn = torch.nonzero((gaussian_birth == window) | (gaussian_birth == STATIC))[:, 0]
-    skinned = torch.nonzero(gaussian_birth[drawn] == window)[:, 0]
     return WindowRows(gaussians, control, int(own.shape[0]), local[bind[gaussians]], local[graph[own]], drawn,
                       skinned)
 
