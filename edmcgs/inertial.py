@@ -13,7 +13,7 @@ position by metres. Both are combined in a batch least squares over every regist
    the frames drift: structure from motion trades turning for translation when it follows a small or
    moving subject (jumpingjack's orbit falls 24 degrees short of an 80 degree turn, at a steady rate that
    a gyro bias of 6 deg/s would also explain, and no sensor here tells the two apart), and a close car
-   that drives along with the camera bends its map (street3d at 30 s: 21 degrees over 4 s, a bias of
+   that drives along with the camera bends its map (street3d at 30 s: 17 to 21 degrees over 4 s, a bias of
    0.9 deg/s in the joint fit, where the frames' steps put it within 0.01 deg/s of the true one). The
    bias is then estimated from the steps alone, each step's error independent (a drift spread over many
    steps is weak evidence of a bias, a bend over a few steps none), with the part's prior, and the
