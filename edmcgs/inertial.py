@@ -72,8 +72,7 @@ but whose rotations as they stand call for another bias have bent somewhere. A l
 test would flag a large but genuine bias on frames whose steps are as noisy as the steps themselves (a
 moving figure at video rates): those steps recover little of it, and its whole integral would be lost;
 the second test weighs the steps by their own scatter, so noisy steps seldom pass it. A drift below both
-is kept (jumpingjack's orbit: up to 1.2 %
-of the path, against 0.3 to 0.7 % with the gyro's rotations)."""
+is kept (jumpingjack's orbit: up to 1.2 % of the path, against 0.3 to 0.7 % with the gyro's rotations)."""
 NEAREST_M = 0.05
 """Smallest median scene depth, metres, the position step accepts (the poses' unit is the median depth of
 the scene, as ``edmcgs.poses`` makes it): nothing a DAVIS346's lens focuses on is nearer. Where the camera
@@ -166,10 +165,10 @@ def fuse_imu(t_us, c2w, imu, *, imu_to_camera: np.ndarray | None = None,
     gyro_c, force_c = gyro @ mount.T, force @ mount.T
     R, gyro_bias = _rotations(seg, gyro_c, vision_R)
     drift = None
-    stepwise, stepwise_cov = _stepwise_bias(seg, gyro_c, vision_R)
+    stepwise, information = _stepwise_bias(seg, gyro_c, vision_R)
     gap = gyro_bias - stepwise
     if (np.sum((gyro_bias / GYRO_BIAS) ** 2) > DRIFT_CHI2
-            or gap @ np.linalg.solve(stepwise_cov, gap) > DRIFT_CHI2):  # the frames drift
+            or gap @ information @ gap > DRIFT_CHI2):  # the frames drift
         drift = float(np.degrees(np.linalg.norm(gap)))
         gyro_bias = stepwise
     pre = _preintegrate(seg, gyro_c - gyro_bias, force_c)
@@ -420,7 +419,8 @@ def _rotations(seg: _Segments, gyro: np.ndarray, vision_R: np.ndarray) -> tuple[
 
 def _stepwise_bias(seg: _Segments, gyro: np.ndarray, vision_R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The gyro's bias (rad/s [3] in camera axes) from the frames' rotations between successive frames
-    alone (each step's error independent) and the prior ``GYRO_BIAS``, with its covariance [3, 3]:
+    alone (each step's error independent) and the prior ``GYRO_BIAS``, with its information [3, 3] (the
+    inverse of its covariance):
     Gauss-Newton, weighted by Tukey's biweight (a run of steps where the frames' map bent counts for
     nothing, where Huber's weights would still spread its bend over the bias), the steps' scatter
     re-estimated."""
@@ -438,7 +438,7 @@ def _stepwise_bias(seg: _Segments, gyro: np.ndarray, vision_R: np.ndarray) -> tu
         sigma = max(_robust_rms(r), np.radians(0.01))
         if np.abs(d).max() < 1e-9:
             break
-    return bias, np.linalg.inv(normal)
+    return bias, normal
 
 
 def _chained(dR: np.ndarray, vision_R: np.ndarray) -> np.ndarray:
