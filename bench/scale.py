@@ -23,7 +23,8 @@
    recording: wall time and held-out PSNR.
 
 Every step is cached in ``--cache`` by what determines it (recordings by their arguments, runs by the
-recording and the resolved config, scores and serving by the checkpoint): an interrupted run resumes,
+recording and the resolved config, scores and serving by the checkpoint): an interrupted run resumes
+(a training from its last mid-training checkpoint, ``edmcgs train --resume``),
 and a long training can run alone (``--only train --lengths 60``) while the rest is read from the cache.
 A length repeated trains again, cached apart: ``--lengths 3,60,3`` in a fresh cache runs the lengths
 alternately in one session, and the 60 s / 3 s ratios take the mean of the 3 s runs.
@@ -157,10 +158,15 @@ def train(rec: Path, cache: Path, extra: list[str] | None = None, run: int = 1, 
     ckpt = cache / f"{key}.ckpt"
 
     def make() -> dict:
-        print(f"training {rec.name} {' '.join(extra)} ...", file=sys.stderr)
+        resumed_at, earlier_s = _interrupted(ckpt)
+        print(f"training {rec.name} {' '.join(extra)}"
+              + (f" from step {resumed_at}" if resumed_at else "") + " ...", file=sys.stderr)
         usage = measured_run([*_edmcgs(), "train", str(rec), "--config", preset, "--threads", "1", "-q",
-                              "--force", "--history", str(cache / f"{key}.csv"), "-o", str(ckpt), *extra],
-                             cache / f"{key}.log")
+                              "--resume" if resumed_at else "--force", "--history", str(cache / f"{key}.csv"),
+                              "-o", str(ckpt), *extra], cache / f"{key}.log")
+        # the interrupted part's process was never measured: its steps' own seconds stand in (one thread)
+        usage["wall_s"] += earlier_s
+        usage["cpu_s"] += earlier_s
         from edmcgs.model.checkpoint import load_checkpoint
 
         model = load_checkpoint(ckpt)
@@ -168,9 +174,26 @@ def train(rec: Path, cache: Path, extra: list[str] | None = None, run: int = 1, 
                 "trained_at": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                 "checkpoint_mb": ckpt.stat().st_size / 1e6, "gaussians": len(model.gaussians),
                 "control_points": model.control.num_points, "steps": _steps(cache / f"{key}.csv"),
-                "load_average": os.getloadavg()[0]} | usage
+                "load_average": os.getloadavg()[0], "resumed_at": resumed_at} | usage
 
     return _cached(cache / f"{key}.json", make)
+
+
+def _interrupted(ckpt: Path) -> tuple[int | None, float]:
+    """The step of the mid-training checkpoint an interrupted run left at ``ckpt`` (its train state
+    inside) and the seconds its steps took; ``(None, 0.0)`` where there is none to continue."""
+    if not ckpt.exists():
+        return None, 0.0
+    from edmcgs.errors import CheckpointError
+    from edmcgs.model.checkpoint import read_checkpoint
+
+    try:
+        state = read_checkpoint(ckpt).get("train_state")
+    except CheckpointError:
+        return None, 0.0
+    if not state or not state.get("step"):
+        return None, 0.0
+    return int(state["step"]), float(state.get("train_seconds", 0.0))
 
 
 def _steps(history: Path) -> int | None:
@@ -426,7 +449,9 @@ def markdown(r: dict, command: str) -> str:
             length, _, run = name.partition("#")
             cells = [f"{length} s" + (f", run {run}" if run else ""), str(row["anchors"]),
                      f"{row['events'] / 1e6:.1f} M",
-                     str(row.get("steps", "—"))]
+                     str(row.get("steps", "—"))
+                     + (f" (resumed at {row['resumed_at']}: the time before it is its steps' own)"
+                        if row.get("resumed_at") else "")]
             for key, fmt, unit in (("wall_min", ".1f", " min"), ("cpu_min", ".1f", " min"),
                                    ("cpu_per_s", ".1f", " s"), ("peak_gb", ".2f", " GB"),
                                    ("checkpoint_mb", ".1f", " MB"), ("gaussians", ",", ""),
@@ -546,7 +571,7 @@ def main(argv: list[str] | None = None) -> int:
                         "cpu_per_s": run["cpu_s"] / row["seconds"], "peak_gb": run["peak_gb"],
                         "checkpoint_mb": run["checkpoint_mb"], "gaussians": run["gaussians"],
                         "steps": run["steps"] or planned_steps(path, sets, PRESETS[scene]),
-                        "load_average": run.get("load_average")}
+                        "load_average": run.get("load_average"), "resumed_at": run.get("resumed_at")}
                 scores_path = cache / f"{Path(run['checkpoint']).stem}.scores.json"
                 if "score" in only or scores_path.exists():
                     sc = score(path, run, cache)

@@ -43,3 +43,27 @@ def test_a_length_posed_but_not_trained_leaves_the_ratios_to_the_trained_ones():
     assert summary["street3d_train_peak_gb_10"] == 2.0
     page = scale.markdown(results, "python -m bench.scale --scenes street3d --lengths 3,10,60")
     assert "| 60 s | 1501 of 1501 | 0.02 % | 900 s | 1600 s |" in page and "Not trained yet: 60 s" in page
+
+
+def test_a_training_interrupted_mid_run_is_continued_with_its_time_before_counted(tmp_path, monkeypatch):
+    from edmcgs.model.checkpoint import save_checkpoint
+    from tests.support.models import build
+
+    model, _ = build()
+    commands = []
+
+    def run(cmd, log):
+        commands.append(cmd)
+        return {"wall_s": 10.0, "cpu_s": 9.0, "peak_gb": 0.1}
+
+    monkeypatch.setattr(scale, "measured_run", run)
+    monkeypatch.setattr(scale, "run_key", lambda *a: "k")
+    save_checkpoint(model, tmp_path / "k.ckpt", train_state={"step": 400, "train_seconds": 100.0})
+    done = scale.train(tmp_path / "rec.h5", tmp_path, preset="moving")
+    assert "--resume" in commands[0] and "--force" not in commands[0]
+    assert (done["resumed_at"], done["wall_s"], done["cpu_s"]) == (400, 110.0, 109.0)
+    # a final checkpoint (nothing to continue) trains afresh
+    (tmp_path / "k.json").unlink()
+    save_checkpoint(model, tmp_path / "k.ckpt")
+    again = scale.train(tmp_path / "rec.h5", tmp_path, preset="moving")
+    assert "--force" in commands[1] and again["resumed_at"] is None and again["cpu_s"] == 9.0
