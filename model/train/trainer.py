@@ -156,8 +156,10 @@ class Trainer:
         """Whether the last ``fit`` stopped early at its ``stop`` event."""
         self.saved_step: int | None = None
         """The step of the last checkpoint ``fit`` wrote (None: none yet)."""
-        self.lifted = not cfg.static_set
-        """Whether what moves has been lifted into the anchor windows (config.static_set: at lift_at)."""
+        birth = model.gaussians.birth
+        self.lifted = not cfg.static_set or (birth is not None and bool((birth >= 0).any()))
+        """Whether what moves has been lifted into the anchor windows (config.static_set: at lift_at; a
+        trained model's windows already hold it)."""
         self.lift_counts: list[int] = []
         """Gaussians lifted into each anchor's window (config.static_set), once lifted."""
         self.grown_at: int | None = None
@@ -603,7 +605,7 @@ class Trainer:
         self.generator.set_state(state["generator"])
         self.history = list(state.get("history", []))
         self.train_seconds = float(state.get("train_seconds", 0.0))
-        self.lifted = bool(state.get("lifted", not self.cfg.static_set))
+        self.lifted = bool(state.get("lifted", self.lifted))
         self.lift_counts = list(state.get("lift_counts", []))
 
 

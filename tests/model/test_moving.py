@@ -179,6 +179,7 @@ def test_the_moving_preset_trains_on_a_street_and_round_trips(street, tmp_path):
     save_checkpoint(model, path)
     loaded = load_checkpoint(path)
     assert torch.equal(loaded.gaussians.birth, birth)
+    assert Trainer(loaded, data, progress=False).lifted  # training on from the file does not lift again
     t = int(data.held_out_t_us[1])
     emap = data.event_map(model.tau(t), t)
     pose = data.held_out_pose(1)
