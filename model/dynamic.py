@@ -271,7 +271,8 @@ class EdMCGS(nn.Module):
         """Anchor windows and no static set: ``deform`` at t skins one window's rows (``window_plan``, one
         kept per window). With a static set, drawn in every window and skinned by none, it cuts the model
         to the static set and the window's (``drawn_plan``: the few plans queried last are kept, each
-        holding a copy of the static set). A training step draws ``window_rows(w).drawn`` either way."""
+        holding a copy of the static set). A training step draws ``window_rows(w).drawn`` either way, of the
+        static set what its cameras can see (``motion.windows.with_static``)."""
         return self.gaussians.birth is not None and not self.config.static_set
 
     def window_rows(self, window: int) -> WindowRows:
@@ -361,13 +362,14 @@ class EdMCGS(nn.Module):
             priors.pop(old, None)
         return out
 
-    def window_state(self, trans: Tensor, rot: Tensor, window: int, *,
-                     motion_only: bool = False) -> GaussianState:
+    def window_state(self, trans: Tensor, rot: Tensor, window: int, *, motion_only: bool = False,
+                     rows: WindowRows | None = None) -> GaussianState:
         """What is drawn in anchor ``window``'s gap, whatever the number of windows (the rows
         ``window_rows(window).drawn``, in the model's order): its Gaussians skinned by its control points'
         transforms (as ``control_motion(..., window=window)`` gives them), the static set as it stands.
-        motion_only: as in ``state_from_motion``."""
-        rows = self.window_rows(window)
+        motion_only: as in ``state_from_motion``. rows: ``window_rows(window)`` with a part of the static
+        set (``motion.windows.with_static``: what a training step's cameras can see)."""
+        rows = self.window_rows(window) if rows is None else rows
         g, cp = self.gaussians, self.control
         canon = g.activated(rows.drawn)
         if motion_only:
@@ -414,15 +416,15 @@ class EdMCGS(nn.Module):
         return GaussianState(means, quats, canon[2], opacities, canon[4])
 
     def state_at(self, t: float, event_map: Tensor | None = None, ev_w2c: Tensor | None = None, *,
-                 static: bool = False, window: int | None = None,
-                 weights: Tensor | None = None) -> GaussianState:
+                 static: bool = False, window: int | None = None, weights: Tensor | None = None,
+                 rows: WindowRows | None = None) -> GaussianState:
         """The (differentiable) Gaussians at normalised time ``t``; see ``control_motion``. ``window``:
         the anchor (index) whose Gaussians are drawn, moved relative to that anchor's time (with anchor
-        windows only they are returned, the static set's included: ``window_state``). weights: as in
-        ``state_from_motion``."""
+        windows only they are returned, the static set's included: ``window_state``, as are ``rows``).
+        weights: as in ``state_from_motion``."""
         if window is not None and self.gaussians.birth is not None:
             trans, rot, _ = self.control_motion(t, event_map, ev_w2c, static=static, window=window)
-            return self.window_state(trans, rot, window)
+            return self.window_state(trans, rot, window, rows=rows)
         trans, rot, _ = self.control_motion(t, event_map, ev_w2c, static=static)
         return self.state_from_motion(trans, rot, weights=weights)
 

@@ -11,7 +11,7 @@ of a step or a render follows the window, not the number of windows.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -59,9 +59,25 @@ def window_rows(gaussian_birth: Tensor, control_birth: Tensor, bind: Tensor, gra
                       skinned)
 
 
+def with_static(rows: WindowRows, gaussian_birth: Tensor, static: Tensor) -> WindowRows:
+    """``rows`` drawing, beside the window's Gaussians, only the static rows ``static`` (int64, ascending):
+    those a training step's cameras can see (``render.projection.may_draw``)."""
+    mask = torch.zeros(gaussian_birth.shape[0], dtype=torch.bool, device=gaussian_birth.device)
+    mask[rows.gaussians] = True
+    mask[static] = True
+    drawn = torch.nonzero(mask)[:, 0]
+    return replace(rows, drawn=drawn, skinned=torch.nonzero(gaussian_birth[drawn] != STATIC)[:, 0])
+
+
+WINDOWS_KEPT = 16
+"""Windows whose rows an index keeps (the last used): each holds a copy of the static set's indices,
+which for every window of a long moving-camera recording would grow as windows x static set."""
+
+
 class WindowIndex:
-    """Each window's rows, built on first use and kept while the tensors they derive from are unchanged
-    (``key``: the binding and the windows of a model; a rebind or a densification changes it)."""
+    """Windows' rows, built on use and kept (the ``WINDOWS_KEPT`` last used) while the tensors they derive
+    from are unchanged (``key``: the binding and the windows of a model; a rebind or a densification
+    changes it)."""
 
     def __init__(self, key: tuple):
         self.key = key
@@ -69,7 +85,10 @@ class WindowIndex:
 
     def rows(self, window: int, gaussian_birth: Tensor, control_birth: Tensor, bind: Tensor,
              graph: Tensor) -> WindowRows:
-        found = self._rows.get(window)
+        found = self._rows.pop(window, None)
         if found is None:
-            found = self._rows[window] = window_rows(gaussian_birth, control_birth, bind, graph, window)
+            found = window_rows(gaussian_birth, control_birth, bind, graph, window)
+        self._rows[window] = found  # newest last
+        for old in list(self._rows)[:-WINDOWS_KEPT]:
+            self._rows.pop(old, None)
         return found

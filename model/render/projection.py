@@ -32,6 +32,8 @@ ALPHA_MIN = 1.0 / 255.0
 """A splat contributes to a pixel only where its alpha reaches this."""
 T_MIN = 1e-4
 """A pixel stops taking splats once blending the next would leave less transmittance than this."""
+NEAR = 0.01
+"""Gaussians at camera z <= NEAR are culled (``rasterize``'s default)."""
 FRUSTUM_SLACK = 0.3
 """The Jacobian's x/z, y/z are clamped to the view frustum widened by this fraction of tan(fov/2)."""
 
@@ -130,3 +132,36 @@ def screen_rect(splats: Splats, opacities: Tensor, width: int, height: int, near
         rect = torch.stack([x0, y0, x1, y1], -1)
         rect = torch.where(ok[:, None] & torch.isfinite(rect), rect, torch.zeros_like(rect))
         return rect.long()
+
+
+def may_draw(means: Tensor, max_scales: Tensor, w2c: Tensor, intrinsics: Intrinsics, near: float, *,
+             reach: float = 0.0, growth: float = 1.0) -> Tensor:
+    """[N] bool: False only for Gaussians that ``screen_rect`` cannot place on this view's screen, even
+    after each moved by up to ``reach`` (world units, any direction) and its scales grown by ``growth``.
+
+    means: Tensor       # [N, 3] world positions
+    max_scales: Tensor  # [N] each Gaussian's largest standard deviation (any rotation)
+    w2c: Tensor         # [4, 4] on the means' device
+    The screen radius is bounded through the Jacobian's Frobenius norm, its clamped x/z and y/z at their
+    largest (lambda_max <= |J|^2 s^2 + the low-pass and screen_rect's 0.1 floor), and the mean's shift by
+    the largest gradient of the projection over the ball of radius ``reach``. A Gaussian that may cross
+    the near plane is kept."""
+    fx, fy, cx, cy = intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy
+    width, height = intrinsics.width, intrinsics.height
+    with torch.no_grad():
+        cam = means @ w2c[:3, :3].T + w2c[:3, 3]
+        x, y, z = cam.unbind(-1)
+        zc = (z - reach).clamp_min(near)  # the nearest the ball comes, where every bound is largest
+        tx = max(cx, width - cx) / fx + FRUSTUM_SLACK * 0.5 * width / fx
+        ty = max(cy, height - cy) / fy + FRUSTUM_SLACK * 0.5 * height / fy
+        jac = math.sqrt(fx * fx * (1 + tx * tx) + fy * fy * (1 + ty * ty)) / zc
+        # the tiles' 3-sigma radius, or the alpha_min ellipse where it reaches farther (opacity <= 1)
+        sigmas = max(SIGMAS, math.sqrt(2.002 * math.log(1 / ALPHA_MIN) + 1e-3))
+        radius = sigmas * torch.sqrt((jac * max_scales * growth).square() + LOWPASS + math.sqrt(0.1)) + 2
+        inv_z = 1.0 / z.clamp_min(near)
+        u, v = fx * x * inv_z + cx, fy * y * inv_z + cy
+        if reach > 0:  # |grad u| <= (fx / z) sqrt(1 + (x / z)^2) over the ball, at its nearest z
+            radius = radius + reach * (fx + fy) / zc * (1 + (x.abs() + y.abs() + reach) / zc)
+        on_screen = (u + radius >= 0) & (u - radius < width) & (v + radius >= 0) & (v - radius < height)
+        crossing = (z - reach <= near) & (z + reach > near)
+        return ((z > near) & on_screen) | crossing

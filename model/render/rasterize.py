@@ -30,7 +30,7 @@ from edmcgs.model.render.composite_fast import composite_fast
 from edmcgs.model.render.io import RenderOutput, check_inputs
 from edmcgs.model.render.project_fast import KERNELS as _PROJECT_KERNELS
 from edmcgs.model.render.project_fast import project_fast, sh_color_fast
-from edmcgs.model.render.projection import Splats, ewa_project, screen_rect
+from edmcgs.model.render.projection import NEAR, Splats, ewa_project, screen_rect
 from edmcgs.model.render.rasterize_gsplat import available as gsplat_available
 from edmcgs.model.render.rasterize_gsplat import composite_gsplat
 from edmcgs.model.render.rasterize_gsplat import usable as gsplat_usable
@@ -74,7 +74,7 @@ def _colors(colors: Tensor, means: Tensor, w2c: Tensor) -> Tensor:
 
 
 def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, w2c,
-              intrinsics: Intrinsics, *, background=None, near: float = 0.01, return_depth: bool = False,
+              intrinsics: Intrinsics, *, background=None, near: float = NEAR, return_depth: bool = False,
               return_alpha: bool = False, backend: str | None = None) -> RenderOutput:
     """Render Gaussians into one view; differentiable w.r.t. means, quats, scales, opacities, colors.
 

@@ -85,6 +85,18 @@ class RowAdam(torch.optim.Adam):
                 p[index], state["exp_avg"][index], state["exp_avg_sq"][index] = x, m, v
                 state["row_step"][index] = state["step"]
 
+    def reach(self, p: Tensor) -> float:
+        """The farthest any coordinate of a row of ``p`` (a row-group parameter) can move when caught up:
+        the largest owed move times the largest |m| / sqrt(v) Adam can hold, (1 - beta1) / sqrt((1 - beta2)
+        (1 - beta1^2 / beta2)) (Cauchy-Schwarz over the past gradients). 0 before its first step."""
+        state = self.state[p]
+        if not state or "owed" not in state:
+            return 0.0
+        group = next(g for g, q in self._row_params() if q is p)
+        beta1, beta2 = group["betas"]
+        ratio = (1 - beta1) / math.sqrt((1 - beta2) * (1 - beta1 ** 2 / beta2))
+        return float(state["owed"][:state["step"] + 1].max()) * ratio
+
     def flush(self) -> None:
         """Every row current (``catch_up`` of all)."""
         self.catch_up(None)

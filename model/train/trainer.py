@@ -36,14 +36,16 @@ from tqdm.auto import tqdm
 
 from edmcgs.atomic import atomic_output
 from edmcgs.errors import InvalidInputError, TrainingError
-from edmcgs.geometry import world_to_camera
+from edmcgs.geometry import Intrinsics, world_to_camera
 from edmcgs.model.checkpoint import save_checkpoint
 from edmcgs.model.data import EventGrid, TrainingData
 from edmcgs.model.dynamic import EdMCGS, background_color, render_image
 from edmcgs.model.eval.evaluation import evaluate, summarize
-from edmcgs.model.motion.gaussians import PER_GAUSSIAN, Gaussians, GaussianState
+from edmcgs.model.motion.gaussians import PER_GAUSSIAN, STATIC, Gaussians, GaussianState
 from edmcgs.model.motion.initialization import backproject_anchors
 from edmcgs.model.motion.skinning import lbs
+from edmcgs.model.motion.windows import WindowRows, with_static
+from edmcgs.model.render.projection import NEAR, may_draw
 from edmcgs.model.train.curves import Curves
 from edmcgs.model.train.density import (
     GradientStats,
@@ -258,6 +260,24 @@ class Trainer:
         rows = self.model.window_rows(window)
         return cp.positions[rows.control], rows.graph
 
+    def _rows_in_view(self, window: int, cameras: list[tuple[Tensor, Intrinsics]]) -> WindowRows:
+        """``window_rows(window)`` drawing, of the static set, only what ``cameras`` (w2c, intrinsics) can
+        see: the rest has no gradient, and a long moving-camera recording's static set is mostly out of any
+        one view. Exact: the bound (``may_draw``) lets each row move as far as the momentum it owes
+        (``RowAdam.reach``) would take it before the step reads it."""
+        g, opt = self.model.gaussians, self.optimizer
+        rows = self.model.window_rows(window)
+        static = torch.nonzero(g.birth == STATIC)[:, 0]
+        if len(static) == 0:
+            return rows
+        means = g.means.detach()[static]
+        scales = g.log_scales.detach()[static].amax(-1).exp()
+        reach, growth = math.sqrt(3) * opt.reach(g.means), math.exp(opt.reach(g.log_scales))
+        seen = torch.zeros(len(static), dtype=torch.bool, device=static.device)
+        for w2c, intr in cameras:
+            seen |= may_draw(means, scales, w2c, intr, NEAR, reach=reach, growth=growth)
+        return with_static(rows, g.birth, static[seen])
+
     def train_step(self) -> dict[str, float]:
         """One optimisation step; returns the loss terms (floats).
 
@@ -282,16 +302,23 @@ class Trainer:
             b = int(self.rng.integers(a + 1, min(s, a + cfg.max_pair_steps) + 1))
         # With anchor windows a step's work is the rows of the windows it draws (and the static set)
         rowwise = model_has_windows(model)
-        rows = None
+        rows = window = None
         if rowwise:
-            drawn = [n, gap] if paired else [n]
-            rows = torch.unique(torch.cat([model.window_rows(w).drawn for w in drawn]))
+            cameras = {n: [(self.anchor_w2c[n], self.intr)]}
+            if paired:
+                cameras.setdefault(gap, []).extend([(self.grid_w2c[gap, a], self.event_intr),
+                                                    (self.grid_w2c[gap, b], self.event_intr)])
+                if gap + 1 < len(self.anchor_w2c):  # the next anchor's frame
+                    cameras[gap].append((self.anchor_w2c[gap + 1], self.intr))
+            with stage("rows in view"):
+                window = {w: self._rows_in_view(w, cams) for w, cams in cameras.items()}
+                rows = torch.unique(torch.cat([r.drawn for r in window.values()]))
             with stage("optimizer: catch-up"):
                 self.optimizer.catch_up(rows)  # their momentum moves since last drawn, before they are read
         with stage("anchor: deform"):
             weights = None
             if rowwise:
-                anchor_state = model.state_at(self.anchor_times[n], static=static, window=n)
+                anchor_state = model.state_at(self.anchor_times[n], static=static, window=n, rows=window[n])
             else:
                 weights = model.control.weights(model.gaussians.means)  # the same for every skin of this step
                 anchor_state = model.state_at(self.anchor_times[n], static=static, weights=weights)
@@ -311,7 +338,7 @@ class Trainer:
             renders = []
             for trans, rot, k in ((trans_a, rot_a, a), (trans_b, rot_b, b)):
                 with stage("event pair: skin"):
-                    st = model.window_state(trans, rot, gap) if rowwise else \
+                    st = model.window_state(trans, rot, gap, rows=window[gap]) if rowwise else \
                         model.state_from_motion(trans, rot, weights=weights)
                     st = GaussianState(st.means, st.quats, st.scales, st.opacities, st.colors.detach())
                 with stage("event pair: render"):
@@ -332,7 +359,7 @@ class Trainer:
                 # The gap's Gaussians carried by all its events to the next anchor frame.
                 with stage("next anchor"):
                     trans_e, rot_e, _ = (trans_b, rot_b, None) if b == s else self._gap_motion(gap, s, cum)
-                    st = model.window_state(trans_e, rot_e, gap, motion_only=True)
+                    st = model.window_state(trans_e, rot_e, gap, motion_only=True, rows=window[gap])
                     image_next = self._render(st, self.anchor_w2c_host[gap + 1])
                     target = self.anchor_images[gap + 1]
                     terms["next"] = self.photometric_loss(image_next, target, cfg.lambda_dssim) \
@@ -385,7 +412,7 @@ class Trainer:
             self.stats.add(screen_space_grad(anchor_state.means.grad, anchor_state.means.detach(),
                                              self.anchor_w2c[n], self.intr.fx, self.intr.fy,
                                              self.intr.width, self.intr.height),
-                           model.window_rows(n).drawn if rowwise else None)
+                           window[n].drawn if rowwise else None)
         with stage("optimizer step"):
             self.optimizer.step()
         self.step += self.stride

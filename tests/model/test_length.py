@@ -10,6 +10,7 @@ from edmcgs.model.config import preset
 from edmcgs.model.data import EventGrid
 from edmcgs.model.motion import gaussians as gaussians_module
 from edmcgs.model.motion.row_grad import at_rows, gather_rows
+from edmcgs.model.motion.windows import WINDOWS_KEPT, WindowIndex
 from edmcgs.model.train.row_adam import RowAdam, select_rows
 from edmcgs.model.train.trainer import Trainer
 from tests.support import tiny_scene
@@ -87,7 +88,8 @@ def test_event_sums_made_on_demand_equal_the_sums_made_up_front():
 def test_row_adam_is_torch_s_adam_paid_lazily_whatever_rows_wait_and_for_how_long():
     """Rows left out of a step wait, their momentum moves owed; paid (``catch_up`` of the rows a step
     draws, ``flush`` of all), the path is torch's Adam's with zero gradients there: with a learning rate
-    changing every step, rows idle past the momentum's horizon, and a state saved and loaded midway."""
+    changing every step, rows idle past the momentum's horizon, and a state saved and loaded midway; what a
+    waiting row owes never exceeds ``reach``."""
     torch.manual_seed(0)
     start = torch.randn(40, 3)
     ours, theirs = torch.nn.Parameter(start.clone()), torch.nn.Parameter(start.clone())
@@ -111,6 +113,9 @@ def test_row_adam_is_torch_s_adam_paid_lazily_whatever_rows_wait_and_for_how_lon
             assert row_adam.state[ours]["row_step"].dtype == torch.long
             assert row_adam.state[ours]["owed"].dtype == torch.float64
             assert row_adam.state[ours]["step"] == 80
+        # what any waiting row still owes stays within the bound the view cull allows for (reach)
+        owed = (theirs.detach() - ours.detach()).abs().max()
+        assert owed <= row_adam.reach(ours) * (1 + 1e-5) + 1e-7 and row_adam.reach(ours) < 100 * 0.1
         row_adam.catch_up(rows)
         if rows is not None:  # the rows a step reads are current before it
             torch.testing.assert_close(ours.detach()[rows], theirs.detach()[rows], rtol=1e-5, atol=1e-5)
@@ -238,3 +243,24 @@ def test_a_windowed_run_takes_its_steps_per_window():
     assert trainer.total_steps == 6  # three anchors: two spans
     trainer.fit()
     assert trainer.step == 6
+
+
+def test_a_window_index_keeps_the_rows_of_the_windows_used_last():
+    """Each window's rows hold a copy of the static set's indices: an index keeps ``WINDOWS_KEPT`` windows'
+    (the last used), not every window's, and a window built again has the same rows."""
+    gen = torch.Generator().manual_seed(0)
+    birth = torch.randint(-1, 30, (3000,), generator=gen)
+    control_birth = torch.arange(30).repeat_interleave(4)
+    bind = torch.randint(0, 120, (3000, 4), generator=gen)
+    graph = torch.randint(0, 120, (120, 3), generator=gen)
+    index = WindowIndex(key=("k",))
+    first = index.rows(0, birth, control_birth, bind, graph)
+    assert index.rows(0, birth, control_birth, bind, graph) is first  # kept while used
+    for w in range(30):
+        index.rows(w, birth, control_birth, bind, graph)
+    assert sorted(index._rows) == list(range(30 - WINDOWS_KEPT, 30))
+    again = index.rows(0, birth, control_birth, bind, graph)
+    assert again is not first
+    for name in ("gaussians", "control", "bind", "graph", "drawn", "skinned"):
+        assert torch.equal(getattr(again, name), getattr(first, name))
+    assert again.own == first.own
