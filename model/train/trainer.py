@@ -302,7 +302,7 @@ class Trainer:
             b = int(self.rng.integers(a + 1, min(s, a + cfg.max_pair_steps) + 1))
         # With anchor windows a step's work is the rows of the windows it draws (and the static set)
         rowwise = model_has_windows(model)
-        rows = window = None
+        rows = in_view = None
         if rowwise:
             cameras = {n: [(self.anchor_w2c[n], self.intr)]}
             if paired:
@@ -311,14 +311,14 @@ class Trainer:
                 if gap + 1 < len(self.anchor_w2c):  # the next anchor's frame
                     cameras[gap].append((self.anchor_w2c[gap + 1], self.intr))
             with stage("rows in view"):
-                window = {w: self._rows_in_view(w, cams) for w, cams in cameras.items()}
-                rows = torch.unique(torch.cat([r.drawn for r in window.values()]))
+                in_view = {w: self._rows_in_view(w, cams) for w, cams in cameras.items()}
+                rows = torch.unique(torch.cat([r.drawn for r in in_view.values()]))
             with stage("optimizer: catch-up"):
                 self.optimizer.catch_up(rows)  # their momentum moves since last drawn, before they are read
         with stage("anchor: deform"):
             weights = None
             if rowwise:
-                anchor_state = model.state_at(self.anchor_times[n], static=static, window=n, rows=window[n])
+                anchor_state = model.state_at(self.anchor_times[n], static=static, window=n, rows=in_view[n])
             else:
                 weights = model.control.weights(model.gaussians.means)  # the same for every skin of this step
                 anchor_state = model.state_at(self.anchor_times[n], static=static, weights=weights)
@@ -338,7 +338,7 @@ class Trainer:
             renders = []
             for trans, rot, k in ((trans_a, rot_a, a), (trans_b, rot_b, b)):
                 with stage("event pair: skin"):
-                    st = model.window_state(trans, rot, gap, rows=window[gap]) if rowwise else \
+                    st = model.window_state(trans, rot, gap, rows=in_view[gap]) if rowwise else \
                         model.state_from_motion(trans, rot, weights=weights)
                     st = GaussianState(st.means, st.quats, st.scales, st.opacities, st.colors.detach())
                 with stage("event pair: render"):
@@ -359,7 +359,7 @@ class Trainer:
                 # The gap's Gaussians carried by all its events to the next anchor frame.
                 with stage("next anchor"):
                     trans_e, rot_e, _ = (trans_b, rot_b, None) if b == s else self._gap_motion(gap, s, cum)
-                    st = model.window_state(trans_e, rot_e, gap, motion_only=True, rows=window[gap])
+                    st = model.window_state(trans_e, rot_e, gap, motion_only=True, rows=in_view[gap])
                     image_next = self._render(st, self.anchor_w2c_host[gap + 1])
                     target = self.anchor_images[gap + 1]
                     terms["next"] = self.photometric_loss(image_next, target, cfg.lambda_dssim) \
@@ -412,7 +412,7 @@ class Trainer:
             self.stats.add(screen_space_grad(anchor_state.means.grad, anchor_state.means.detach(),
                                              self.anchor_w2c[n], self.intr.fx, self.intr.fy,
                                              self.intr.width, self.intr.height),
-                           window[n].drawn if rowwise else None)
+                           in_view[n].drawn if rowwise else None)
         with stage("optimizer step"):
             self.optimizer.step()
         self.step += self.stride
