@@ -134,6 +134,11 @@ def screen_rect(splats: Splats, opacities: Tensor, width: int, height: int, near
         return rect.long()
 
 
+_REACH_SIGMAS = max(SIGMAS, math.sqrt(2.002 * math.log(1 / ALPHA_MIN) + 1e-3))
+"""How far from its mean ``screen_rect`` can place a splat, in standard deviations: the tiles' 3-sigma
+radius, or the alpha_min ellipse of an opaque splat where that reaches farther."""
+
+
 def may_draw(means: Tensor, max_scales: Tensor, w2c: Tensor, intrinsics: Intrinsics, near: float, *,
              reach: float = 0.0, growth: float = 1.0) -> Tensor:
     """[N] bool: False only for Gaussians that ``screen_rect`` cannot place on this view's screen, even
@@ -155,12 +160,11 @@ def may_draw(means: Tensor, max_scales: Tensor, w2c: Tensor, intrinsics: Intrins
         tx = max(cx, width - cx) / fx + FRUSTUM_SLACK * 0.5 * width / fx
         ty = max(cy, height - cy) / fy + FRUSTUM_SLACK * 0.5 * height / fy
         jac = math.sqrt(fx * fx * (1 + tx * tx) + fy * fy * (1 + ty * ty)) / zc
-        # the tiles' 3-sigma radius, or the alpha_min ellipse where it reaches farther (opacity <= 1)
-        sigmas = max(SIGMAS, math.sqrt(2.002 * math.log(1 / ALPHA_MIN) + 1e-3))
-        radius = sigmas * torch.sqrt((jac * max_scales * growth).square() + LOWPASS + math.sqrt(0.1)) + 2
+        spread = (jac * max_scales * growth).square() + LOWPASS + math.sqrt(0.1)
+        radius = _REACH_SIGMAS * torch.sqrt(spread) + 2
         inv_z = 1.0 / z.clamp_min(near)
         u, v = fx * x * inv_z + cx, fy * y * inv_z + cy
-        if reach > 0:  # |grad u| <= (fx / z) sqrt(1 + (x / z)^2) over the ball, at its nearest z
+        if reach > 0:  # |grad u| <= (fx / z) (1 + |x| / z) over the ball, at its nearest z (v alike)
             radius = radius + reach * (fx + fy) / zc * (1 + (x.abs() + y.abs() + reach) / zc)
         on_screen = (u + radius >= 0) & (u - radius < width) & (v + radius >= 0) & (v - radius < height)
         crossing = (z - reach <= near) & (z + reach > near)

@@ -260,23 +260,25 @@ class Trainer:
         rows = self.model.window_rows(window)
         return cp.positions[rows.control], rows.graph
 
-    def _rows_in_view(self, window: int, cameras: list[tuple[Tensor, Intrinsics]]) -> WindowRows:
-        """``window_rows(window)`` drawing, of the static set, only what ``cameras`` (w2c, intrinsics) can
-        see: the rest has no gradient, and a long moving-camera recording's static set is mostly out of any
-        one view. Exact: the bound (``may_draw``) lets each row move as far as the momentum it owes
-        (``RowAdam.reach``) would take it before the step reads it."""
+    def _rows_in_view(self, cameras: dict[int, list[tuple[Tensor, Intrinsics]]]) -> dict[int, WindowRows]:
+        """Per window, ``window_rows(window)`` drawing, of the static set, only what its ``cameras`` (w2c,
+        intrinsics) can see: the rest has no gradient, and a long moving-camera recording's static set is
+        mostly out of any one view. Exact: the bound (``may_draw``) lets each row move as far as the
+        momentum it owes (``RowAdam.reach``) would take it before the step reads it."""
         g, opt = self.model.gaussians, self.optimizer
-        rows = self.model.window_rows(window)
         static = torch.nonzero(g.birth == STATIC)[:, 0]
         if len(static) == 0:
-            return rows
+            return {w: self.model.window_rows(w) for w in cameras}
         means = g.means.detach()[static]
         scales = g.log_scales.detach()[static].amax(-1).exp()
         reach, growth = math.sqrt(3) * opt.reach(g.means), math.exp(opt.reach(g.log_scales))
-        seen = torch.zeros(len(static), dtype=torch.bool, device=static.device)
-        for w2c, intr in cameras:
-            seen |= may_draw(means, scales, w2c, intr, NEAR, reach=reach, growth=growth)
-        return with_static(rows, g.birth, static[seen])
+        out = {}
+        for window, cams in cameras.items():
+            seen = torch.zeros(len(static), dtype=torch.bool, device=static.device)
+            for w2c, intr in cams:
+                seen |= may_draw(means, scales, w2c, intr, NEAR, reach=reach, growth=growth)
+            out[window] = with_static(self.model.window_rows(window), g.birth, static[seen])
+        return out
 
     def train_step(self) -> dict[str, float]:
         """One optimisation step; returns the loss terms (floats).
@@ -311,7 +313,7 @@ class Trainer:
                 if gap + 1 < len(self.anchor_w2c):  # the next anchor's frame
                     cameras[gap].append((self.anchor_w2c[gap + 1], self.intr))
             with stage("rows in view"):
-                in_view = {w: self._rows_in_view(w, cams) for w, cams in cameras.items()}
+                in_view = self._rows_in_view(cameras)
                 rows = torch.unique(torch.cat([r.drawn for r in in_view.values()]))
             with stage("optimizer: catch-up"):
                 self.optimizer.catch_up(rows)  # their momentum moves since last drawn, before they are read

@@ -205,7 +205,8 @@ def test_a_step_draws_the_static_rows_its_cameras_see_and_trains_as_if_it_drew_t
             g.means[hidden] = behind + 0.1 * g.means[hidden]
         trainer = Trainer(model, data, progress=False)
         if not cull:
-            monkeypatch.setattr(trainer, "_rows_in_view", lambda w, cameras, m=model: m.window_rows(w))
+            monkeypatch.setattr(trainer, "_rows_in_view", lambda cameras, m=model: {w: m.window_rows(w)
+                                                                                     for w in cameras})
         left_out, losses = [], []
         for _ in range(cfg.iterations):
             losses.append(trainer.train_step()["loss"])
