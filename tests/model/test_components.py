@@ -50,6 +50,19 @@ def test_knn_matches_brute_force_and_excludes_self():
     assert torch.allclose(d2, ref_d, atol=1e-6)
 
 
+def test_knn_exact_far_from_the_origin_with_more_neighbours_than_points():
+    gen = torch.Generator().manual_seed(0)
+    pts = torch.rand(5, 4, generator=gen) + torch.tensor([0.0, 0.0, 0.0, 1e6])
+    queries = torch.rand(70, 4, generator=gen) + torch.tensor([0.0, 0.0, 0.0, 1e6])
+    d2, idx = knn(queries, pts, 8, exact=True, chunk=16)
+    diff = (queries[:, None].double() - pts[None].double()).square().sum(-1)
+    ref_d, ref_i = torch.topk(diff, 5, largest=False)
+    assert idx.shape == (70, 5) and torch.equal(idx, ref_i)
+    assert torch.allclose(d2.double(), ref_d, atol=1e-5)
+    empty_d, empty_i = knn(queries[:0], pts, 2)
+    assert empty_d.shape == (0, 2) and empty_i.dtype == torch.long
+
+
 def test_farthest_point_sampling_spreads_out():
     gen = torch.Generator().manual_seed(0)
     cluster = torch.rand(500, 3, generator=gen) * 0.01
