@@ -30,6 +30,11 @@ MARGIN = 2
 """Texels beyond the outermost projected pixel on each side (bilinear reads at the edge stay inside)."""
 
 
+MEDIAN_BAND_BYTES = 64 << 20
+"""Memory the samples of one band of texture rows may take while the median is fitted (the texture of a
+moving camera's 151 anchors took about 2 GB whole)."""
+
+
 class BackgroundLayer(nn.Module):
     """Texture [C, Ht, Wt] on the reference image plane; texel (i, j) is reference pixel (u0 + j, v0 + i).
 
@@ -145,34 +150,40 @@ class BackgroundLayer(nn.Module):
         return out[0].permute(1, 2, 0)
 
     @torch.no_grad()
-    def fit_median(self, images: np.ndarray, rotations: np.ndarray, intr: Intrinsics) -> None:
+    def fit_median(self, images: np.ndarray, rotations: np.ndarray, intr: Intrinsics, *,
+                   band_bytes: int = MEDIAN_BAND_BYTES) -> None:
         """Set the texture to the per-texel median of ``images`` [F, H, W, C] uint8 seen by cameras with
-        ``rotations`` [F, 3, 3]; texels no image sees take the median of all pixels."""
-        _, ht, wt = self.texture.shape
-        k = self.ref_k.tolist()
-        vv, uu = torch.meshgrid(torch.arange(ht, dtype=torch.float64), torch.arange(wt, dtype=torch.float64),
-                                indexing="ij")
-        u_ref, v_ref = uu + self.origin[0], vv + self.origin[1]
-        rays = torch.stack([(u_ref - k[2]) / k[0], (v_ref - k[3]) / k[1], torch.ones_like(u_ref)], -1)
-        samples = []
-        for img, rot in zip(images, np.asarray(rotations, dtype=np.float64), strict=True):
-            d = rays @ (torch.from_numpy(rot).T @ self.ref_rot).T  # reference frame -> this camera
-            z = d[..., 2]
-            u = intr.fx * d[..., 0] / z.clamp_min(1e-6) + intr.cx
-            v = intr.fy * d[..., 1] / z.clamp_min(1e-6) + intr.cy
-            inside = (z > 1e-6) & (u >= -0.5) & (u <= intr.width - 0.5) & (v >= -0.5) \
-                & (v <= intr.height - 0.5)
-            grid = torch.stack([(2 * u + 1) / intr.width - 1, (2 * v + 1) / intr.height - 1], -1).float()
-            src = torch.from_numpy(img.astype(np.float32) / 255.0).permute(2, 0, 1)[None]
-            val = F.grid_sample(src, grid[None], mode="bilinear", padding_mode="border",
-                                align_corners=False)[0]
-            samples.append(torch.where(inside[None], val, torch.full_like(val, float("nan"))))
-        stack = torch.stack(samples)                                     # [F, C, Ht, Wt]
-        med = torch.nanmedian(stack, dim=0).values
+        ``rotations`` [F, 3, 3]; texels no image sees take the median of all pixels. Bands of texture
+        rows at a time, each holding every image's samples in at most about ``band_bytes``."""
+        channels, ht, wt = self.texture.shape
+        rotations = np.asarray(rotations, dtype=np.float64)
         fallback = np.median(images.reshape(-1, images.shape[-1]), 0).astype(np.float32) / 255
-        fallback = torch.from_numpy(fallback)
-        med = torch.where(torch.isnan(med), fallback[:, None, None].expand_as(med), med)
-        self.texture.copy_(torch.logit(med.clamp(0.01, 0.99)))
+        fallback = torch.from_numpy(fallback)[:, None, None]
+        sources = [torch.from_numpy(img.astype(np.float32) / 255.0).permute(2, 0, 1)[None] for img in images]
+        to_camera = [(torch.from_numpy(rot).T @ self.ref_rot).T for rot in rotations]  # reference -> camera
+        k = self.ref_k.tolist()
+        band = max(1, int(band_bytes) // max(1, len(images) * channels * wt * 4))
+        for top in range(0, ht, band):
+            rows = min(band, ht - top)
+            vv, uu = torch.meshgrid(torch.arange(top, top + rows, dtype=torch.float64),
+                                    torch.arange(wt, dtype=torch.float64), indexing="ij")
+            u_ref, v_ref = uu + self.origin[0], vv + self.origin[1]
+            rays = torch.stack([(u_ref - k[2]) / k[0], (v_ref - k[3]) / k[1], torch.ones_like(u_ref)], -1)
+            stack = torch.empty(len(images), channels, rows, wt)
+            for i, (src, rot) in enumerate(zip(sources, to_camera, strict=True)):
+                d = rays @ rot
+                z = d[..., 2]
+                u = intr.fx * d[..., 0] / z.clamp_min(1e-6) + intr.cx
+                v = intr.fy * d[..., 1] / z.clamp_min(1e-6) + intr.cy
+                inside = (z > 1e-6) & (u >= -0.5) & (u <= intr.width - 0.5) & (v >= -0.5) \
+                    & (v <= intr.height - 0.5)
+                grid = torch.stack([(2 * u + 1) / intr.width - 1, (2 * v + 1) / intr.height - 1], -1).float()
+                val = F.grid_sample(src, grid[None], mode="bilinear", padding_mode="border",
+                                    align_corners=False)[0]
+                stack[i] = val.masked_fill_(~inside[None], float("nan"))
+            med = torch.nanmedian(stack, dim=0).values                  # [C, rows, Wt]
+            med = torch.where(torch.isnan(med), fallback.expand_as(med), med)
+            self.texture[:, top:top + rows].copy_(torch.logit(med.clamp(0.01, 0.99)))
 
 
 def composite(image: Tensor, alpha: Tensor, background: Tensor) -> Tensor:

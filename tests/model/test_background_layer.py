@@ -71,6 +71,24 @@ def test_panned_layer_covers_every_view_and_is_continuous():
     torch.testing.assert_close(near, layer.image(np.eye(3), intr), atol=2e-3, rtol=0)
 
 
+def test_median_fitted_in_bands_of_rows_equals_the_whole_texture_at_once():
+    intr = Intrinsics(40.0, 40.0, 23.5, 15.5, 48, 32)
+    rots = np.stack([np.eye(3), _yaw(5)[:3, :3], _yaw(-4)[:3, :3]])
+    rng = np.random.default_rng(0)
+    images = rng.integers(0, 256, (3, 32, 48, 2), dtype=np.uint8)
+    whole, banded = BackgroundLayer.covering(rots, intr, 2), BackgroundLayer.covering(rots, intr, 2)
+    whole.fit_median(images, rots, intr, band_bytes=1 << 40)
+    banded.fit_median(images, rots, intr, band_bytes=1)  # one texture row a band
+    torch.testing.assert_close(banded.texture, whole.texture, rtol=0, atol=0)
+    assert torch.isfinite(whole.texture).all()
+    # Three still cameras: every texel is the median of its three pixels.
+    still = np.stack([np.eye(3)] * 3)
+    layer = BackgroundLayer.covering(still, intr, 2)
+    layer.fit_median(images, still, intr, band_bytes=1)
+    expected = np.clip(np.median(images, 0) / 255, 0.01, 0.99)
+    np.testing.assert_allclose(layer.image(np.eye(3), intr).detach().numpy(), expected, atol=1e-5)
+
+
 def test_a_turned_cameras_texels_are_where_its_rays_cross_the_reference_plane():
     """Each pixel's ray, turned into the reference camera and projected by it, lands on the texel the grid
     reads (float64 geometry here; the grid is applied in float32: within 1e-3 of a texel)."""
